@@ -1,0 +1,20 @@
+"""arraycontact: exact closest-point contact detection for finite-element surfaces.
+
+`detect(slave, master)` finds, for every slave node, the closest point on the master surface:
+contact face, natural coordinates, point, signed gap, normal and feature. Back ends: NumPy
+(default), JAX (`backend="jax"`) and Warp (`backend="warp"`), loaded only when asked for.
+"""
+
+from . import reference as reference
+from . import scenes as scenes
+from ._contacts import Contacts as Contacts, Counts as Counts, Feature as Feature
+from ._contacts import Status as Status
+from ._detect import detect as detect
+from ._elements import ELEMENTS as ELEMENTS
+from ._io import read_surface as read_surface
+from ._prepare import default_d_max as default_d_max
+from ._surface import Surface as Surface
+
+__version__ = "0.1.0"
+__all__ = ["Contacts", "Counts", "Feature", "Status", "Surface", "detect", "default_d_max",
+           "read_surface", "reference", "scenes", "ELEMENTS"]

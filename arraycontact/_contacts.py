@@ -1,0 +1,93 @@
+"""The result record shared by every back end."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from enum import IntEnum
+
+import numpy as np
+
+
+class Feature(IntEnum):
+    """What the closest point lies on."""
+
+    NONE = -1
+    FACE = 0
+    EDGE = 1
+    VERTEX = 2
+
+
+class Status(IntEnum):
+    """Why a slave has no match, or a special one."""
+
+    OK = 0  # active: the closest point is within d_max
+    OUT_OF_RANGE = 1  # no master surface (exact) / no master node (node mode) within d_max
+    BLIND_SPOT = 2  # node mode: no projection; contact with the closest attached face
+    PASSING_BY = 3  # node mode: no projection and outside the proximal volume (eq. 13)
+    NOT_CONVERGED = 4  # active, but the chosen projection did not meet its KKT tolerance
+
+
+@dataclass(frozen=True)
+class Counts:
+    """Work counters of one detection: `count` may exceed `capacity` (overflow)."""
+
+    slaves_in_box: int = 0
+    master_nodes_in_box: int = 0
+    master_faces_in_box: int = 0
+    count: dict = field(default_factory=dict)
+    capacity: dict = field(default_factory=dict)
+
+    @property
+    def overflow(self) -> bool:
+        return any(self.count[k] > self.capacity[k] for k in self.capacity
+                   if self.capacity[k] is not None)
+
+
+@dataclass(frozen=True)
+class Contacts:
+    """One row per slave node.
+
+    `face` is -1 and the geometric fields are NaN where `active` is false (except in node mode,
+    where a passing-by slave keeps its closest geometry for inspection). `gap` is the signed
+    distance along `normal` (negative: penetration), `distance` = |gap|. `slave_ids` are the
+    slaves' node ids when the slaves came from a Surface, else 0..n-1."""
+
+    active: np.ndarray
+    face: np.ndarray
+    xi: np.ndarray
+    point: np.ndarray
+    gap: np.ndarray
+    distance: np.ndarray
+    normal: np.ndarray
+    feature: np.ndarray
+    master_node: np.ndarray
+    status: np.ndarray
+    slave_ids: np.ndarray
+    d_max: float
+    counts: Counts = field(default_factory=Counts)
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def overflow(self) -> bool:
+        return self.counts.overflow
+
+    def __len__(self):
+        return len(self.active)
+
+    def pairs(self) -> np.ndarray:
+        """Contact elements [n_active, 2]: (slave node id, master face id)."""
+        a = np.asarray(self.active)
+        return np.stack([np.asarray(self.slave_ids)[a], np.asarray(self.face)[a]], -1)
+
+    def summary(self) -> str:
+        a = np.asarray(self.active)
+        gap = np.asarray(self.gap)[a]
+        lines = [f"slaves: {len(a)}  active: {int(a.sum())}  contact elements: {len(self.pairs())}",
+                 f"d_max: {self.d_max:.6g}  min gap: {gap.min() if len(gap) else float('nan'):.6g}"]
+        st = np.bincount(np.asarray(self.status), minlength=len(Status))
+        lines.append("status: " + ", ".join(f"{s.name.lower()} {st[s]}" for s in Status if st[s]))
+        return "\n".join(lines)
+
+    @staticmethod
+    def field_names():
+        return [f.name for f in fields(Contacts)]

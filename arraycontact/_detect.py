@@ -1,0 +1,246 @@
+"""`detect`: the pipeline of DESIGN section 2 behind one call, and the NumPy back end.
+
+`run_stages` strings stages 2-5 together against an array namespace; the NumPy back end calls
+it eagerly (capacities sized from the data, slaves in chunks to bound memory), the JAX back end
+under `jax.jit` with planned capacities.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _closest_node, _grid, _projection, _select
+from ._contacts import Contacts, Counts, Feature, Status
+from ._elements import get_element
+from ._prepare import Prepared, default_d_max, prepare
+from ._surface import Surface, validate_points
+from ._xp import expand
+
+MODES = ("exact", "node")
+BACKENDS = ("numpy", "jax", "warp")
+#: Equal distances within TIE_RTOL * longest master edge are ties (see _select).
+TIE_RTOL = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 1e-5}
+#: KKT tolerance of the Newton projections, in natural coordinates.
+KKT_TOL = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 1e-4}
+ITERATIONS = {"quad4": 12, "tri6": 20, "quad8": 20, "quad9": 20}
+
+
+@dataclass(frozen=True)
+class Static:
+    """What shapes and code paths depend on (hashable: a jit static argument)."""
+
+    element: str
+    mode: str
+    node_table: int
+    face_table: int
+    iterations: int
+    passing_by: bool  # node mode on an open master: the boundary test of eqs. (12)-(13)
+
+
+def master_arrays(master: Surface, prep: Prepared, dtype):
+    """Master data in the local frame, as float `dtype` / int32 arrays keyed by global ids."""
+    centres, radii = master.face_bounds
+    out = dict(
+        nodes_x=(master.points - prep.origin).astype(dtype),
+        faces=master.faces.astype(np.int32),
+        node_ids=prep.node_ids.astype(np.int32),
+        face_ids=prep.face_ids.astype(np.int32),
+        centres=(centres - prep.origin).astype(dtype),
+        radii=radii.astype(dtype),
+        face_edges=master.face_edges.astype(np.int32),
+        edge_faces=master.edge_faces.astype(np.int32),
+        node_normals=master.node_normals.astype(dtype),
+    )
+    offsets, ids = master.node_faces
+    out.update(nf_offsets=offsets.astype(np.int32), nf_ids=ids.astype(np.int32))
+    prev_node, next_node, prev_n, next_n, on, concave = _select.boundary_frames(master)
+    out.update(prev_node=prev_node.astype(np.int32), next_node=next_node.astype(np.int32),
+               prev_normal=prev_n.astype(dtype), next_normal=next_n.astype(dtype),
+               on_boundary=on, concave=concave)
+    return out
+
+
+def scalars(prep: Prepared, master: Surface, dtype):
+    eps = float(np.finfo(dtype).eps)
+    tie = TIE_RTOL[np.dtype(dtype)] * master.longest_edge
+    return dict(d_max=prep.d_max, r_max=prep.r_max, node_cell=prep.node_cell,
+                face_cell=prep.face_cell, tie=tie,
+                # Rounding slack of the pruning tests (never of the answer).
+                slack=tie + 16 * eps * (prep.extent + prep.d_max + prep.r_max),
+                tol=KKT_TOL[np.dtype(dtype)])
+
+
+def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict):
+    """Stages 2-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts."""
+    element = get_element(st.element)
+    n = slave_x.shape[0]
+    tie = sc["tie"]
+    # 2. grids of master nodes (cells >= d_max) and face centres (cells >= d_max + r_max)
+    node_grid = _grid.build(xp, m["nodes_x"][m["node_ids"]], sc["node_cell"], st.node_table)
+    node_grid = (m["node_ids"][node_grid[0]], node_grid[1])
+    # 3. closest node
+    node, dn, n_node_pairs = _closest_node.closest_node(
+        xp, node_grid, m["nodes_x"], slave_x, cell=sc["node_cell"], table=st.node_table,
+        d_max=sc["d_max"], tie=tie, capacity=capacity.get("node_pairs"))
+    counts = {"node_pairs": n_node_pairs}
+    # 4. candidate faces and projections
+    if st.mode == "exact":
+        face_grid = _grid.build(xp, m["centres"][m["face_ids"]], sc["face_cell"], st.face_table)
+        face_grid = (m["face_ids"][face_grid[0]], face_grid[1])
+        rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
+        slave, face, valid, n_pairs, n_cand = _projection.candidate_faces(
+            xp, face_grid, m["centres"], m["radii"], slave_x, rho, cell=sc["face_cell"],
+            table=st.face_table, r_max=sc["r_max"], pair_capacity=capacity.get("face_pairs"),
+            candidate_capacity=capacity.get("candidates"))
+        counts.update(face_pairs=n_pairs, candidates=n_cand)
+    else:
+        # Node mode: the faces attached to the closest node (seed 000 section 2.2).
+        has_node = node >= 0
+        nd = xp.maximum(node, 0)
+        deg = xp.where(has_node, m["nf_offsets"][nd + 1] - m["nf_offsets"][nd], 0)
+        seg, rank, valid, n_att = expand(xp, deg, capacity.get("attached"))
+        slave = seg
+        face = m["nf_ids"][xp.where(valid, m["nf_offsets"][nd[seg]] + rank, 0)]
+        counts.update(attached=n_att)
+    xi, point, dist, feature, local, conv = _projection.project(
+        xp, element, slave_x, m["nodes_x"], m["faces"], slave, face,
+        iterations=st.iterations, tol=sc["tol"])
+    # 5. selection and classification
+    status = xp.zeros(n, dtype=np.int32) + int(Status.OK)
+    if st.mode == "exact":
+        pick, has = _select.select_closest(xp, n, slave, face, valid, dist, tie)
+        active = has & (dist[pick] <= sc["d_max"])
+    else:
+        onface = valid & (feature == int(Feature.FACE))
+        pick_p, has_p = _select.select_closest(xp, n, slave, face, onface, dist, tie)
+        pick_b, has_b = _select.select_closest(xp, n, slave, face, valid, dist, tie)
+        pick = xp.where(has_p, pick_p, pick_b)
+        blind = ~has_p & has_b
+        if st.passing_by:
+            inside = _select.proximal(xp, slave_x, nd, m["nodes_x"], m["prev_node"],
+                                      m["next_node"], m["prev_normal"], m["next_normal"],
+                                      m["concave"])
+            passing = blind & m["on_boundary"][nd] & ~inside
+        else:
+            passing = blind & False
+        active = (has_p | blind) & ~passing
+        status = xp.where(blind, int(Status.BLIND_SPOT), status)
+        status = xp.where(passing, int(Status.PASSING_BY), status)
+    face_out = face[pick]
+    gap, dist_out, normal = _select.classify(
+        xp, element, m["nodes_x"], m["faces"], m["face_edges"], m["edge_faces"],
+        m["node_normals"], slave_x, face_out, xi[pick], point[pick], feature[pick], local[pick])
+    status = xp.where(active & ~conv[pick], int(Status.NOT_CONVERGED), status)
+    status = xp.where(active | (status == int(Status.PASSING_BY)), status,
+                      int(Status.OUT_OF_RANGE))
+    out = dict(active=active, face=face_out, xi=xi[pick], point=point[pick], gap=gap,
+               distance=dist_out, normal=normal, feature=feature[pick], master_node=node,
+               status=status)
+    return out, counts
+
+
+def _slaves(slave):
+    if isinstance(slave, Surface):
+        return slave.points[slave.nodes], slave.nodes
+    x = validate_points(slave, "slave")
+    return x, np.arange(len(x))
+
+
+def _empty(n, ids, d_max, counts=None, timings=None) -> Contacts:
+    return Contacts(
+        active=np.zeros(n, bool), face=np.full(n, -1, np.int64), xi=np.full((n, 2), np.nan),
+        point=np.full((n, 3), np.nan), gap=np.full(n, np.nan), distance=np.full(n, np.nan),
+        normal=np.full((n, 3), np.nan), feature=np.full(n, int(Feature.NONE), np.int32),
+        master_node=np.full(n, -1, np.int64), status=np.full(n, int(Status.OUT_OF_RANGE), np.int32),
+        slave_ids=np.asarray(ids), d_max=float(d_max), counts=counts or Counts(),
+        timings=timings or {})
+
+
+def assemble(n, ids, prep, out, d_max, counts, timings) -> Contacts:
+    """Scatter per-in-box-slave outputs (global frame, float64) into a full Contacts record."""
+    c = _empty(n, ids, d_max)
+    rows = prep.slave_rows
+    active = np.asarray(out["active"], bool)
+    keep = active | (np.asarray(out["status"]) == int(Status.PASSING_BY))
+    r = rows[keep]
+    c.active[rows] = active
+    c.status[rows] = np.asarray(out["status"])
+    mn = np.asarray(out["master_node"])
+    c.master_node[rows] = mn
+    c.face[r] = np.asarray(out["face"])[keep]
+    c.xi[r] = np.asarray(out["xi"], float)[keep]
+    c.point[r] = np.asarray(out["point"], float)[keep] + prep.origin
+    c.gap[r] = np.asarray(out["gap"], float)[keep]
+    c.distance[r] = np.asarray(out["distance"], float)[keep]
+    c.normal[r] = np.asarray(out["normal"], float)[keep]
+    c.feature[r] = np.asarray(out["feature"])[keep]
+    return Contacts(**{**c.__dict__, "counts": counts, "timings": timings})
+
+
+def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
+    m = master_arrays(master, prep, dtype)
+    sc = scalars(prep, master, dtype)
+    x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
+    outs, totals = [], {}
+    for i in range(0, len(x), chunk):
+        o, cnt = run_stages(np, st, sc, m, x[i:i + chunk], {})
+        outs.append(o)
+        for k, v in cnt.items():
+            totals[k] = totals.get(k, 0) + int(v)
+    out = {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+    return out, totals, {k: None for k in totals}
+
+
+def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displacement=None,
+           dtype=None) -> Contacts:
+    """Closest point on `master` of every slave node.
+
+    slave: [n, 3] coordinates or a Surface (its nodes are the slaves). master: a Surface.
+    mode: "exact" (the exact closest point over faces, edges and vertices within d_max) or
+    "node" (seed 000: closest node, projections on its faces, blind spots, passing-by nodes).
+    d_max: search radius; default: the longest master edge, raised to 2 max|displacement|.
+    dtype: float64 (default) or float32 for the computation (inputs are always read in float64
+    and moved to a local frame first)."""
+    t0 = time.perf_counter()
+    if not isinstance(master, Surface):
+        raise ValueError("master must be an arraycontact.Surface")
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    dtype = np.dtype(np.float64 if dtype is None else dtype)
+    if dtype not in TIE_RTOL:
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    slave_x, ids = _slaves(slave)
+    if d_max is None:
+        d_max = default_d_max(master, displacement)
+    elif not (np.isfinite(d_max) and d_max > 0):
+        raise ValueError(f"d_max must be a positive finite number, got {d_max}")
+    n = len(slave_x)
+    prep = prepare(slave_x, master, float(d_max)) if d_max > 0 else None
+    t1 = time.perf_counter()
+    if prep is None:  # the boxes do not meet: no grid, no contact
+        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0})
+    st = Static(element=master.element.name, mode=mode, node_table=prep.node_table,
+                face_table=prep.face_table,
+                iterations=ITERATIONS.get(master.element.name, 0),
+                passing_by=mode == "node" and not master.closed)
+    if backend == "numpy":
+        out, count, cap = _run_numpy(slave_x, master, prep, st, dtype)
+    elif backend == "jax":
+        from ._backends import load
+
+        out, count, cap = load("jax").run_one_shot(slave_x, master, prep, st, dtype)
+    else:
+        from ._backends import load
+
+        out, count, cap = load("warp").run_one_shot(slave_x, master, prep, st, dtype)
+    t2 = time.perf_counter()
+    counts = Counts(slaves_in_box=len(prep.slave_rows), master_nodes_in_box=len(prep.node_ids),
+                    master_faces_in_box=len(prep.face_ids), count=count, capacity=cap)
+    res = assemble(n, ids, prep, out, d_max, counts,
+                   {"prepare": t1 - t0, "detect": t2 - t1, "total": t2 - t0})
+    return res

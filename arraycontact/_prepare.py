@@ -1,0 +1,78 @@
+"""Stage 1 (seed 000 section 2.1): d_max, bounding boxes and the nodes and faces that go on.
+
+Runs eagerly in float64 on the host. The slave box and the master box, each grown by d_max
+(eq. 4), are intersected; when they do not meet, detection ends here, before any grid is built.
+Only slaves inside the intersection, master nodes inside it and faces whose ball reaches it go
+on. The intersection's lower corner is the origin of the local frame in which everything after
+this stage computes (so float32 keeps its precision far from the global origin).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._grid import table_size
+
+#: Grid cells are this much wider than strictly needed, so rounding in a float32 local frame
+#: cannot move a point out of the 3x3x3 stencil that must hold it.
+CELL_MARGIN = 1.01
+
+
+def default_d_max(master, displacement=None) -> float:
+    """Seed 000: the longest master edge (eq. 2), raised to 2 max|dx| with displacements (eq. 3)."""
+    d = master.longest_edge
+    if displacement is not None:
+        u = np.asarray(displacement, float)
+        if u.ndim != 2 or u.shape[1] != 3 or not np.isfinite(u).all():
+            raise ValueError(f"displacement must be a finite [n, 3] array, got shape {u.shape}")
+        if len(u):
+            d = max(d, 2.0 * float(np.linalg.norm(u, axis=1).max()))
+    return float(d)
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    slave_rows: np.ndarray  # slaves inside the box
+    node_ids: np.ndarray  # master nodes inside the box
+    face_ids: np.ndarray  # master faces whose ball reaches the box
+    origin: np.ndarray  # local frame origin (float64)
+    d_max: float
+    r_max: float
+    node_cell: float
+    face_cell: float
+    node_table: int
+    face_table: int
+    extent: float  # largest local coordinate, for rounding slack
+
+
+def prepare(slave_x, master, d_max) -> Prepared | None:
+    """Boxes and selections, or None when the slave and master boxes do not meet."""
+    if len(slave_x) == 0 or master.n_faces == 0:
+        return None
+    centres, radii = master.face_bounds
+    used = master.points[master.nodes]
+    if master.element.linear:
+        m_lo, m_hi = used.min(0), used.max(0)
+    else:  # curved faces may bulge past their nodes; their balls hold them
+        m_lo, m_hi = (centres - radii[:, None]).min(0), (centres + radii[:, None]).max(0)
+    lo = np.maximum(slave_x.min(0), m_lo) - d_max
+    hi = np.minimum(slave_x.max(0), m_hi) + d_max
+    if (lo > hi).any():
+        return None
+    slave_rows = np.nonzero(((slave_x >= lo) & (slave_x <= hi)).all(1))[0]
+    if len(slave_rows) == 0:
+        return None
+    s = slave_x[slave_rows]
+    lo = np.maximum(lo, s.min(0) - d_max)  # shrink to the slaves actually inside
+    hi = np.minimum(hi, s.max(0) + d_max)
+    node_ids = master.nodes[((used >= lo) & (used <= hi)).all(1)]
+    outside = np.maximum(np.maximum(lo - centres, centres - hi), 0)
+    face_ids = np.nonzero(np.linalg.norm(outside, axis=1) <= radii + d_max)[0]
+    r_max = float(radii[face_ids].max()) if len(face_ids) else 0.0
+    return Prepared(
+        slave_rows=slave_rows, node_ids=node_ids, face_ids=face_ids, origin=lo,
+        d_max=float(d_max), r_max=r_max, node_cell=CELL_MARGIN * d_max,
+        face_cell=CELL_MARGIN * (d_max + r_max), node_table=table_size(len(node_ids)),
+        face_table=table_size(len(face_ids)), extent=float(np.abs(hi - lo).max()))

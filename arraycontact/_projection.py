@@ -1,0 +1,54 @@
+"""Stage 4: candidate faces of every slave and the closest point on each, all pairs at once.
+
+Candidates (exact mode): each face is held by a ball (centre c, radius r; see
+Surface.face_bounds), so a face can hold a point within rho of slave s only if
+|s - c| - r <= rho. Here rho = min(distance to the closest node, d_max): the closest node is a
+point of the surface, so no face farther than it can hold the closest point, and none farther
+than d_max can make the slave active. The face grid's cells are at least d_max + max r wide, so
+the 3x3x3 stencil around the slave holds every face centre within that reach. The closest face
+need not contain the closest node (seed 003 Fig. 2a): every face passing the ball test is
+projected.
+
+Projections: tri3 in closed form (Voronoi regions); every other element by the active-set
+Newton method of seed 003 eq. (8) from start option I, with a fixed iteration budget and a
+convergence flag.
+"""
+
+from __future__ import annotations
+
+from ._elements import shape_functions
+from ._geometry import closest_point_face, closest_point_triangle, start_option_one
+from ._grid import stencil_counts
+from ._xp import compact, expand
+
+
+def candidate_faces(xp, grid, centres, radii, slave_x, rho, *, cell, table, r_max,
+                    pair_capacity, candidate_capacity):
+    """Candidate (slave, face) pairs: (slave [P], face [P], valid [P], pair count, candidate count)."""
+    counts, begin = stencil_counts(xp, grid, slave_x, cell, table, rho + r_max)
+    seg, rank, valid, n_pairs = expand(xp, counts.reshape(-1), pair_capacity)
+    slave = seg // 27
+    face = grid[0][xp.where(valid, begin.reshape(-1)[seg] + rank, 0)]
+    dc = xp.sqrt(xp.sum((slave_x[slave] - centres[face]) ** 2, -1))
+    keep = valid & (dc - radii[face] <= rho[slave])
+    idx, n_cand = compact(xp, keep, candidate_capacity)
+    ok = xp.arange(idx.shape[0]) < n_cand
+    return slave[idx], face[idx], ok, n_pairs, n_cand
+
+
+def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, tol):
+    """Closest point of slave_x[slave] on faces[face]: xi, point, distance, feature, local,
+    converged."""
+    r = slave_x[slave]
+    xe = nodes_x[faces[face]]
+    if element.name == "tri3":
+        xi, feature, local = closest_point_triangle(r, xe[:, 0], xe[:, 1], xe[:, 2], xp)
+        converged = xp.ones(r.shape[0], dtype=bool)
+    else:
+        xi0 = start_option_one(element, r, xe, xp)
+        xi, feature, local, converged, _, _ = closest_point_face(
+            element, r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
+    point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
+    dist = xp.sqrt(xp.sum((point - r) ** 2, -1))
+    return xi, point, dist, feature, local, converged
+

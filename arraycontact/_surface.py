@@ -1,0 +1,231 @@
+"""The master/slave surface: validated node coordinates and connectivity plus cached topology."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from ._elements import NODES_PER_FACE, Element, get_element, interpolate
+
+
+def _unit(v):
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+
+
+def validate_points(points, what="points") -> np.ndarray:
+    """float64 [n, 3] copy of `points`, or a ValueError naming what is wrong."""
+    a = np.asarray(points)
+    if a.dtype == object or a.dtype.kind not in "iuf":
+        raise ValueError(f"{what} must be a real numeric array, got dtype {a.dtype}")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{what} must have shape [n, 3], got {a.shape}")
+    a = np.array(a, dtype=np.float64)
+    bad = ~np.isfinite(a).all(1)
+    if bad.any():
+        raise ValueError(f"{what} row {int(np.argmax(bad))} is not finite: {a[np.argmax(bad)]}")
+    a.setflags(write=False)
+    return a
+
+
+def _validate_faces(faces, n_points) -> np.ndarray:
+    f = np.asarray(faces)
+    if f.dtype == object or f.dtype.kind not in "iuf":
+        raise ValueError(f"faces must be an integer array, got dtype {f.dtype}")
+    if f.ndim != 2:
+        raise ValueError(f"faces must have shape [n_faces, nodes_per_face], got {f.shape}")
+    if f.dtype.kind == "f":
+        bad = ~(np.isfinite(f) & (f == np.round(f))).all(1)
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise ValueError(f"faces row {r} holds a non-integral node id: {f[r]}")
+    f = f.astype(np.int64)
+    bad = ((f < 0) | (f >= n_points)).any(1)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise ValueError(f"faces row {r} references a node outside [0, {n_points}): {f[r]}")
+    s = np.sort(f, axis=1)
+    bad = (s[:, 1:] == s[:, :-1]).any(1)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise ValueError(f"faces row {r} repeats a node: {f[r]}")
+    f.setflags(write=False)
+    return f
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class Surface:
+    """A surface mesh: `points` [n_nodes, 3], `faces` [n_faces, nodes_per_face], `element`.
+
+    Node ids are global: `points` may hold nodes no face uses (a volume mesh's interior), and
+    `nodes` lists those that faces use. Immutable; derived data is computed once on first use.
+    """
+
+    points: np.ndarray
+    faces: np.ndarray
+    element: Element
+
+    def __init__(self, points, faces, element=None):
+        p = validate_points(points)
+        f = _validate_faces(faces, len(p))
+        if element is None:
+            if f.shape[1] not in NODES_PER_FACE:
+                raise ValueError(f"no element has {f.shape[1]} nodes per face")
+            element = NODES_PER_FACE[f.shape[1]]
+        e = get_element(element)
+        if f.shape[1] != e.nodes_per_face:
+            raise ValueError(
+                f"element {e.name!r} has {e.nodes_per_face} nodes per face, faces have {f.shape[1]}")
+        object.__setattr__(self, "points", p)
+        object.__setattr__(self, "faces", f)
+        object.__setattr__(self, "element", e)
+
+    def __repr__(self):
+        return (f"Surface({self.element.name}, {self.n_faces} faces, {len(self.nodes)} nodes, "
+                f"{'closed' if self.closed else 'open'})")
+
+    @staticmethod
+    def from_meshio(mesh, *, cell_blocks=None, cell_set=None, physical=None,
+                    element=None) -> "Surface":
+        """Contact surface of a meshio mesh.
+
+        Surface cells (triangle, quad, triangle6, quad8, quad9) are used as they are; volume
+        cells (tetra, tetra10, hexahedron, hexahedron20, hexahedron27, wedge) give their
+        exterior faces, oriented outward. Select cells by `cell_blocks` (indices or cell types),
+        `cell_set` (a meshio cell set name) or `physical` (a gmsh physical group name or tag).
+        Where the selection gives several face types (a wedge mesh has triangles and quads),
+        `element` picks one. Node ids stay the mesh's."""
+        from ._io import surface_from_meshio
+
+        return surface_from_meshio(mesh, cell_blocks=cell_blocks, cell_set=cell_set,
+                                   physical=physical, element=element)
+
+    def with_points(self, points) -> "Surface":
+        """The same connectivity on new coordinates (a deformed configuration)."""
+        return Surface(points, self.faces, self.element)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    @cached_property
+    def nodes(self) -> np.ndarray:
+        """Sorted ids of the nodes used by faces."""
+        return np.unique(self.faces)
+
+    @cached_property
+    def node_faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """CSR node -> faces over all point ids: faces of node i are ids[offsets[i]:offsets[i+1]]."""
+        flat = self.faces.ravel()
+        order = np.argsort(flat, kind="stable")
+        ids = order // self.faces.shape[1]
+        offsets = np.searchsorted(flat[order], np.arange(len(self.points) + 1))
+        return offsets, ids
+
+    @cached_property
+    def _edge_table(self):
+        k = self.element.n_corners
+        en = self.element.edge_nodes
+        pairs = self.faces[:, en[:, :2]].reshape(-1, 2)  # [n_faces * k, 2], face orientation
+        key = np.sort(pairs, axis=1)
+        edges, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        face_edges = inverse.reshape(-1, k)
+        # Up to two faces per edge; a non-manifold edge (3+ faces) keeps its first two.
+        order = np.argsort(inverse, kind="stable")
+        first = np.searchsorted(inverse[order], np.arange(len(edges)))
+        edge_faces = np.full((len(edges), 2), -1, np.int64)
+        edge_faces[:, 0] = order[first] // k
+        two = counts >= 2
+        edge_faces[two, 1] = order[first[two] + 1] // k
+        return edges, face_edges, edge_faces, counts, pairs
+
+    @property
+    def edges(self) -> np.ndarray:
+        """Unique edges as sorted corner pairs [n_edges, 2]."""
+        return self._edge_table[0]
+
+    @property
+    def face_edges(self) -> np.ndarray:
+        """Edge id of each local edge of each face [n_faces, n_corners]."""
+        return self._edge_table[1]
+
+    @property
+    def edge_faces(self) -> np.ndarray:
+        """The (up to two) faces sharing each edge [n_edges, 2], -1 where there is none."""
+        return self._edge_table[2]
+
+    @property
+    def edge_counts(self) -> np.ndarray:
+        return self._edge_table[3]
+
+    @cached_property
+    def boundary_edges(self) -> np.ndarray:
+        """Edges used by one face, oriented as in that face [n, 2 or 3] (corners, then mid node)."""
+        en = self.element.edge_nodes
+        face_local = np.nonzero(self.edge_counts[self.face_edges] == 1)
+        return self.faces[face_local[0][:, None], en[face_local[1]]].reshape(-1, en.shape[1])
+
+    @cached_property
+    def boundary_nodes(self) -> np.ndarray:
+        return np.unique(self.boundary_edges)
+
+    @cached_property
+    def closed(self) -> bool:
+        return bool(self.n_faces) and bool((self.edge_counts == 2).all())
+
+    @cached_property
+    def longest_edge(self) -> float:
+        """The largest distance between two nodes of one face (seed 000, eq. 2)."""
+        if self.n_faces == 0:
+            return 0.0
+        x = self.points[self.faces]
+        d = np.linalg.norm(x[:, :, None] - x[:, None, :], axis=-1)
+        return float(d.max())
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        """Unit outward normal at each face's centre (zero for a degenerate face)."""
+        xi = np.broadcast_to(self.element.centre, (self.n_faces, 2))
+        _, dx = interpolate(self.element, self.points[self.faces], xi)
+        return _unit(np.cross(dx[..., 0], dx[..., 1]))
+
+    @cached_property
+    def face_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Centre c and radius r of a ball holding each face: |x(xi) - c| <= r for all xi.
+
+        c is the mean of the nodes; r = lebesgue * max_i |x_i - c| is rigorous for curved faces
+        because x(xi) - c = sum_i N_i(xi) (x_i - c)."""
+        x = self.points[self.faces]
+        c = x.mean(1)
+        r = self.element.lebesgue * np.linalg.norm(x - c[:, None], axis=-1).max(1)
+        return c, r
+
+    @cached_property
+    def node_normals(self) -> np.ndarray:
+        """Angle-weighted pseudo-normal at each node [n_points, 3] (zero for unused nodes).
+
+        At a corner, each face contributes its normal there times its interior angle, which
+        gives the correct inside/outside sign for points whose closest feature is that vertex
+        (Baerentzen & Aanaes). Mid-edge and centre nodes take the plain sum of face normals."""
+        e = self.element
+        nf, nn = self.faces.shape
+        xi = np.broadcast_to(e.nodes, (nf, nn, 2))
+        xe = np.broadcast_to(self.points[self.faces][:, None], (nf, nn, nn, 3))
+        _, dx = interpolate(e, xe, xi)  # [nf, nn, 3, 2]
+        n = _unit(np.cross(dx[..., 0], dx[..., 1]))
+        w = np.ones((nf, nn))
+        k = e.n_corners
+        for c in range(k):
+            # Tangents along the two corner edges, in the natural-coordinate directions of the
+            # edges leaving the corner.
+            t1 = dx[:, c] @ (e.nodes[(c + 1) % k] - e.nodes[c])
+            t2 = dx[:, c] @ (e.nodes[(c - 1) % k] - e.nodes[c])
+            w[:, c] = np.arctan2(np.linalg.norm(np.cross(t1, t2), axis=-1),
+                                 np.einsum("ij,ij->i", t1, t2))
+        out = np.zeros_like(self.points)
+        np.add.at(out, self.faces.ravel(), (n * w[..., None]).reshape(-1, 3))
+        return _unit(out)
+

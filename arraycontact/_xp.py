@@ -1,0 +1,62 @@
+"""The few array operations whose spelling differs between NumPy and jax.numpy.
+
+Capacities: NumPy runs eagerly and may size arrays from data (`size=None`); JAX needs a static
+`size`. Every helper takes that size and reports the true count, so callers can flag overflow.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def is_numpy(xp):
+    return xp is np
+
+
+def segment_min(xp, data, ids, n):
+    """Minimum of `data` per segment id (the dtype's largest value for an empty segment)."""
+    if is_numpy(xp):
+        big = np.inf if data.dtype.kind == "f" else np.iinfo(data.dtype).max
+        out = np.full(n, big, data.dtype)
+        np.minimum.at(out, ids, data)
+        return out
+    import jax
+
+    return jax.ops.segment_min(data, ids, num_segments=n)
+
+
+def segment_any(xp, data, ids, n):
+    if is_numpy(xp):
+        out = np.zeros(n, bool)
+        out[ids[data]] = True
+        return out
+    import jax
+
+    return jax.ops.segment_max(data.astype(np.int32), ids, num_segments=n) > 0
+
+
+def compact(xp, mask, size):
+    """Indices of the true entries of `mask` (padded with 0 up to `size`) and their count."""
+    count = xp.sum(mask.astype(np.int32))
+    if is_numpy(xp):
+        idx = np.nonzero(mask)[0]
+        if size is not None:
+            idx = np.pad(idx[:size], (0, max(size - len(idx), 0)))
+        return idx, count
+    return xp.nonzero(mask, size=size, fill_value=0)[0], count
+
+
+def expand(xp, counts, size):
+    """Enumerate segments of the given lengths as flat pairs.
+
+    Returns, for k in range(size): the segment of k, its rank within the segment, whether k is
+    below the total, and the total (which may exceed `size`: overflow)."""
+    ends = xp.cumsum(counts)
+    total = ends[-1] if counts.shape[0] else xp.asarray(0)
+    if size is None:
+        size = int(total)
+    k = xp.arange(size)
+    seg = xp.searchsorted(ends, k, side="right")
+    seg = xp.minimum(seg, max(counts.shape[0] - 1, 0))
+    rank = k - (ends[seg] - counts[seg]) if counts.shape[0] else k
+    return seg, rank, k < total, total

@@ -1,0 +1,195 @@
+"""Deterministic contact scenes for tests, the demo and the benchmarks.
+
+Each generator returns a `Scene`: a master `Surface`, the slave node coordinates and (where the
+slaves come from a surface mesh) that slave `Surface`. Lengths are in units of the master's
+element size (grid spacing 1), so scenes of every size have the same local geometry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._surface import Surface
+
+__all__ = ["Scene", "grid_surface", "rough_field", "rough_surfaces", "rough_layers",
+           "sphere_on_plane", "cylinder_on_road", "curved_patch"]
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    name: str
+    master: Surface
+    slave: np.ndarray
+    slave_surface: Surface | None = None
+    params: dict = field(default_factory=dict)
+
+
+def _grid_shape(n_nodes):
+    """(nx, ny) with nx * ny = n_nodes for powers of two, nearly square otherwise."""
+    k = int(round(np.log2(max(n_nodes, 4))))
+    if 2**k == n_nodes:
+        return 2 ** ((k + 1) // 2), 2 ** (k // 2)
+    s = max(int(round(np.sqrt(n_nodes))), 2)
+    return s, s
+
+
+def grid_surface(x, y, z, element="tri3", *, flip=False) -> Surface:
+    """Surface on a structured grid of nodes x, y, z [nx, ny], outward normal +z (-z if flip).
+
+    Quadratic elements take the grid as corner and mid-side nodes: nx and ny must be odd."""
+    nx, ny = x.shape
+    ids = np.arange(nx * ny).reshape(nx, ny)
+    pts = np.stack([x, y, z], -1).reshape(-1, 3)
+    if element in ("tri3", "quad4"):
+        a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+        if element == "quad4":
+            f = np.stack([a, b, c, d], -1).reshape(-1, 4)
+        else:
+            f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                                np.stack([a, c, d], -1).reshape(-1, 3)])
+    else:
+        if nx % 2 == 0 or ny % 2 == 0:
+            raise ValueError("quadratic grid surfaces need an odd number of nodes per side")
+        n = {(di, dj): ids[di:nx - 2 + di:2, dj:ny - 2 + dj:2] for di in range(3) for dj in range(3)}
+        c0, c1, c2, c3 = n[0, 0], n[2, 0], n[2, 2], n[0, 2]
+        m01, m12, m23, m30, mc = n[1, 0], n[2, 1], n[1, 2], n[0, 1], n[1, 1]
+        if element == "tri6":
+            f = np.concatenate([np.stack([c0, c1, c2, m01, m12, mc], -1).reshape(-1, 6),
+                                np.stack([c0, c2, c3, mc, m23, m30], -1).reshape(-1, 6)])
+        elif element == "quad8":
+            f = np.stack([c0, c1, c2, c3, m01, m12, m23, m30], -1).reshape(-1, 8)
+        elif element == "quad9":
+            f = np.stack([c0, c1, c2, c3, m01, m12, m23, m30, mc], -1).reshape(-1, 9)
+        else:
+            raise ValueError(f"unknown element {element!r}")
+    if flip:
+        k = 3 if element.startswith("tri") else 4
+        corners = np.concatenate([f[:, :1], f[:, 1:k][:, ::-1]], 1)
+        if f.shape[1] > k:
+            # Reversing the corner cycle c0 c1 .. c(k-1) reverses the edge order as well:
+            # edge i of the flipped face is edge k-1-i of the original.
+            mids = f[:, k:2 * k][:, ::-1]
+            f = np.concatenate([corners, mids, f[:, 2 * k:]], 1)
+        else:
+            f = corners
+    return Surface(pts, f, element)
+
+
+def rough_field(nx, ny, *, hurst=0.8, rms=1.0, seed=0, cutoff=None):
+    """Self-affine random field on an nx x ny periodic grid (spectral synthesis, seed 000 Fig. 10).
+
+    Power spectrum ~ |q|^-2(1+H) between the longest wavelength (the grid) and `cutoff`
+    (default: 4 grid spacings, so that each element is nearly flat), scaled to the given RMS."""
+    rng = np.random.default_rng(seed)
+    qx = np.fft.fftfreq(nx)[:, None]
+    qy = np.fft.rfftfreq(ny)[None, :]
+    q = np.sqrt(qx**2 + qy**2)
+    qmax = 1.0 / (cutoff or 4.0)
+    amp = np.where((q > 0) & (q <= qmax), np.power(np.maximum(q, 1e-12), -(1 + hurst)), 0.0)
+    phase = rng.uniform(0, 2 * np.pi, amp.shape)
+    h = np.fft.irfft2(amp * np.exp(1j * phase), s=(nx, ny))
+    std = h.std()
+    return h * (rms / std) if std > 0 else h
+
+
+def rough_surfaces(n_nodes=2**12, *, gap=1.0, rms=0.5, hurst=0.8, curvature=0.0,
+                   element="tri3", seed=0) -> Scene:
+    """Two rough surfaces facing each other (seed 000 Fig. 10).
+
+    The master (normal +z) lies around z = 0, the slave surface (normal -z) around z = gap;
+    both have `n_nodes` nodes and RMS roughness `rms` (in element sizes). `curvature` > 0 makes
+    both convex (a paraboloid of that curvature), the Table 1 'two convex surfaces' case."""
+    nx, ny = _grid_shape(n_nodes)
+    if element in ("tri6", "quad8", "quad9"):
+        nx, ny = nx - 1 + nx % 2, ny - 1 + ny % 2
+    x, y = np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float), indexing="ij")
+    x -= x.mean()
+    y -= y.mean()
+    bowl = 0.5 * curvature * (x**2 + y**2)
+    z1 = rough_field(nx, ny, hurst=hurst, rms=rms, seed=seed) - bowl
+    z2 = gap + rough_field(nx, ny, hurst=hurst, rms=rms, seed=seed + 1) + bowl
+    master = grid_surface(x, y, z1, element)
+    slave_surface = grid_surface(x, y, z2, element, flip=True)
+    slave = slave_surface.points[slave_surface.nodes]
+    return Scene("rough_surfaces", master, slave, slave_surface,
+                 dict(n_nodes=nx * ny, gap=gap, rms=rms, hurst=hurst, curvature=curvature,
+                      element=element, seed=seed))
+
+
+def rough_layers(n_nodes=2**12, *, quadratic=False, rms=0.5, seed=0) -> Scene:
+    """Two interpenetrating rough layers with the same mean plane (seed 003, section 5.2).
+
+    Linear layers are tri3, quadratic ones tri6. About half the slave nodes are below the
+    master surface, so gaps of both signs are present everywhere."""
+    s = rough_surfaces(n_nodes, gap=0.0, rms=rms, element="tri6" if quadratic else "tri3",
+                       seed=seed)
+    return Scene("rough_layers", s.master, s.slave, s.slave_surface,
+                 dict(n_nodes=len(s.slave), quadratic=quadratic, rms=rms, seed=seed))
+
+
+def sphere_on_plane(n_nodes=2**12, *, radius=10.0, depth=0.5, element="quad4") -> Scene:
+    """A sphere of `radius` pressed `depth` into a flat master plane.
+
+    The master is a square grid of about `n_nodes` nodes and unit spacing, normal +z; the slaves
+    are `n_nodes` nodes spread evenly over the sphere (a Fibonacci lattice)."""
+    nx, ny = _grid_shape(n_nodes)
+    if element in ("tri6", "quad8", "quad9"):
+        nx, ny = nx - 1 + nx % 2, ny - 1 + ny % 2
+    x, y = np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float), indexing="ij")
+    master = grid_surface(x - x.mean(), y - y.mean(), np.zeros_like(x), element)
+    k = np.arange(n_nodes) + 0.5
+    phi = np.arccos(1 - 2 * k / n_nodes)
+    theta = np.pi * (1 + 5**0.5) * k
+    sphere = radius * np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi),
+                                np.cos(phi)], -1)
+    slave = sphere + np.array([0.0, 0.0, radius - depth])
+    return Scene("sphere_on_plane", master, slave, None,
+                 dict(n_nodes=n_nodes, radius=radius, depth=depth, element=element))
+
+
+def cylinder_on_road(n_nodes=2**12, *, radius=20.0, width=None, depth=0.5, rms=0.3,
+                     element="tri3", seed=0) -> Scene:
+    """A cylinder (the tyre) pressed into a rough road (seed 000 section 2.3).
+
+    The road is a rough master of about `n_nodes` nodes; the tyre's slave nodes (`n_nodes`
+    of them) lie on a cylinder of axis y, sampled about as finely as the road."""
+    road = rough_surfaces(n_nodes, gap=0.0, rms=rms, element=element, seed=seed).master
+    xy = road.points[:, :2]
+    width = width or float(np.ptp(xy[:, 1])) * 0.5
+    n_around = max(int(np.sqrt(n_nodes * 2 * np.pi * radius / width)), 8)
+    n_along = max(n_nodes // n_around, 2)
+    a, yy = np.meshgrid(np.linspace(0, 2 * np.pi, n_around, endpoint=False),
+                        np.linspace(-width / 2, width / 2, n_along), indexing="ij")
+    top = road.points[:, 2].max()
+    slave = np.stack([radius * np.sin(a), yy, top + radius - depth - radius * np.cos(a)],
+                     -1).reshape(-1, 3)
+    return Scene("cylinder_on_road", road, slave, None,
+                 dict(n_nodes=len(slave), radius=radius, width=width, depth=depth, rms=rms,
+                      element=element, seed=seed))
+
+
+def curved_patch(n_faces_side=8, *, element="quad9", curvature=0.3, gap=0.3, n_slaves=2000,
+                 seed=0) -> Scene:
+    """A doubly curved patch of quadratic (or linear) faces with slaves scattered around it.
+
+    The master is z = curvature/2 (x^2 - 0.5 y^2) + 0.2 sin(x) cos(y) on n_faces_side^2 faces of
+    unit size; slaves are uniform in the patch's footprint within +-gap (in element sizes) of
+    the surface, so both signs of gap and points off every edge occur."""
+    quadratic = element in ("tri6", "quad8", "quad9")
+    m = 2 * n_faces_side + 1 if quadratic else n_faces_side + 1
+    s = np.linspace(-n_faces_side / 2, n_faces_side / 2, m)
+    x, y = np.meshgrid(s, s, indexing="ij")
+
+    def height(x, y):
+        return 0.5 * curvature * (x**2 - 0.5 * y**2) + 0.2 * np.sin(x) * np.cos(y)
+
+    master = grid_surface(x, y, height(x, y), element)
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-n_faces_side / 2 - 0.5, n_faces_side / 2 + 0.5, (n_slaves, 2))
+    z = height(u[:, 0], u[:, 1]) + rng.uniform(-gap, gap, n_slaves)
+    slave = np.c_[u, z]
+    return Scene("curved_patch", master, slave, None,
+                 dict(n_faces_side=n_faces_side, element=element, curvature=curvature, gap=gap,
+                      n_slaves=n_slaves, seed=seed))
