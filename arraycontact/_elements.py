@@ -84,7 +84,7 @@ class Element:
         e = [[i, (i + 1) % k] for i in range(k)]
         if not self.linear:
             e = [a + [k + i] for i, a in enumerate(e)]
-        return np.array(e)
+        return np.array(e, np.int32)
 
     @cached_property
     def constraint_edge(self) -> np.ndarray:
@@ -94,7 +94,7 @@ class Element:
             on = [i for i, (s, e) in enumerate(self.edge_nodes[:, :2])
                   if abs(a @ self.nodes[s] - b) < 1e-12 and abs(a @ self.nodes[e] - b) < 1e-12]
             out.append(on[0])
-        return np.array(out)
+        return np.array(out, np.int32)
 
     @cached_property
     def lebesgue(self) -> float:

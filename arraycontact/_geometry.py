@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._elements import EDGE, FACE, VERTEX, interpolate, shape_functions, shape_second_derivatives
+from ._xp import fori
 
 
 def _dot(a, b, xp):
@@ -158,11 +159,8 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, hessian="
         kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / scale, 0))
         return kkt, lam
 
-    xi = xi0
-    w = xp.abs(xi0 @ A.T - b) <= feasible_tol
-    done = xp.zeros(xi.shape[:-1], dtype=bool)
-    iters = xp.zeros(xi.shape[:-1], dtype=xp.int32)
-    for it in range(iterations):
+    def iteration(it, state):
+        xi, w, done, iters = state
         g, h, gn, scale = derivatives(xi)
         kkt, lam = residual(g, w, scale)
         newly = (kkt <= tol) & ~done
@@ -196,7 +194,12 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, hessian="
         corr = _safe_div(bj - _dot(aj, new, xp), _dot(aj, aj, xp), xp)[..., None] * aj
         new = xp.where(blocked[..., None], new + corr, new)
         w = w | ((xp.arange(m) == jb[..., None]) & blocked[..., None])
-        xi = xp.where(done[..., None], xi, new)
+        return xp.where(done[..., None], xi, new), w, done, iters
+
+    w0 = xp.abs(xi0 @ A.T - b) <= feasible_tol
+    done0 = xp.zeros(xi0.shape[:-1], dtype=bool)
+    iters0 = xp.zeros(xi0.shape[:-1], dtype=xp.int32)
+    xi, w, done, iters = fori(xp, iterations, iteration, (xi0, w0, done0, iters0))
     g, _, _, scale = derivatives(xi)
     kkt, _ = residual(g, w, scale)
     converged = kkt <= tol

@@ -39,8 +39,12 @@ def candidate_faces(xp, grid, centres, radii, slave_x, rho, *, cell, table, r_ma
 def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, tol):
     """Closest point of slave_x[slave] on faces[face]: xi, point, distance, feature, local,
     converged."""
-    r = slave_x[slave]
+    # Each pair in a frame at its face's first node: nearby float32 values subtract exactly, so
+    # distances keep full precision relative to the element size however far the scene is.
     xe = nodes_x[faces[face]]
+    x0 = xe[:, 0]
+    r = slave_x[slave] - x0
+    xe = xe - x0[:, None]
     if element.name == "tri3":
         xi, feature, local = closest_point_triangle(r, xe[:, 0], xe[:, 1], xe[:, 2], xp)
         converged = xp.ones(r.shape[0], dtype=bool)
@@ -50,5 +54,5 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
             element, r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
     point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
     dist = xp.sqrt(xp.sum((point - r) ** 2, -1))
-    return xi, point, dist, feature, local, converged
+    return xi, point + x0, dist, feature, local, converged
 

@@ -60,3 +60,15 @@ def expand(xp, counts, size):
     seg = xp.minimum(seg, max(counts.shape[0] - 1, 0))
     rank = k - (ends[seg] - counts[seg]) if counts.shape[0] else k
     return seg, rank, k < total, total
+
+
+def fori(xp, n, body, state):
+    """state = body(i, state) for i in range(n): a Python loop on NumPy, `lax.fori_loop` on JAX
+    (one traced body instead of n unrolled copies keeps compile times short)."""
+    if is_numpy(xp):
+        for i in range(n):
+            state = body(i, state)
+        return state
+    from jax import lax
+
+    return lax.fori_loop(0, n, body, state)
