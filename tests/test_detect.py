@@ -1,0 +1,138 @@
+"""detect() on every back end against the brute-force reference."""
+
+import numpy as np
+import pytest
+
+import arraycontact as ac
+from arraycontact import scenes
+from conftest import assert_matches_reference
+
+
+def random_scene(seed, element="tri3", n=8):
+    """A random bumpy master patch and slaves scattered around it."""
+    rng = np.random.default_rng(seed)
+    m = 2 * n + 1 if element in ("tri6", "quad8", "quad9") else n + 1
+    s = np.linspace(0, n, m)
+    x, y = np.meshgrid(s, s, indexing="ij")
+    z = 0.3 * rng.normal(size=x.shape)
+    xy_noise = 0.15 * rng.uniform(-1, 1, size=(2,) + x.shape)
+    master = scenes.grid_surface(x + xy_noise[0], y + xy_noise[1], z, element)
+    slave = np.c_[rng.uniform(-1, n + 1, (400, 2)), rng.uniform(-1.5, 1.5, 400)]
+    return master, slave
+
+
+@pytest.mark.parametrize("element", ["tri3", "quad4"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_exact_random(backend, element, seed):
+    master, slave = random_scene(seed, element)
+    c = ac.detect(slave, master, backend=backend)
+    assert 50 < c.active.sum() < len(slave)
+    assert_matches_reference(c, slave, master)
+
+
+SCENES = {
+    "rough": lambda: scenes.rough_surfaces(2**8, gap=0.5),
+    "rough_quad": lambda: scenes.rough_surfaces(2**8, gap=0.5, element="quad4"),
+    "layers": lambda: scenes.rough_layers(2**8),
+    "sphere": lambda: scenes.sphere_on_plane(2**9, radius=5.0),
+    "road": lambda: scenes.cylinder_on_road(2**9, radius=6.0),
+    "curved_quad4": lambda: scenes.curved_patch(6, element="quad4", n_slaves=300),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_exact_scenes(backend, name):
+    s = SCENES[name]()
+    c = ac.detect(s.slave, s.master, backend=backend)
+    assert c.active.any()
+    assert_matches_reference(c, s.slave, s.master)
+
+
+@pytest.mark.parametrize("element", ["tri3", "quad4"])
+def test_far_from_origin(backend, element):
+    master, slave = random_scene(3, element, n=6)
+    L = master.longest_edge
+    for offset in (0.0, 1e6 * L):
+        shift = np.array([offset, -0.5 * offset, 0.25 * offset])
+        m2 = ac.Surface(master.points + shift, master.faces, element)
+        ref = ac.reference.closest_points(slave + shift, m2)
+        c = ac.detect(slave + shift, m2, backend=backend, dtype=np.float32)
+        assert_matches_reference(c, slave + shift, m2, ref, dtype=np.float32)
+        c64 = ac.detect(slave + shift, m2, backend=backend)
+        assert_matches_reference(c64, slave + shift, m2, ref)
+
+
+def test_fig2a_closest_face_not_attached_to_closest_node(backend):
+    # Seed 003 Fig. 2a: the slave hovers over the middle of a large face whose nodes are far,
+    # while a small face nearby has a node closer than any of them but is itself farther.
+    pts = np.array([[-5.0, -5, 0], [5.0, -5, 0], [0.0, 5, 0],  # large face 0, 1 below
+                    [1.2, 0, 1], [1.5, 0.3, 1], [1.5, -0.3, 1]])  # small face 1, 1.2 away
+    master = ac.Surface(pts, [[0, 1, 2], [3, 4, 5]], "tri3")
+    slave = np.array([[0.0, 0.0, 1.0]])
+    # The closest node is on face 1, but face 0 holds the closest point.
+    node_d = np.linalg.norm(pts - slave, axis=1)
+    assert np.argmin(node_d) == 3
+    ref = ac.reference.closest_points(slave, master)
+    assert ref.face[0] == 0 and ref.distance[0] == pytest.approx(1.0)
+    c = ac.detect(slave, master, backend=backend)
+    assert c.face[0] == 0 and c.master_node[0] == 3 and c.gap[0] == pytest.approx(1.0)
+    # The published node procedure only looks at the faces of the closest node.
+    assert ac.detect(slave, master, backend=backend, mode="node").face[0] == 1
+    assert_matches_reference(c, slave, master, ref)
+
+
+def test_far_apart_returns_before_any_grid(backend, monkeypatch):
+    from arraycontact import _grid
+
+    def no_grid(*a, **k):
+        raise AssertionError("a grid was built")
+
+    monkeypatch.setattr(_grid, "build", no_grid)
+    s = scenes.rough_surfaces(2**8, gap=0.0)
+    c = ac.detect(s.slave + np.array([0, 0, 1e3]), s.master, backend=backend)
+    assert not c.active.any() and (c.status == ac.Status.OUT_OF_RANGE).all()
+    assert c.counts.slaves_in_box == 0
+
+
+def test_far_apart_patches_cost_what_adjacent_ones_cost():
+    # Two patches 1e6 box widths apart: the grid tables are sized by the item counts, not by
+    # the extent, and the answer is the reference's.
+    master, slave = random_scene(5, "tri3", n=4)
+    far = np.array([1e6 * 6.0, 0, 0])
+    m2 = ac.Surface(np.r_[master.points, master.points + far],
+                    np.r_[master.faces, master.faces + len(master.points)], "tri3")
+    s2 = np.r_[slave, slave + far]
+    near = np.array([12.0, 0, 0])
+    m3 = ac.Surface(np.r_[master.points, master.points + near],
+                    np.r_[master.faces, master.faces + len(master.points)], "tri3")
+    s3 = np.r_[slave, slave + near]
+    from arraycontact._prepare import prepare
+
+    p2 = prepare(s2, m2, m2.longest_edge)
+    p3 = prepare(s3, m3, m3.longest_edge)
+    assert (p2.node_table, p2.face_table) == (p3.node_table, p3.face_table)
+    c2 = ac.detect(s2, m2)
+    c3 = ac.detect(s3, m3)
+    # Same candidates; pair counts differ only by which cells happen to share hash slots.
+    assert c2.counts.count["candidates"] == c3.counts.count["candidates"]
+    for k in ("node_pairs", "face_pairs"):
+        assert 0.8 < c2.counts.count[k] / c3.counts.count[k] < 1.25
+    assert_matches_reference(c2, s2, m2)
+
+
+def test_displacement_raises_d_max():
+    master, slave = random_scene(0)
+    u = np.zeros((10, 3))
+    u[3] = [0, 0, 5.0]
+    c = ac.detect(slave, master, displacement=u)
+    assert c.d_max == pytest.approx(10.0)
+    assert ac.detect(slave, master).d_max == pytest.approx(master.longest_edge)
+
+
+def test_pairs_and_slave_ids():
+    s = scenes.rough_surfaces(2**8, gap=0.3)
+    c = ac.detect(s.slave_surface, s.master)
+    p = c.pairs()
+    assert p.shape == (c.active.sum(), 2)
+    assert np.array_equal(p[:, 0], s.slave_surface.nodes[c.active])
+    assert (p[:, 1] >= 0).all()
