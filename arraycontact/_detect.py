@@ -105,10 +105,11 @@ def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict):
         slave = seg
         face = m["nf_ids"][xp.where(valid, m["nf_offsets"][nd[seg]] + rank, 0)]
         counts.update(attached=n_att)
-    xi, point, dist, feature, local, conv = _projection.project(
+    xi, point, diff, feature, local, conv = _projection.project(
         xp, element, slave_x, m["nodes_x"], m["faces"], slave, face,
         iterations=st.iterations, tol=sc["tol"])
     # 5. selection and classification
+    dist = xp.sqrt(xp.sum(diff * diff, -1))
     status = xp.zeros(n, dtype=np.int32) + int(Status.OK)
     if st.mode == "exact":
         pick, has = _select.select_closest(xp, n, slave, face, valid, dist, tie)
@@ -132,7 +133,7 @@ def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict):
     face_out = face[pick]
     gap, dist_out, normal = _select.classify(
         xp, element, m["nodes_x"], m["faces"], m["face_edges"], m["edge_faces"],
-        m["node_normals"], slave_x, face_out, xi[pick], point[pick], feature[pick], local[pick])
+        m["node_normals"], face_out, xi[pick], diff[pick], feature[pick], local[pick])
     status = xp.where(active & ~conv[pick], int(Status.NOT_CONVERGED), status)
     status = xp.where(active | (status == int(Status.PASSING_BY)), status,
                       int(Status.OUT_OF_RANGE))
@@ -220,7 +221,7 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
     elif not (np.isfinite(d_max) and d_max > 0):
         raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     n = len(slave_x)
-    prep = prepare(slave_x, master, float(d_max)) if d_max > 0 else None
+    prep = prepare(slave_x, master, float(d_max), dtype)
     t1 = time.perf_counter()
     if prep is None:  # the boxes do not meet: no grid, no contact
         return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0})

@@ -23,12 +23,13 @@ def table_size(n_items):
 
 
 def cell_coords(xp, x, cell):
-    return xp.floor(x / cell).astype(np.int32)
+    # int64 where the float is float64: a global float64 frame may be far from the origin.
+    return xp.floor(x / cell).astype(np.int64 if x.dtype == np.float64 else np.int32)
 
 
 def cell_key(xp, c, table):
     h = (c[..., 0] * _P[0]) ^ (c[..., 1] * _P[1]) ^ (c[..., 2] * _P[2])
-    return h & (table - 1)
+    return (h & (table - 1)).astype(np.int32)
 
 
 def build(xp, x, cell, table):

@@ -60,13 +60,13 @@ def pseudo_normal(element, points, faces, face_edges, edge_faces, node_normals,
                     xp.where((feature == EDGE)[:, None], n_edge, n_vertex))
 
 
-def signed_gap(slave, point, n_pseudo, feature, xp=np):
-    """Signed distance and unit normal: gap < 0 is penetration.
+def signed_gap(d_vec, n_pseudo, feature, xp=np):
+    """Signed distance and unit normal from d_vec = slave - closest point: gap < 0 is
+    penetration.
 
     The normal is the direction from the closest point to the slave, turned to the pseudo-
     normal's side; where the slave sits on the surface (no direction) it is the pseudo-normal.
     """
-    d_vec = slave - point
     dist = xp.sqrt(xp.sum(d_vec**2, -1))
     s = xp.where(xp.sum(d_vec * n_pseudo, -1) < 0, -1.0, 1.0).astype(dist.dtype)
     on = dist <= 0

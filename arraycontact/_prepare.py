@@ -4,7 +4,9 @@ Runs eagerly in float64 on the host. The slave box and the master box, each grow
 (eq. 4), are intersected; when they do not meet, detection ends here, before any grid is built.
 Only slaves inside the intersection, master nodes inside it and faces whose ball reaches it go
 on. The intersection's lower corner is the origin of the local frame in which everything after
-this stage computes (so float32 keeps its precision far from the global origin).
+this stage computes in float32 (so float32 keeps its precision far from the global origin). In
+float64 the frame stays global: every distance is then taken between nearby values, which
+subtract exactly, so even patches 10^6 box widths apart lose nothing to a shared origin.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ class Prepared:
     extent: float  # largest local coordinate, for rounding slack
 
 
-def prepare(slave_x, master, d_max) -> Prepared | None:
+def prepare(slave_x, master, d_max, dtype=np.float64) -> Prepared | None:
     """Boxes and selections, or None when the slave and master boxes do not meet."""
     if len(slave_x) == 0 or master.n_faces == 0:
         return None
@@ -71,8 +73,10 @@ def prepare(slave_x, master, d_max) -> Prepared | None:
     outside = np.maximum(np.maximum(lo - centres, centres - hi), 0)
     face_ids = np.nonzero(np.linalg.norm(outside, axis=1) <= radii + d_max)[0]
     r_max = float(radii[face_ids].max()) if len(face_ids) else 0.0
+    origin = lo if np.dtype(dtype) == np.float32 else np.zeros(3)
     return Prepared(
-        slave_rows=slave_rows, node_ids=node_ids, face_ids=face_ids, origin=lo,
+        slave_rows=slave_rows, node_ids=node_ids, face_ids=face_ids, origin=origin,
         d_max=float(d_max), r_max=r_max, node_cell=CELL_MARGIN * d_max,
         face_cell=CELL_MARGIN * (d_max + r_max), node_table=table_size(len(node_ids)),
-        face_table=table_size(len(face_ids)), extent=float(np.abs(hi - lo).max()))
+        face_table=table_size(len(face_ids)),
+        extent=float(np.abs(np.r_[lo - origin, hi - origin]).max()))

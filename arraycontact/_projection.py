@@ -37,8 +37,8 @@ def candidate_faces(xp, grid, centres, radii, slave_x, rho, *, cell, table, r_ma
 
 
 def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, tol):
-    """Closest point of slave_x[slave] on faces[face]: xi, point, distance, feature, local,
-    converged."""
+    """Closest point of slave_x[slave] on faces[face]: xi, point, slave - point, feature,
+    local, converged."""
     # Each pair in a frame at its face's first node: nearby float32 values subtract exactly, so
     # distances keep full precision relative to the element size however far the scene is.
     xe = nodes_x[faces[face]]
@@ -53,6 +53,6 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
         xi, feature, local, converged, _, _ = closest_point_face(
             element, r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
     point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
-    dist = xp.sqrt(xp.sum((point - r) ** 2, -1))
-    return xi, point + x0, dist, feature, local, converged
+    diff = r - point  # slave minus closest point, exact of the frame's offset
+    return xi, point + x0, diff, feature, local, converged
 

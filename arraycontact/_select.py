@@ -69,10 +69,10 @@ def boundary_frames(surface):
     return prev_node, next_node, prev_normal, next_normal, on, concave
 
 
-def classify(xp, element, nodes_x, faces, face_edges, edge_faces, node_normals, slave_x,
-             face, xi, point, feature, local):
+def classify(xp, element, nodes_x, faces, face_edges, edge_faces, node_normals, face, xi,
+             diff, feature, local):
     """Signed gap, distance and normal of the chosen closest points."""
     n_pseudo = pseudo_normal(element, nodes_x, faces, face_edges, edge_faces, node_normals,
                              face, feature, local, xi, xp)
-    return signed_gap(slave_x, point, n_pseudo, feature, xp)
+    return signed_gap(diff, n_pseudo, feature, xp)
 

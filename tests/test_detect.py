@@ -113,9 +113,9 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
     assert (p2.node_table, p2.face_table) == (p3.node_table, p3.face_table)
     c2 = ac.detect(s2, m2)
     c3 = ac.detect(s3, m3)
-    # Same candidates; pair counts differ only by which cells happen to share hash slots.
-    assert c2.counts.count["candidates"] == c3.counts.count["candidates"]
-    for k in ("node_pairs", "face_pairs"):
+    # Pair counts differ only by which cells happen to share hash slots, and candidate counts
+    # by the rounding slack of the pruning test (proportional to the coordinates).
+    for k in ("node_pairs", "face_pairs", "candidates"):
         assert 0.8 < c2.counts.count[k] / c3.counts.count[k] < 1.25
     assert_matches_reference(c2, s2, m2)
 
