@@ -1,0 +1,101 @@
+"""Surface: validation with clear errors, and derived topology against closed forms."""
+
+import numpy as np
+import pytest
+
+import arraycontact as ac
+from arraycontact import scenes
+from arraycontact._elements import get_element, shape_functions
+
+CUBE_PTS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
+# Outward-oriented quads of the unit cube (node i = x + 2 y + 4 z).
+CUBE_QUADS = np.array([[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2],
+                       [1, 3, 7, 5]])
+
+
+def cube():
+    return ac.Surface(CUBE_PTS, CUBE_QUADS, "quad4")
+
+
+def test_cube_topology_and_normals():
+    s = cube()
+    assert s.closed and len(s.edges) == 12 and len(s.boundary_edges) == 0
+    assert (s.edge_faces >= 0).all()
+    c = s.points[s.faces].mean(1)
+    assert np.allclose(s.face_normals, 2 * (c - 0.5))  # outward unit normals
+    assert np.allclose(s.node_normals, (CUBE_PTS - 0.5) / np.linalg.norm(CUBE_PTS - 0.5, axis=1,
+                                                                          keepdims=True))
+    assert s.longest_edge == pytest.approx(np.sqrt(2))  # the face diagonal (eq. 2)
+    offsets, ids = s.node_faces
+    assert (np.diff(offsets) == 3).all()
+    for node in range(8):
+        assert set(ids[offsets[node]:offsets[node + 1]]) == set(np.nonzero(s.faces == node)[0])
+
+
+def test_open_grid_boundary():
+    x, y = np.meshgrid(np.arange(4.0), np.arange(4.0), indexing="ij")
+    s = scenes.grid_surface(x, y, 0 * x, "quad4")
+    assert not s.closed
+    assert len(s.boundary_edges) == 12 and len(s.boundary_nodes) == 12
+    assert len(s.edges) == 24
+    # Boundary edges run counter-clockwise (the faces' orientation, normal +z).
+    a, b = s.points[s.boundary_edges[:, 0]], s.points[s.boundary_edges[:, 1]]
+    centre = s.points.mean(0)
+    assert (np.cross(a - centre, b - a)[:, 2] > 0).all()
+    assert np.allclose(s.node_normals[s.nodes], [0, 0, 1])
+
+
+@pytest.mark.parametrize("element", ["tri3", "quad4", "tri6", "quad8", "quad9"])
+def test_face_ball_holds_the_face(element):
+    rng = np.random.default_rng(0)
+    e = get_element(element)
+    pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.4 * rng.normal(size=(e.nodes_per_face, 3))
+    s = ac.Surface(pts, [np.arange(e.nodes_per_face)], element)
+    c, r = s.face_bounds
+    g = np.linspace(0, 1, 101) if e.kind == "tri" else np.linspace(-1, 1, 101)
+    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    if e.kind == "tri":
+        xi = xi[xi.sum(1) <= 1]
+    x = shape_functions(e, xi) @ pts
+    assert np.linalg.norm(x - c[0], axis=1).max() <= r[0]
+
+
+def test_global_ids_and_unused_points():
+    pts = np.r_[CUBE_PTS, [[9.0, 9, 9]]]  # an interior / unused node
+    s = ac.Surface(pts, CUBE_QUADS)
+    assert s.element.name == "quad4" and np.array_equal(s.nodes, np.arange(8))
+    assert np.allclose(s.node_normals[8], 0)
+
+
+@pytest.mark.parametrize("points, faces, element, match", [
+    (np.zeros((3, 2)), [[0, 1, 2]], None, r"shape \[n, 3\]"),
+    ([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], [[0, 1, 2]], None, "points row 2 is not finite"),
+    ([[0, 0, 0], [1, 0, 0], [0, np.inf, 0]], [[0, 1, 2]], None, "points row 2"),
+    (np.array([["a", "b", "c"]]), [[0, 0, 0]], None, "real numeric"),
+    (np.eye(3), [[0, 1, 3]], None, "faces row 0 references a node outside"),
+    (np.eye(3), [[0, 1, 2], [0, -1, 2]], None, "faces row 1 references"),
+    (np.eye(3), [[0, 1, 1]], None, "faces row 0 repeats a node"),
+    (np.eye(3), [[0, 1, 1.5]], None, "faces row 0 holds a non-integral"),
+    (np.eye(3), [[0, 1, 2]], "quad4", "has 4 nodes per face"),
+    (np.eye(3), [[0, 1, 2]], "hex8", "unknown element"),
+    (np.eye(3), [0, 1, 2], None, r"shape \[n_faces"),
+    (np.eye(3), [[0, 1]], None, "no element has 2 nodes"),
+    (np.eye(3), np.array([["0", "1", "2"]]), None, "integer array"),
+])
+def test_bad_input(points, faces, element, match):
+    with pytest.raises(ValueError, match=match):
+        ac.Surface(points, faces, element)
+
+
+def test_integral_floats_accepted_and_immutable():
+    s = ac.Surface(np.eye(3), np.array([[0.0, 1.0, 2.0]]))
+    assert s.faces.dtype == np.int64
+    with pytest.raises(ValueError):
+        s.points[0, 0] = 1.0
+    with pytest.raises(AttributeError):
+        s.points = np.zeros((3, 3))
+
+
+def test_empty_surface_is_valid():
+    s = ac.Surface(np.zeros((0, 3)), np.zeros((0, 3), int), "tri3")
+    assert s.n_faces == 0 and not s.closed and s.longest_edge == 0.0
