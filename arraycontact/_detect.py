@@ -212,6 +212,8 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "warp":
+        raise ValueError("backend 'warp' is not available yet: use 'numpy' or 'jax'")
     dtype = np.dtype(np.float64 if dtype is None else dtype)
     if dtype not in TIE_RTOL:
         raise ValueError(f"dtype must be float32 or float64, got {dtype}")
@@ -231,14 +233,10 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
                 passing_by=mode == "node" and not master.closed)
     if backend == "numpy":
         out, count, cap = _run_numpy(slave_x, master, prep, st, dtype)
-    elif backend == "jax":
-        from ._backends import load
-
-        out, count, cap = load("jax").run_one_shot(slave_x, master, prep, st, dtype)
     else:
         from ._backends import load
 
-        out, count, cap = load("warp").run_one_shot(slave_x, master, prep, st, dtype)
+        out, count, cap = load(backend).run_one_shot(slave_x, master, prep, st, dtype)
     t2 = time.perf_counter()
     counts = Counts(slaves_in_box=len(prep.slave_rows), master_nodes_in_box=len(prep.node_ids),
                     master_faces_in_box=len(prep.face_ids), count=count, capacity=cap)

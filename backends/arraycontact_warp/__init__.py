@@ -1,5 +1,6 @@
-"""Warp back end of arraycontact (kernels for GPU simulators): not implemented yet."""
+"""Warp back end of arraycontact (kernels for GPU simulators).
 
+The kernels come with the Warp back-end issue; until then `arraycontact.detect(...,
+backend="warp")` raises a ValueError that says so."""
 
-def run_one_shot(slave_x, master, prep, st, dtype):
-    raise NotImplementedError("the Warp back end is not implemented yet (issue: Warp back end)")
+AVAILABLE = False

@@ -1,0 +1,128 @@
+"""Public API: lazy back ends, bad input, empty sets, overflow protocol, scenes."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import arraycontact as ac
+from arraycontact import scenes
+from test_detect import random_scene
+
+
+def test_import_loads_no_backend():
+    code = ("import sys, arraycontact, arraycontact.scenes, arraycontact.reference; "
+            "print(sorted(m for m in ('jax', 'warp') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_backend_packages_importable():
+    import arraycontact_jax
+    import arraycontact_warp
+
+    assert callable(arraycontact_jax.run_one_shot) and arraycontact_warp.AVAILABLE is False
+
+
+MASTER, SLAVE = random_scene(0, n=4)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(mode="fast"), "mode must be one of"),
+    (dict(backend="torch"), "backend must be one of"),
+    (dict(backend="warp"), "not available yet"),
+    (dict(d_max=0.0), "d_max must be a positive"),
+    (dict(d_max=np.nan), "d_max must be a positive"),
+    (dict(dtype=np.float16), "dtype must be float32 or float64"),
+    (dict(displacement=np.zeros((3, 2))), "displacement must be"),
+    (dict(displacement=np.full((3, 3), np.inf)), "displacement must be"),
+])
+def test_bad_options(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ac.detect(SLAVE, MASTER, **kwargs)
+
+
+@pytest.mark.parametrize("slave, match", [
+    (np.zeros((4, 2)), r"slave must have shape \[n, 3\]"),
+    (np.array([[0, 0, 0], [1, np.nan, 0]]), "slave row 1 is not finite"),
+    (np.array([[0, 0, "a"]]), "real numeric"),
+])
+def test_bad_slaves(backend, slave, match):
+    with pytest.raises(ValueError, match=match):
+        ac.detect(slave, MASTER, backend=backend)
+
+
+def test_bad_master():
+    with pytest.raises(ValueError, match="master must be an arraycontact.Surface"):
+        ac.detect(SLAVE, MASTER.points)
+
+
+def test_empty_sets(backend):
+    c = ac.detect(np.zeros((0, 3)), MASTER, backend=backend)
+    assert len(c) == 0 and c.pairs().shape == (0, 2)
+    empty = ac.Surface(np.zeros((0, 3)), np.zeros((0, 3), int), "tri3")
+    c = ac.detect(SLAVE, empty, backend=backend, d_max=1.0)
+    assert len(c) == len(SLAVE) and not c.active.any()
+    assert (c.status == ac.Status.OUT_OF_RANGE).all() and (c.face == -1).all()
+
+
+def test_jax_overflow_is_reported_and_replanned(monkeypatch):
+    import arraycontact_jax._detect as jd
+
+    real = jd._estimate
+    monkeypatch.setattr(jd, "_estimate", lambda *a: {k: 1 for k in real(*a)})
+    c = ac.detect(SLAVE, MASTER, backend="jax")
+    ref = ac.detect(SLAVE, MASTER)
+    assert not c.overflow
+    assert all(c.counts.count[k] <= c.counts.capacity[k] for k in c.counts.count)
+    assert np.array_equal(c.face, ref.face) and np.allclose(c.gap[c.active], ref.gap[c.active])
+
+
+def test_jax_kernel_flags_overflow():
+    """The low-level kernel reports counts above capacity instead of hiding them."""
+    import jax
+
+    from arraycontact._detect import Static, master_arrays, scalars
+    from arraycontact._prepare import prepare
+    import arraycontact_jax._detect as jd
+
+    with jax.enable_x64(True):
+        prep = prepare(SLAVE, MASTER, MASTER.longest_edge)
+        st = Static("tri3", "exact", prep.node_table, prep.face_table, 0, False)
+        m = master_arrays(MASTER, prep, np.float64)
+        sc = scalars(prep, MASTER, np.float64)
+        cap = (("candidates", 8), ("face_pairs", 8), ("node_pairs", 8))
+        _, counts = jd._kernel(sc, m, SLAVE[prep.slave_rows], st=st, capacity=cap)
+    # Pair counts are true counts; the candidate count comes from the truncated pairs, but
+    # the overflow of the pairs is already on record.
+    assert int(counts["node_pairs"]) > 8 and int(counts["face_pairs"]) > 8
+
+
+def test_contacts_summary_and_status():
+    c = ac.detect(SLAVE, MASTER)
+    text = c.summary()
+    assert f"active: {c.active.sum()}" in text
+    assert set(np.unique(c.status)) <= {int(s) for s in ac.Status}
+    assert (c.feature[~c.active] == ac.Feature.NONE).all()
+
+
+@pytest.mark.parametrize("make", [
+    lambda: scenes.rough_surfaces(2**8), lambda: scenes.rough_surfaces(2**9, element="quad9"),
+    lambda: scenes.rough_layers(2**8, quadratic=True), lambda: scenes.sphere_on_plane(2**8),
+    lambda: scenes.cylinder_on_road(2**8), lambda: scenes.curved_patch(4, element="tri6"),
+])
+def test_scenes_are_deterministic(make):
+    a, b = make(), make()
+    assert np.array_equal(a.slave, b.slave) and np.array_equal(a.master.points, b.master.points)
+    assert a.master.n_faces > 0 and len(a.slave) > 0
+    # Masters face +z (their normals point at the slaves above them).
+    assert (a.master.face_normals[:, 2] > 0).all()
+
+
+def test_rough_surface_sizes_and_roughness():
+    s = scenes.rough_surfaces(2**12, rms=0.5, gap=3.0)
+    assert len(s.slave) == 2**12 and len(s.master.nodes) == 2**12
+    assert np.std(s.master.points[:, 2]) == pytest.approx(0.5)
+    assert np.mean(s.slave[:, 2]) == pytest.approx(3.0, abs=1e-9)
+    assert (s.slave_surface.face_normals[:, 2] < 0).all()
