@@ -73,19 +73,34 @@ def scalars(prep: Prepared, master: Surface, dtype):
                 tol=KKT_TOL[np.dtype(dtype)])
 
 
-def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict):
+class _Laps:
+    """Wall time per stage, summed over chunks (eager back ends only)."""
+
+    def __init__(self):
+        self.times, self.t = {}, time.perf_counter()
+
+    def __call__(self, name):
+        t = time.perf_counter()
+        self.times[name] = self.times.get(name, 0.0) + t - self.t
+        self.t = t
+
+
+def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict, lap=None):
     """Stages 2-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts."""
+    lap = lap or (lambda name: None)
     element = get_element(st.element)
     n = slave_x.shape[0]
     tie = sc["tie"]
     # 2. grids of master nodes (cells >= d_max) and face centres (cells >= d_max + r_max)
     node_grid = _grid.build(xp, m["nodes_x"][m["node_ids"]], sc["node_cell"], st.node_table)
     node_grid = (m["node_ids"][node_grid[0]], node_grid[1])
+    lap("grid")
     # 3. closest node
     node, dn, n_node_pairs = _closest_node.closest_node(
         xp, node_grid, m["nodes_x"], slave_x, cell=sc["node_cell"], table=st.node_table,
         d_max=sc["d_max"], tie=tie, capacity=capacity.get("node_pairs"))
     counts = {"node_pairs": n_node_pairs}
+    lap("closest_node")
     # 4. candidate faces and projections
     if st.mode == "exact":
         face_grid = _grid.build(xp, m["centres"][m["face_ids"]], sc["face_cell"], st.face_table)
@@ -105,9 +120,11 @@ def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict):
         slave = seg
         face = m["nf_ids"][xp.where(valid, m["nf_offsets"][nd[seg]] + rank, 0)]
         counts.update(attached=n_att)
+    lap("candidates")
     xi, point, diff, feature, local, conv = _projection.project(
         xp, element, slave_x, m["nodes_x"], m["faces"], slave, face,
         iterations=st.iterations, tol=sc["tol"])
+    lap("projection")
     # 5. selection and classification
     dist = xp.sqrt(xp.sum(diff * diff, -1))
     status = xp.zeros(n, dtype=np.int32) + int(Status.OK)
@@ -137,6 +154,7 @@ def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict):
     status = xp.where(active & ~conv[pick], int(Status.NOT_CONVERGED), status)
     status = xp.where(active | (status == int(Status.PASSING_BY)), status,
                       int(Status.OUT_OF_RANGE))
+    lap("select")
     out = dict(active=active, face=face_out, xi=xi[pick], point=point[pick], gap=gap,
                distance=dist_out, normal=normal, feature=feature[pick], master_node=node,
                status=status)
@@ -185,14 +203,14 @@ def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
     m = master_arrays(master, prep, dtype)
     sc = scalars(prep, master, dtype)
     x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
-    outs, totals = [], {}
+    outs, totals, lap = [], {}, _Laps()
     for i in range(0, len(x), chunk):
-        o, cnt = run_stages(np, st, sc, m, x[i:i + chunk], {})
+        o, cnt = run_stages(np, st, sc, m, x[i:i + chunk], {}, lap)
         outs.append(o)
         for k, v in cnt.items():
             totals[k] = totals.get(k, 0) + int(v)
     out = {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
-    return out, totals, {k: None for k in totals}
+    return out, totals, {k: None for k in totals}, lap.times
 
 
 def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displacement=None,
@@ -232,14 +250,15 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
                 iterations=ITERATIONS.get(master.element.name, 0),
                 passing_by=mode == "node" and not master.closed)
     if backend == "numpy":
-        out, count, cap = _run_numpy(slave_x, master, prep, st, dtype)
+        out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype)
     else:
         from ._backends import load
 
         out, count, cap = load(backend).run_one_shot(slave_x, master, prep, st, dtype)
+        laps = {}
     t2 = time.perf_counter()
     counts = Counts(slaves_in_box=len(prep.slave_rows), master_nodes_in_box=len(prep.node_ids),
                     master_faces_in_box=len(prep.face_ids), count=count, capacity=cap)
     res = assemble(n, ids, prep, out, d_max, counts,
-                   {"prepare": t1 - t0, "detect": t2 - t1, "total": t2 - t0})
+                   {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0})
     return res

@@ -1,0 +1,42 @@
+"""The command line: demo and file-to-file detection."""
+
+import meshio
+import numpy as np
+
+import arraycontact as ac
+from arraycontact.cli import main
+
+
+def test_demo(tmp_path, capsys):
+    stem = tmp_path / "demo"
+    assert main(["demo", "--nodes", "1024", "-o", str(stem)]) == 0
+    out = capsys.readouterr().out
+    assert "active:" in out and "time per stage" in out and "min gap" in out
+    mesh = meshio.read(f"{stem}.vtu")
+    assert (stem.parent / "demo.png").stat().st_size > 1000
+    n_active = int(out.split("active: ")[1].split()[0])
+    assert len(mesh.cells_dict["line"]) == n_active
+    assert mesh.point_data["gap"].shape == (1024 + n_active,)
+
+
+def test_detect_files(tmp_path, capsys):
+    s = ac.scenes.rough_surfaces(2**8, gap=0.5)
+    mpath, spath = tmp_path / "master.vtu", tmp_path / "slave.msh"
+    meshio.write(mpath, meshio.Mesh(s.master.points, [("triangle", s.master.faces)]))
+    meshio.write(spath, meshio.Mesh(s.slave_surface.points, [("triangle", s.slave_surface.faces)]),
+                 file_format="gmsh22", binary=False)
+    out = tmp_path / "contacts.vtu"
+    assert main(["detect", str(mpath), str(spath), "-o", str(out), "--mode", "node"]) == 0
+    mesh = meshio.read(out)
+    c = ac.detect(s.slave_surface, s.master, mode="node")
+    assert len(mesh.cells_dict["line"]) == c.active.sum()
+    assert np.allclose(mesh.point_data["gap"][:256][c.active], c.gap[c.active])
+
+
+def test_bad_input_is_a_clear_error(tmp_path, capsys):
+    s = ac.scenes.rough_surfaces(2**8)
+    path = tmp_path / "m.vtu"
+    meshio.write(path, meshio.Mesh(s.master.points, [("triangle", s.master.faces)]))
+    assert main(["detect", str(path), str(path), "-o", str(tmp_path / "o.vtu"),
+                 "--d-max", "-1"]) == 2
+    assert "d_max must be a positive" in capsys.readouterr().err
