@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._grid import stencil_counts
-from ._xp import expand, segment_min
+from ._xp import expand, norm, segment_min
 
 BIG = np.iinfo(np.int32).max
 
@@ -23,7 +23,7 @@ def closest_node(xp, grid, nodes_x, slave_x, *, cell, table, d_max, tie, capacit
     seg, rank, valid, total = expand(xp, counts.reshape(-1), capacity)
     slave = seg // 27
     node = grid[0][xp.where(valid, begin.reshape(-1)[seg] + rank, 0)]
-    d = xp.sqrt(xp.sum((nodes_x[node] - slave_x[slave]) ** 2, -1))
+    d = norm(xp, nodes_x[node] - slave_x[slave])
     ok = valid & (d <= d_max)
     d = xp.where(ok, d, np.inf)
     dmin = segment_min(xp, d, slave, n)

@@ -17,7 +17,7 @@ from ._contacts import Contacts, Counts, Feature, Status
 from ._elements import get_element
 from ._prepare import Prepared, default_d_max, prepare
 from ._surface import Surface, validate_points
-from ._xp import expand
+from ._xp import expand, norm
 
 MODES = ("exact", "node")
 BACKENDS = ("numpy", "jax", "warp")
@@ -126,7 +126,7 @@ def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict, lap=N
         iterations=st.iterations, tol=sc["tol"])
     lap("projection")
     # 5. selection and classification
-    dist = xp.sqrt(xp.sum(diff * diff, -1))
+    dist = norm(xp, diff)
     status = xp.zeros(n, dtype=np.int32) + int(Status.OK)
     if st.mode == "exact":
         pick, has = _select.select_closest(xp, n, slave, face, valid, dist, tie)

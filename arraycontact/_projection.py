@@ -19,7 +19,7 @@ from __future__ import annotations
 from ._elements import shape_functions
 from ._geometry import closest_point_face, closest_point_triangle, start_option_one
 from ._grid import stencil_counts
-from ._xp import compact, expand
+from ._xp import compact, expand, norm
 
 
 def candidate_faces(xp, grid, centres, radii, slave_x, rho, *, cell, table, r_max,
@@ -29,7 +29,7 @@ def candidate_faces(xp, grid, centres, radii, slave_x, rho, *, cell, table, r_ma
     seg, rank, valid, n_pairs = expand(xp, counts.reshape(-1), pair_capacity)
     slave = seg // 27
     face = grid[0][xp.where(valid, begin.reshape(-1)[seg] + rank, 0)]
-    dc = xp.sqrt(xp.sum((slave_x[slave] - centres[face]) ** 2, -1))
+    dc = norm(xp, slave_x[slave] - centres[face])
     keep = valid & (dc - radii[face] <= rho[slave])
     idx, n_cand = compact(xp, keep, candidate_capacity)
     ok = xp.arange(idx.shape[0]) < n_cand
