@@ -85,16 +85,26 @@ class _Laps:
         self.t = t
 
 
-def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict, lap=None):
-    """Stages 2-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts."""
+def build_grids(xp, st: Static, sc: dict, m: dict):
+    """Stage 2: grids of master nodes (cells >= d_max) and face centres (cells >= d_max +
+    r_max), as (item ids, slot starts) with global ids."""
+    order, starts = _grid.build(xp, m["nodes_x"][m["node_ids"]], sc["node_cell"], st.node_table)
+    grids = {"node": (m["node_ids"][order], starts)}
+    if st.mode == "exact":
+        order, starts = _grid.build(xp, m["centres"][m["face_ids"]], sc["face_cell"],
+                                    st.face_table)
+        grids["face"] = (m["face_ids"][order], starts)
+    return grids
+
+
+def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity: dict,
+               lap=None):
+    """Stages 3-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts."""
     lap = lap or (lambda name: None)
     element = get_element(st.element)
     n = slave_x.shape[0]
     tie = sc["tie"]
-    # 2. grids of master nodes (cells >= d_max) and face centres (cells >= d_max + r_max)
-    node_grid = _grid.build(xp, m["nodes_x"][m["node_ids"]], sc["node_cell"], st.node_table)
-    node_grid = (m["node_ids"][node_grid[0]], node_grid[1])
-    lap("grid")
+    node_grid = grids["node"]
     # 3. closest node
     node, dn, n_node_pairs = _closest_node.closest_node(
         xp, node_grid, m["nodes_x"], slave_x, cell=sc["node_cell"], table=st.node_table,
@@ -103,8 +113,7 @@ def run_stages(xp, st: Static, sc: dict, m: dict, slave_x, capacity: dict, lap=N
     lap("closest_node")
     # 4. candidate faces and projections
     if st.mode == "exact":
-        face_grid = _grid.build(xp, m["centres"][m["face_ids"]], sc["face_cell"], st.face_table)
-        face_grid = (m["face_ids"][face_grid[0]], face_grid[1])
+        face_grid = grids["face"]
         rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
         slave, face, valid, n_pairs, n_cand = _projection.candidate_faces(
             xp, face_grid, m["centres"], m["radii"], slave_x, rho, cell=sc["face_cell"],
@@ -203,9 +212,12 @@ def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
     m = master_arrays(master, prep, dtype)
     sc = scalars(prep, master, dtype)
     x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
-    outs, totals, lap = [], {}, _Laps()
+    lap = _Laps()
+    grids = build_grids(np, st, sc, m)
+    lap("grid")
+    outs, totals = [], {}
     for i in range(0, len(x), chunk):
-        o, cnt = run_stages(np, st, sc, m, x[i:i + chunk], {}, lap)
+        o, cnt = run_stages(np, st, sc, m, grids, x[i:i + chunk], {}, lap)
         outs.append(o)
         for k, v in cnt.items():
             totals[k] = totals.get(k, 0) + int(v)

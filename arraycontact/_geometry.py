@@ -81,14 +81,27 @@ def start_option_one(element, r, xe, xp=np):
     return xp.asarray(cand, dtype=xe.dtype)[best]
 
 
-def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, hessian="exact"):
+def start_option_two(element, r, xe, xp=np):
+    """Seed 003 start (II): the centre of the element."""
+    return xp.zeros(r.shape[:-1] + (2,), dtype=xe.dtype) + xp.asarray(element.centre, xe.dtype)
+
+
+def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="active_set",
+                       hessian="exact"):
     """Closest point on faces with nodes xe [P, nn, 3] to points r [P, 3]: seed 003 eq. (8).
 
-    A primal active-set method on the element's linear constraints A xi >= b. Each iteration
-    drops the working-set constraint with the most negative multiplier, takes a Newton step in
-    the null space of the remaining working set (exact Hessian of eqs. 11-13; Gauss-Newton
-    where that is not positive definite), halves it while the distance grows, and stops at the
-    first constraint it meets (ratio test). A fixed number of iterations keeps shapes static.
+    Two methods on the element's linear constraints A xi >= b, both with the exact Hessian of
+    eqs. (11)-(13) (Gauss-Newton where that is not positive definite) and a fixed number of
+    iterations (static shapes):
+
+    - "active_set": a primal active-set method. Each iteration drops the working-set
+      constraint with the most negative multiplier, takes a Newton step in the null space of
+      the remaining working set, halves it while the distance grows, and stops at the first
+      constraint it meets (ratio test).
+    - "sqp": sequential quadratic programming. Each iteration solves the quadratic model
+      exactly on the element's domain (in 2-D the QP's solution is the best feasible one of:
+      the free minimiser, the minimiser on each constraint line, each corner), then halves
+      the step while the distance grows; iterates stay feasible.
 
     Returns xi, feature, local, converged (KKT residual <= tol), iterations used (the first
     iteration after which the KKT conditions held) and the final KKT residual (in natural
@@ -196,10 +209,48 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, hessian="
         w = w | ((xp.arange(m) == jb[..., None]) & blocked[..., None])
         return xp.where(done[..., None], xi, new), w, done, iters
 
+    corners = xp.asarray(element.corners, dtype=xe.dtype)
+
+    def sqp_iteration(it, state):
+        xi, w, done, iters = state
+        g, h, gn, scale = derivatives(xi)
+        w = xp.abs(xi @ A.T - b) <= feasible_tol
+        kkt, _ = residual(g, w, scale)
+        newly = (kkt <= tol) & ~done
+        iters = xp.where(newly, it + 1, iters)
+        done = done | newly
+        pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
+        hq = xp.where(pd[..., None, None], h, gn)
+        cands = [-_solve2(hq, g, xp)]
+        for j in range(m):
+            a = A[j]
+            t = xp.stack([-a[1], a[0]])
+            d0 = ((b[j] - xi @ a) / (a @ a))[..., None] * a
+            s_ = -_safe_div(_dot(t, g + xp.einsum("...ab,...b->...a", hq, d0), xp),
+                            xp.einsum("a,...ab,b->...", t, hq, t), xp)
+            cands.append(d0 + s_[..., None] * t)
+        cands += [corners[c] - xi for c in range(element.n_corners)]
+        p_all = xp.stack(cands, -2)  # [..., n_cand, 2]
+        feas = ((xi[..., None, :] + p_all) @ A.T - b >= -feasible_tol).all(-1)
+        model = (xp.einsum("...ca,...a->...c", p_all, g)
+                 + 0.5 * xp.einsum("...ca,...ab,...cb->...c", p_all, hq, p_all))
+        best = xp.argmin(xp.where(feas, model, np.inf), -1)
+        p = xp.take_along_axis(p_all, best[..., None, None], -2)[..., 0, :]
+        alpha = xp.ones(xi.shape[:-1], dtype=xe.dtype)
+        f0 = objective(xi)
+        for _ in range(4):
+            grow = objective(xi + alpha[..., None] * p) > f0
+            alpha = xp.where(grow, 0.5 * alpha, alpha)
+        new = xi + alpha[..., None] * p
+        return xp.where(done[..., None], xi, new), w, done, iters
+
     w0 = xp.abs(xi0 @ A.T - b) <= feasible_tol
     done0 = xp.zeros(xi0.shape[:-1], dtype=bool)
     iters0 = xp.zeros(xi0.shape[:-1], dtype=xp.int32)
-    xi, w, done, iters = fori(xp, iterations, iteration, (xi0, w0, done0, iters0))
+    body = sqp_iteration if method == "sqp" else iteration
+    xi, w, done, iters = fori(xp, iterations, body, (xi0, w0, done0, iters0))
+    if method == "sqp":
+        w = xp.abs(xi @ A.T - b) <= feasible_tol
     g, _, _, scale = derivatives(xi)
     kkt, _ = residual(g, w, scale)
     converged = kkt <= tol

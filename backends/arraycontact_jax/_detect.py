@@ -14,28 +14,29 @@ import jax.numpy as jnp
 import numpy as np
 
 from arraycontact import _grid
-from arraycontact._detect import master_arrays, run_stages, scalars
+from arraycontact._detect import build_grids, master_arrays, run_stages, scalars
 
 GROWTH = 1.25
 
 
 @partial(jax.jit, static_argnames=("st", "capacity"))
 def _kernel(sc, m, slave_x, *, st, capacity):
-    out, counts = run_stages(jnp, st, sc, m, slave_x, dict(capacity))
+    grids = build_grids(jnp, st, sc, m)
+    out, counts = run_stages(jnp, st, sc, m, grids, slave_x, dict(capacity))
     return out, counts
 
 
 def _estimate(slave_x, m, sc, st):
     """Upper-bound pair counts from the stencil cell counts on the host (no pairs built)."""
-    node_grid = _grid.build(np, m["nodes_x"][m["node_ids"]], sc["node_cell"], st.node_table)
+    grids = build_grids(np, st, sc, m)
     reach = np.full(len(slave_x), sc["d_max"])
-    cnt, _ = _grid.stencil_counts(np, node_grid, slave_x, sc["node_cell"], st.node_table, reach)
+    cnt, _ = _grid.stencil_counts(np, grids["node"], slave_x, sc["node_cell"], st.node_table,
+                                  reach)
     cap = {"node_pairs": int(cnt.sum())}
     if st.mode == "exact":
-        face_grid = _grid.build(np, m["centres"][m["face_ids"]], sc["face_cell"], st.face_table)
         reach = reach + sc["r_max"] + sc["slack"]
-        cnt, _ = _grid.stencil_counts(np, face_grid, slave_x, sc["face_cell"], st.face_table,
-                                      reach)
+        cnt, _ = _grid.stencil_counts(np, grids["face"], slave_x, sc["face_cell"],
+                                      st.face_table, reach)
         cap["face_pairs"] = int(cnt.sum())
         cap["candidates"] = max(cap["face_pairs"] // 4, len(slave_x))
     else:
