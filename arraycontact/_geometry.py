@@ -197,8 +197,10 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         alpha = xp.minimum(xp.min(alpha_j, -1), 1.0)
         # Halve the step while the distance grows (a fixed number of times).
         f0 = objective(xi)
+        # Growth below rounding is no growth: halving on noise would stall the last steps.
+        f_tol = 16 * xp.finfo(xe.dtype).eps * (f0 + scale)
         for _ in range(4):
-            grow = objective(xi + alpha[..., None] * p) > f0
+            grow = objective(xi + alpha[..., None] * p) > f0 + f_tol
             alpha = xp.where(grow, 0.5 * alpha, alpha)
         blocked = (xp.min(alpha_j, -1) <= alpha) & ~done
         new = xi + alpha[..., None] * p
@@ -226,8 +228,11 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
             a = A[j]
             t = xp.stack([-a[1], a[0]])
             d0 = ((b[j] - xi @ a) / (a @ a))[..., None] * a
-            s_ = -_safe_div(_dot(t, g + xp.einsum("...ab,...b->...a", hq, d0), xp),
-                            xp.einsum("a,...ab,b->...", t, hq, t), xp)
+            # Along a constraint line, the exact curvature where it is positive (as in the
+            # active-set method): Gauss-Newton alone converges only linearly there.
+            tht = xp.einsum("a,...ab,b->...", t, h, t)
+            curv = xp.where(tht > 0, tht, xp.einsum("a,...ab,b->...", t, hq, t))
+            s_ = -_safe_div(_dot(t, g + xp.einsum("...ab,...b->...a", hq, d0), xp), curv, xp)
             cands.append(d0 + s_[..., None] * t)
         cands += [corners[c] - xi for c in range(element.n_corners)]
         p_all = xp.stack(cands, -2)  # [..., n_cand, 2]
@@ -238,8 +243,10 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         p = xp.take_along_axis(p_all, best[..., None, None], -2)[..., 0, :]
         alpha = xp.ones(xi.shape[:-1], dtype=xe.dtype)
         f0 = objective(xi)
+        # Growth below rounding is no growth: halving on noise would stall the last steps.
+        f_tol = 16 * xp.finfo(xe.dtype).eps * (f0 + scale)
         for _ in range(4):
-            grow = objective(xi + alpha[..., None] * p) > f0
+            grow = objective(xi + alpha[..., None] * p) > f0 + f_tol
             alpha = xp.where(grow, 0.5 * alpha, alpha)
         new = xi + alpha[..., None] * p
         return xp.where(done[..., None], xi, new), w, done, iters

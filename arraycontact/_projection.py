@@ -17,7 +17,8 @@ convergence flag.
 from __future__ import annotations
 
 from ._elements import shape_functions
-from ._geometry import closest_point_face, closest_point_triangle, start_option_one
+from ._geometry import (closest_point_face, closest_point_triangle, start_option_one,
+                        start_option_two)
 from ._grid import stencil_counts
 from ._xp import compact, expand, norm
 
@@ -49,10 +50,36 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
         xi, feature, local = closest_point_triangle(r, xe[:, 0], xe[:, 1], xe[:, 2], xp)
         converged = xp.ones(r.shape[0], dtype=bool)
     else:
-        xi0 = start_option_one(element, r, xe, xp)
-        xi, feature, local, converged, _, _ = closest_point_face(
-            element, r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
+        xi, feature, local, converged = _best_of_starts(xp, element, r, xe, iterations, tol)
     point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
     diff = r - point  # slave minus closest point, exact of the frame's offset
     return xi, point + x0, diff, feature, local, converged
 
+
+
+def _best_of_starts(xp, element, r, xe, iterations, tol):
+    """Active-set Newton from start option I and, on curved faces, also from the centre
+    (option II) and each mid-edge node; the closest result wins (the first on a tie).
+
+    The distance to a curved face can have several local minima; these starts sit in the
+    basins that matter for points within an element size of the face (see
+    benchmarks/seed003_study.py for how often one start alone is not enough)."""
+    starts = [start_option_one(element, r, xe, xp)]
+    if not element.linear:
+        starts.append(start_option_two(element, r, xe, xp))
+        k = element.n_corners
+        starts += [xp.zeros_like(starts[0]) + xp.asarray(element.nodes[i], xe.dtype)
+                   for i in range(k, 2 * k)]
+    best = None
+    for xi0 in starts:
+        res = closest_point_face(element, r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
+        x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xe)
+        d = xp.sum((x - r) ** 2, -1)
+        if best is None:
+            best, best_d = res[:4], d
+            continue
+        better = d < best_d
+        best = tuple(xp.where(better[:, None] if v.ndim == 2 else better, v, bv)
+                     for v, bv in zip(res[:4], best))
+        best_d = xp.where(better, d, best_d)
+    return best

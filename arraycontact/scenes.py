@@ -193,3 +193,34 @@ def curved_patch(n_faces_side=8, *, element="quad9", curvature=0.3, gap=0.3, n_s
     return Scene("curved_patch", master, slave, None,
                  dict(n_faces_side=n_faces_side, element=element, curvature=curvature, gap=gap,
                       n_slaves=n_slaves, seed=seed))
+
+
+#: Single elements in the plane z = 0 for the study of seed 003 section 5.1 (Fig. 4): a linear
+#: triangle and quad, and quadratic ones whose mid nodes are moved off the straight edges (one
+#: edge bulging out, one bent in), in the domains of the paper's lattices.
+STUDY_ELEMENTS = {
+    "tri3": (np.array([[-0.6, -0.2], [0.6, -0.7], [0.5, 0.8]]), 2.0),
+    "quad4": (np.array([[-0.8, -0.8], [0.9, -0.7], [0.8, 0.9], [-0.9, 0.7]]), 2.0),
+    "tri6": (np.array([[-2.0, -1.8], [2.0, -1.5], [-1.2, 2.0], [0.0, -1.2], [0.8, 0.8],
+                       [-1.9, 0.1]]), 6.0),
+    "quad8": (np.array([[-2.0, -2.0], [2.0, -1.8], [1.8, 2.0], [-2.0, 1.8], [0.0, -1.5],
+                        [2.3, 0.1], [0.0, 2.2], [-1.6, 0.0]]), 6.0),
+}
+
+
+def single_element_study(element, n=100, lift=None):
+    """Seed 003 section 5.1: one element and a n x n lattice of points on its plane.
+
+    Returns (Surface, points [n*n, 3]). The lattice covers [-2, 2]^2 for linear elements and
+    [-6, 6]^2 for quadratic ones. With `lift` (the 3-D case of Fig. 6, tri3 only) the right-most
+    nodes move to z = lift and the lattice to the plane z = 2 over [-4, 4]^2."""
+    xy, half = STUDY_ELEMENTS[element]
+    pts = np.c_[xy, np.zeros(len(xy))]
+    if lift is not None:
+        right = xy[:, 0] > xy[:, 0].min() + 1e-9
+        pts[right, 2] = lift
+        half = 4.0
+    s = np.linspace(-half, half, n)
+    x, y = np.meshgrid(s, s, indexing="ij")
+    z = np.full_like(x, 2.0 if lift is not None else 0.0)
+    return Surface(pts, [np.arange(len(xy))], element), np.stack([x, y, z], -1).reshape(-1, 3)
