@@ -1,8 +1,8 @@
 """`detect`: the pipeline of DESIGN section 2 behind one call, and the NumPy back end.
 
-`run_stages` strings stages 2-5 together against an array namespace; the NumPy back end calls
-it eagerly (capacities sized from the data, slaves in chunks to bound memory), the JAX back end
-under `jax.jit` with planned capacities.
+`build_grids` (stage 2) and `run_stages` (stages 3-5) are written against an array namespace;
+the NumPy back end calls them eagerly (capacities sized from the data, grids built once, slaves
+in chunks to bound memory), the JAX back end under `jax.jit` with planned capacities.
 """
 
 from __future__ import annotations
