@@ -113,7 +113,12 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
     feasible_tol = 64 * xp.finfo(xe.dtype).eps
 
     def objective(xi):
-        x = xp.einsum("...n,...nk->...k", shape_functions(element, xi, xp), xe)
+        # xi [..., 2] or [..., c, 2] (several candidates per face)
+        n = shape_functions(element, xi, xp)
+        if xi.ndim == r.ndim + 1:
+            x = xp.einsum("...cn,...nk->...ck", n, xe)
+            return xp.sum((r[..., None, :] - x) ** 2, -1)
+        x = xp.einsum("...n,...nk->...k", n, xe)
         return xp.sum((r - x) ** 2, -1)
 
     def derivatives(xi):
@@ -227,19 +232,39 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         for j in range(m):
             a = A[j]
             t = xp.stack([-a[1], a[0]])
-            d0 = ((b[j] - xi @ a) / (a @ a))[..., None] * a
-            # Along a constraint line, the exact curvature where it is positive (as in the
-            # active-set method): Gauss-Newton alone converges only linearly there.
+            q0 = xi + ((b[j] - xi @ a) / (a @ a))[..., None] * a
+            # The edge on this constraint line runs between two corners: s in [lo, hi].
+            e0, e1 = element.edge_nodes[element.constraint_edge[j], :2]
+            sa = (corners[e0] - q0) @ t / (t @ t)
+            sb = (corners[e1] - q0) @ t / (t @ t)
+            lo, hi = xp.minimum(sa, sb), xp.maximum(sa, sb)
+            # The closest point on the (curved) edge: Newton on the true distance along the
+            # line, from the quadratic model's minimiser, kept on the edge. Edges are
+            # polynomials of degree <= 2, so a few steps reach it from anywhere near.
             tht = xp.einsum("a,...ab,b->...", t, h, t)
             curv = xp.where(tht > 0, tht, xp.einsum("a,...ab,b->...", t, hq, t))
-            s_ = -_safe_div(_dot(t, g + xp.einsum("...ab,...b->...a", hq, d0), xp), curv, xp)
-            cands.append(d0 + s_[..., None] * t)
+            s_ = -_safe_div(_dot(t, g + xp.einsum("...ab,...b->...a", hq, q0 - xi), xp),
+                            curv, xp)
+            s_ = xp.clip(s_, lo, hi)
+            for _ in range(3):
+                q = q0 + s_[..., None] * t
+                x, dx = interpolate(element, xe, q, xp)
+                d = x - r
+                xt = xp.einsum("...ka,a->...k", dx, t)
+                d2 = xp.einsum("...ns,...nk->...ks", shape_second_derivatives(element, q, xp), xe)
+                xtt = (d2[..., 0] * t[0] * t[0] + 2 * d2[..., 1] * t[0] * t[1]
+                       + d2[..., 2] * t[1] * t[1])
+                f1 = _dot(d, xt, xp)
+                f2 = _dot(xt, xt, xp) + _dot(d, xtt, xp)
+                f2 = xp.where(f2 > 0, f2, _dot(xt, xt, xp))
+                s_ = xp.clip(s_ - _safe_div(f1, f2, xp), lo, hi)
+            cands.append(q0 + s_[..., None] * t - xi)
         cands += [corners[c] - xi for c in range(element.n_corners)]
         p_all = xp.stack(cands, -2)  # [..., n_cand, 2]
         feas = ((xi[..., None, :] + p_all) @ A.T - b >= -feasible_tol).all(-1)
-        model = (xp.einsum("...ca,...a->...c", p_all, g)
-                 + 0.5 * xp.einsum("...ca,...ab,...cb->...c", p_all, hq, p_all))
-        best = xp.argmin(xp.where(feas, model, np.inf), -1)
+        # Choose by the true distance: the edge candidates are exact, the model is not.
+        f_all = objective(xi[..., None, :] + p_all)
+        best = xp.argmin(xp.where(feas, f_all, np.inf), -1)
         p = xp.take_along_axis(p_all, best[..., None, None], -2)[..., 0, :]
         alpha = xp.ones(xi.shape[:-1], dtype=xe.dtype)
         f0 = objective(xi)
