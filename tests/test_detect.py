@@ -38,7 +38,7 @@ SCENES = {
     "road": lambda: scenes.cylinder_on_road(2**9, radius=6.0),
     "curved_quad4": lambda: scenes.curved_patch(6, element="quad4", n_slaves=300),
     "curved_tri6": lambda: scenes.curved_patch(5, element="tri6", n_slaves=300),
-    "curved_quad8": lambda: scenes.curved_patch(5, element="quad8", n_slaves=300),
+    "curved_quad8": lambda: scenes.curved_patch(4, element="quad8", n_slaves=200),
     "curved_quad9": lambda: scenes.curved_patch(5, element="quad9", n_slaves=300),
     "layers_tri6": lambda: scenes.rough_layers(2**8, quadratic=True),
 }
