@@ -174,13 +174,13 @@ def main():
     lines += ["", "## 5.2 Interpenetrating rough layers", "",
               "| | slaves | distance computations (per slave) | Voronoi | projection + edges | "
               "SQP | SQP iterations |", "|---|---|---|---|---|---|---|",
-              f"| paper, linear | 20,589 | 161,450 (7.8) | 0.18 us (1) | 0.7 us (3.9) | "
-              f"10.8 us (60) | 4.6 |",
+              "| paper, linear | 20,589 | 161,450 (7.8) | 0.18 us (1) | 0.7 us (3.9) | "
+              "10.8 us (60) | 4.6 |",
               f"| ours, tri3 | {lin['slaves']} | {lin['distance_computations']} "
               f"({lin['per_slave']:.1f}) | {v:.3f} us (1) | {lin['brute_force_us']:.3f} us "
               f"({lin['brute_force_us'] / v:.1f}) | {lin['sqp_us']:.3f} us "
               f"({lin['sqp_us'] / v:.1f}) | {lin['sqp_iterations']:.2f} |",
-              f"| paper, quadratic | 76,052 | 628,017 (8.3) | | | 12.3 us (68) | 5 |",
+              "| paper, quadratic | 76,052 | 628,017 (8.3) | | | 12.3 us (68) | 5 |",
               f"| ours, tri6 | {quad['slaves']} | {quad['distance_computations']} "
               f"({quad['per_slave']:.1f}) | | | {quad['sqp_us']:.3f} us "
               f"({quad['sqp_us'] / v:.1f}) | {quad['sqp_iterations']:.2f} |",
