@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
@@ -87,7 +87,3 @@ class Contacts:
         st = np.bincount(np.asarray(self.status), minlength=len(Status))
         lines.append("status: " + ", ".join(f"{s.name.lower()} {st[s]}" for s in Status if st[s]))
         return "\n".join(lines)
-
-    @staticmethod
-    def field_names():
-        return [f.name for f in fields(Contacts)]

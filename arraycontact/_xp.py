@@ -32,16 +32,6 @@ def segment_min(xp, data, ids, n):
     return jax.ops.segment_min(data, ids, num_segments=n)
 
 
-def segment_any(xp, data, ids, n):
-    if is_numpy(xp):
-        out = np.zeros(n, bool)
-        out[ids[data]] = True
-        return out
-    import jax
-
-    return jax.ops.segment_max(data.astype(np.int32), ids, num_segments=n) > 0
-
-
 def compact(xp, mask, size):
     """Indices of the true entries of `mask` (padded with 0 up to `size`) and their count."""
     count = xp.sum(mask.astype(np.int32))
