@@ -16,7 +16,7 @@ from . import _closest_node, _grid, _projection, _select
 from ._contacts import Contacts, Counts, Feature, Status
 from ._elements import get_element
 from ._prepare import Prepared, default_d_max, prepare
-from ._surface import Surface, validate_points
+from ._surface import Surface, face_bounds, face_normals, node_normals, validate_points
 from ._xp import expand, norm
 
 MODES = ("exact", "node")
@@ -40,27 +40,39 @@ class Static:
     passing_by: bool  # node mode on an open master: the boundary test of eqs. (12)-(13)
 
 
-def master_arrays(master: Surface, prep: Prepared, dtype):
-    """Master data in the local frame, as float `dtype` / int32 arrays keyed by global ids."""
-    centres, radii = master.face_bounds
-    out = dict(
-        nodes_x=(master.points - prep.origin).astype(dtype),
-        faces=master.faces.astype(np.int32),
-        node_ids=prep.node_ids.astype(np.int32),
-        face_ids=prep.face_ids.astype(np.int32),
-        centres=(centres - prep.origin).astype(dtype),
-        radii=radii.astype(dtype),
-        face_edges=master.face_edges.astype(np.int32),
-        edge_faces=master.edge_faces.astype(np.int32),
-        node_normals=master.node_normals.astype(dtype),
-    )
+def master_topology(master: Surface, prep: Prepared):
+    """Connectivity and topology of the master, int32 arrays keyed by global ids."""
     offsets, ids = master.node_faces
-    out.update(nf_offsets=offsets.astype(np.int32), nf_ids=ids.astype(np.int32))
-    prev_node, next_node, prev_n, next_n, on, concave = _select.boundary_frames(master)
-    out.update(prev_node=prev_node.astype(np.int32), next_node=next_node.astype(np.int32),
-               prev_normal=prev_n.astype(dtype), next_normal=next_n.astype(dtype),
-               on_boundary=on, concave=concave)
+    prev_node, next_node, prev_face, next_face, on = _select.boundary_topology(master)
+    out = dict(faces=master.faces, node_ids=prep.node_ids, face_ids=prep.face_ids,
+               face_edges=master.face_edges, edge_faces=master.edge_faces, nf_offsets=offsets,
+               nf_ids=ids, prev_node=prev_node, next_node=next_node, prev_face=prev_face,
+               next_face=next_face)
+    out = {k: np.asarray(v).astype(np.int32) for k, v in out.items()}
+    out["on_boundary"] = on
     return out
+
+
+def master_geometry(xp, element, topo, nodes_x):
+    """What detection needs from the master's coordinates `nodes_x` (local frame): face balls,
+    node pseudo-normals, boundary normals. Computed on the host once by the NumPy back end,
+    inside the jitted step from moving coordinates by the JAX plan/detect."""
+    element = get_element(element)
+    xe = nodes_x[topo["faces"]]
+    centres, radii = face_bounds(element, xe, xp)
+    prev_n, next_n, concave = _select.boundary_geometry(
+        xp, nodes_x, topo["prev_node"], topo["next_node"], topo["prev_face"],
+        topo["next_face"], face_normals(element, xe, xp))
+    return dict(nodes_x=nodes_x, centres=centres, radii=radii,
+                node_normals=node_normals(element, topo["faces"], nodes_x, xp),
+                prev_normal=prev_n, next_normal=next_n, concave=concave)
+
+
+def master_arrays(master: Surface, prep: Prepared, dtype):
+    """Master topology and geometry in the local frame (float `dtype`), on the host."""
+    topo = master_topology(master, prep)
+    x = (master.points - prep.origin).astype(dtype)
+    return {**topo, **master_geometry(np, master.element, topo, x)}
 
 
 def scalars(prep: Prepared, master: Surface, dtype):

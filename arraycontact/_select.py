@@ -43,30 +43,42 @@ def proximal(xp, slave_x, node, nodes_x, prev_node, next_node, prev_normal, next
     return xp.where(concave[node], a | b, a & b)
 
 
-def boundary_frames(surface):
-    """Per node: boundary neighbours m2 (before) and m1 (after), normals n2, n1 of the faces
-    owning those boundary edges, whether the node is on the boundary and whether its corner
-    is concave (eq. 12 fails). Quadratic boundary edges are split at their mid node."""
+def boundary_topology(surface):
+    """Per node: boundary neighbours m2 (before) and m1 (after), the faces owning the boundary
+    edges (m2, m) and (m, m1) (-1 off the boundary) and whether the node is on the boundary.
+    Quadratic boundary edges are split at their mid node."""
     n = len(surface.points)
-    prev_node = np.arange(n)
-    next_node = np.arange(n)
-    prev_normal = np.zeros((n, 3))
-    next_normal = np.zeros((n, 3))
+    prev_node, next_node = np.arange(n), np.arange(n)
+    prev_face, next_face = np.full(n, -1), np.full(n, -1)
     on = np.zeros(n, bool)
     be = surface.boundary_edges
     if len(be):
         fe_face, _ = np.nonzero(surface.edge_counts[surface.face_edges] == 1)
-        normals = surface.face_normals[fe_face]
         segs = [(be[:, 0], be[:, 1])] if be.shape[1] == 2 else [(be[:, 0], be[:, 2]),
                                                                    (be[:, 2], be[:, 1])]
         for a, b in segs:
-            next_node[a], next_normal[a] = b, normals
-            prev_node[b], prev_normal[b] = a, normals
+            next_node[a], next_face[a] = b, fe_face
+            prev_node[b], prev_face[b] = a, fe_face
             on[a] = on[b] = True
-    x = surface.points
-    turn = np.cross(x - x[prev_node], x[next_node] - x)
-    concave = np.einsum("ij,ij->i", turn, prev_normal + next_normal) < 0
-    return prev_node, next_node, prev_normal, next_normal, on, concave
+    return prev_node, next_node, prev_face, next_face, on
+
+
+def boundary_geometry(xp, nodes_x, prev_node, next_node, prev_face, next_face, face_normals):
+    """Normals n2, n1 of the faces owning each node's boundary edges and whether the corner is
+    concave (eq. 12 fails), from the current coordinates."""
+    prev_normal = xp.where((prev_face >= 0)[:, None], face_normals[xp.maximum(prev_face, 0)], 0)
+    next_normal = xp.where((next_face >= 0)[:, None], face_normals[xp.maximum(next_face, 0)], 0)
+    turn = xp.cross(nodes_x - nodes_x[prev_node], nodes_x[next_node] - nodes_x)
+    concave = xp.sum(turn * (prev_normal + next_normal), -1) < 0
+    return prev_normal, next_normal, concave
+
+
+def boundary_frames(surface):
+    """boundary_topology and boundary_geometry of a Surface: m2, m1, n2, n1, on, concave."""
+    prev_node, next_node, prev_face, next_face, on = boundary_topology(surface)
+    prev_n, next_n, concave = boundary_geometry(np, surface.points, prev_node, next_node,
+                                                prev_face, next_face, surface.face_normals)
+    return prev_node, next_node, prev_n, next_n, on, concave
 
 
 def classify(xp, element, nodes_x, faces, face_edges, edge_faces, node_normals, face, xi,

@@ -8,11 +8,62 @@ from functools import cached_property
 import numpy as np
 
 from ._elements import NODES_PER_FACE, Element, get_element, interpolate
+from ._xp import segment_sum
 
 
-def _unit(v):
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+def _unit(v, xp=np):
+    # Zero for a zero vector, without a NaN in the value or (under JAX) the gradient.
+    n2 = xp.sum(v * v, -1, keepdims=True)
+    ok = n2 > 0
+    return xp.where(ok, v / xp.sqrt(xp.where(ok, n2, 1)), 0 * v)
+
+
+# Geometry derived from node coordinates, written against an array namespace: the NumPy
+# pipeline caches it on the Surface; the JAX plan/detect recomputes it from moving coordinates.
+
+def face_normals(element, xe, xp=np):
+    """Unit normal at the centre of each face with nodes xe [F, nn, 3] (zero if degenerate)."""
+    xi = xp.zeros(xe.shape[:1] + (2,), xe.dtype) + xp.asarray(element.centre, xe.dtype)
+    _, dx = interpolate(element, xe, xi, xp)
+    return _unit(xp.cross(dx[..., 0], dx[..., 1]), xp)
+
+
+def face_bounds(element, xe, xp=np):
+    """Centre c and radius r of a ball holding each face: |x(xi) - c| <= r for all xi.
+
+    c is the mean of the nodes; r = lebesgue * max_i |x_i - c| is rigorous for curved faces
+    because x(xi) - c = sum_i N_i(xi) (x_i - c)."""
+    c = xp.mean(xe, 1)
+    d = xe - c[:, None]
+    d2 = xp.max(xp.sum(d * d, -1), 1)
+    return c, element.lebesgue * xp.sqrt(xp.where(d2 > 0, d2, 0 * d2))
+
+
+def node_normals(element, faces, points, xp=np):
+    """Angle-weighted pseudo-normal at each node [n_points, 3] (zero for unused nodes).
+
+    At a corner, each face contributes its normal there times its interior angle, which gives
+    the correct inside/outside sign for points whose closest feature is that vertex
+    (Baerentzen & Aanaes). Mid-edge and centre nodes take the plain sum of face normals."""
+    e = element
+    nf, nn = faces.shape
+    xn = xp.asarray(e.nodes, points.dtype)
+    xi = xp.zeros((nf, nn, 2), points.dtype) + xn
+    xe = points[faces]
+    _, dx = interpolate(e, xe[:, None], xi, xp)  # [nf, nn, 3, 2]
+    n = _unit(xp.cross(dx[..., 0], dx[..., 1]), xp)
+    k = e.n_corners
+    w = []
+    for c in range(k):
+        # Tangents along the two corner edges, in the natural-coordinate directions of the
+        # edges leaving the corner.
+        t1 = dx[:, c] @ xp.asarray(e.nodes[(c + 1) % k] - e.nodes[c], points.dtype)
+        t2 = dx[:, c] @ xp.asarray(e.nodes[(c - 1) % k] - e.nodes[c], points.dtype)
+        w.append(xp.arctan2(xp.sqrt(xp.sum(xp.cross(t1, t2) ** 2, -1)), xp.sum(t1 * t2, -1)))
+    w = xp.stack(w + [xp.ones(nf, points.dtype)] * (nn - k), -1)
+    out = segment_sum(xp, (n * w[..., None]).reshape(-1, 3), faces.reshape(-1),
+                      points.shape[0])
+    return _unit(out, xp)
 
 
 def validate_points(points, what="points") -> np.ndarray:
@@ -191,44 +242,15 @@ class Surface:
     @cached_property
     def face_normals(self) -> np.ndarray:
         """Unit outward normal at each face's centre (zero for a degenerate face)."""
-        xi = np.broadcast_to(self.element.centre, (self.n_faces, 2))
-        _, dx = interpolate(self.element, self.points[self.faces], xi)
-        return _unit(np.cross(dx[..., 0], dx[..., 1]))
+        return face_normals(self.element, self.points[self.faces])
 
     @cached_property
     def face_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Centre c and radius r of a ball holding each face: |x(xi) - c| <= r for all xi.
-
-        c is the mean of the nodes; r = lebesgue * max_i |x_i - c| is rigorous for curved faces
-        because x(xi) - c = sum_i N_i(xi) (x_i - c)."""
-        x = self.points[self.faces]
-        c = x.mean(1)
-        r = self.element.lebesgue * np.linalg.norm(x - c[:, None], axis=-1).max(1)
-        return c, r
+        """Centre and radius of a ball holding each face (see `face_bounds`)."""
+        return face_bounds(self.element, self.points[self.faces])
 
     @cached_property
     def node_normals(self) -> np.ndarray:
-        """Angle-weighted pseudo-normal at each node [n_points, 3] (zero for unused nodes).
-
-        At a corner, each face contributes its normal there times its interior angle, which
-        gives the correct inside/outside sign for points whose closest feature is that vertex
-        (Baerentzen & Aanaes). Mid-edge and centre nodes take the plain sum of face normals."""
-        e = self.element
-        nf, nn = self.faces.shape
-        xi = np.broadcast_to(e.nodes, (nf, nn, 2))
-        xe = np.broadcast_to(self.points[self.faces][:, None], (nf, nn, nn, 3))
-        _, dx = interpolate(e, xe, xi)  # [nf, nn, 3, 2]
-        n = _unit(np.cross(dx[..., 0], dx[..., 1]))
-        w = np.ones((nf, nn))
-        k = e.n_corners
-        for c in range(k):
-            # Tangents along the two corner edges, in the natural-coordinate directions of the
-            # edges leaving the corner.
-            t1 = dx[:, c] @ (e.nodes[(c + 1) % k] - e.nodes[c])
-            t2 = dx[:, c] @ (e.nodes[(c - 1) % k] - e.nodes[c])
-            w[:, c] = np.arctan2(np.linalg.norm(np.cross(t1, t2), axis=-1),
-                                 np.einsum("ij,ij->i", t1, t2))
-        out = np.zeros_like(self.points)
-        np.add.at(out, self.faces.ravel(), (n * w[..., None]).reshape(-1, 3))
-        return _unit(out)
+        """Angle-weighted pseudo-normal at each node (see `node_normals`)."""
+        return node_normals(self.element, self.faces, self.points)
 

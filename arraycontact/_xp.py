@@ -32,6 +32,17 @@ def segment_min(xp, data, ids, n):
     return jax.ops.segment_min(data, ids, num_segments=n)
 
 
+def segment_sum(xp, data, ids, n):
+    """Sum of `data` rows per segment id (zero for an empty segment)."""
+    if is_numpy(xp):
+        out = np.zeros((n,) + data.shape[1:], data.dtype)
+        np.add.at(out, ids, data)
+        return out
+    import jax
+
+    return jax.ops.segment_sum(data, ids, num_segments=n)
+
+
 def compact(xp, mask, size):
     """Indices of the true entries of `mask` (padded with 0 up to `size`) and their count."""
     count = xp.sum(mask.astype(np.int32))
