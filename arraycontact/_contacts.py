@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import operator
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -39,8 +41,10 @@ class Counts:
 
     @property
     def overflow(self) -> bool:
-        return any(self.count[k] > self.capacity[k] for k in self.capacity
-                   if self.capacity[k] is not None)
+        # `|` rather than any(): the counts may be traced JAX scalars inside a jitted function.
+        flags = [self.count[k] > self.capacity[k] for k in self.capacity
+                 if self.capacity[k] is not None]
+        return functools.reduce(operator.or_, flags, False)
 
 
 @dataclass(frozen=True)

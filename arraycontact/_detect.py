@@ -41,7 +41,8 @@ class Static:
 
 
 def master_topology(master: Surface, prep: Prepared):
-    """Connectivity and topology of the master, int32 arrays keyed by global ids."""
+    """Connectivity and topology of the master, int32 arrays keyed by global ids; the nodes and
+    faces that take part are prep's."""
     offsets, ids = master.node_faces
     prev_node, next_node, prev_face, next_face, on = _select.boundary_topology(master)
     out = dict(faces=master.faces, node_ids=prep.node_ids, face_ids=prep.face_ids,
@@ -171,14 +172,14 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
     face_out = face[pick]
     gap, dist_out, normal = _select.classify(
         xp, element, m["nodes_x"], m["faces"], m["face_edges"], m["edge_faces"],
-        m["node_normals"], face_out, xi[pick], diff[pick], feature[pick], local[pick])
+        m["node_normals"], face_out, xi[pick], diff[pick], feature[pick], local[pick], tie)
     status = xp.where(active & ~conv[pick], int(Status.NOT_CONVERGED), status)
     status = xp.where(active | (status == int(Status.PASSING_BY)), status,
                       int(Status.OUT_OF_RANGE))
     lap("select")
     out = dict(active=active, face=face_out, xi=xi[pick], point=point[pick], gap=gap,
                distance=dist_out, normal=normal, feature=feature[pick], master_node=node,
-               status=status)
+               status=status, local=local[pick])
     return out, counts
 
 
@@ -237,6 +238,22 @@ def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
     return out, totals, {k: None for k in totals}, lap.times
 
 
+def check_options(master, mode, d_max, displacement, dtype):
+    """Validated (d_max, dtype) of a detection, or a ValueError naming the bad option."""
+    if not isinstance(master, Surface):
+        raise ValueError("master must be an arraycontact.Surface")
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    dtype = np.dtype(np.float64 if dtype is None else dtype)
+    if dtype not in TIE_RTOL:
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    if d_max is None:
+        return default_d_max(master, displacement), dtype
+    if not (np.isscalar(d_max) and np.isfinite(d_max) and d_max > 0):
+        raise ValueError(f"d_max must be a positive finite number, got {d_max}")
+    return float(d_max), dtype
+
+
 def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displacement=None,
            dtype=None) -> Contacts:
     """Closest point on `master` of every slave node.
@@ -248,22 +265,12 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
     dtype: float64 (default) or float32 for the computation (inputs are always read in float64
     and moved to a local frame first)."""
     t0 = time.perf_counter()
-    if not isinstance(master, Surface):
-        raise ValueError("master must be an arraycontact.Surface")
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "warp":
         raise ValueError("backend 'warp' is not available yet: use 'numpy' or 'jax'")
-    dtype = np.dtype(np.float64 if dtype is None else dtype)
-    if dtype not in TIE_RTOL:
-        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
     slave_x, ids = _slaves(slave)
-    if d_max is None:
-        d_max = default_d_max(master, displacement)
-    elif not (np.isfinite(d_max) and d_max > 0):
-        raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     n = len(slave_x)
     prep = prepare(slave_x, master, float(d_max), dtype)
     t1 = time.perf_counter()

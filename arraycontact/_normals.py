@@ -12,11 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._elements import EDGE, FACE, VERTEX, interpolate
-
-
-def _unit(v, xp):
-    n = xp.sqrt(xp.sum(v * v, -1, keepdims=True))
-    return v / xp.where(n > 0, n, 1)
+from ._surface import _unit
 
 
 def face_normal(element, xe, xi, xp=np):
@@ -60,17 +56,18 @@ def pseudo_normal(element, points, faces, face_edges, edge_faces, node_normals,
                     xp.where((feature == EDGE)[:, None], n_edge, n_vertex))
 
 
-def signed_gap(d_vec, n_pseudo, feature, xp=np):
+def signed_gap(d_vec, n_pseudo, feature, xp=np, on_surface=0.0):
     """Signed distance and unit normal from d_vec = slave - closest point: gap < 0 is
     penetration.
 
     The normal is the direction from the closest point to the slave, turned to the pseudo-
-    normal's side; where the slave sits on the surface (no direction) it is the pseudo-normal.
+    normal's side; where the slave sits on the surface (distance <= `on_surface`, where that
+    direction is rounding noise) it is the pseudo-normal.
     """
     dist = xp.sqrt(xp.sum(d_vec**2, -1))
     s = xp.where(xp.sum(d_vec * n_pseudo, -1) < 0, -1.0, 1.0).astype(dist.dtype)
-    on = dist <= 0
-    direction = d_vec / xp.where(on, 1, dist)[:, None]
+    on = dist <= on_surface
+    direction = d_vec / xp.where(dist > 0, dist, 1)[:, None]
     normal = xp.where((on | (feature == FACE))[:, None], n_pseudo, s[:, None] * direction)
     return s * dist, dist, normal
 

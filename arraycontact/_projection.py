@@ -70,16 +70,13 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
         k = element.n_corners
         starts += [xp.zeros_like(starts[0]) + xp.asarray(element.nodes[i], xe.dtype)
                    for i in range(k, 2 * k)]
-    best = None
-    for xi0 in starts:
-        res = closest_point_face(element, r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
-        x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xe)
-        d = xp.sum((x - r) ** 2, -1)
-        if best is None:
-            best, best_d = res[:4], d
-            continue
-        better = d < best_d
-        best = tuple(xp.where(better[:, None] if v.ndim == 2 else better, v, bv)
-                     for v, bv in zip(res[:4], best))
-        best_d = xp.where(better, d, best_d)
-    return best
+    # All starts as one batch: one traced iteration loop on JAX, not one per start.
+    n_s, n_p = len(starts), r.shape[0]
+    rs = xp.reshape(xp.broadcast_to(r, (n_s,) + r.shape), (-1, 3))
+    xes = xp.reshape(xp.broadcast_to(xe, (n_s,) + xe.shape), (-1,) + xe.shape[1:])
+    res = closest_point_face(element, rs, xes, xp.concatenate(starts), iterations=iterations,
+                             tol=tol, xp=xp)
+    x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xes)
+    d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
+    best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)  # the first start on a tie
+    return tuple(v[best] for v in res[:4])

@@ -82,9 +82,9 @@ def boundary_frames(surface):
 
 
 def classify(xp, element, nodes_x, faces, face_edges, edge_faces, node_normals, face, xi,
-             diff, feature, local):
+             diff, feature, local, on_surface):
     """Signed gap, distance and normal of the chosen closest points."""
     n_pseudo = pseudo_normal(element, nodes_x, faces, face_edges, edge_faces, node_normals,
                              face, feature, local, xi, xp)
-    return signed_gap(diff, n_pseudo, feature, xp)
+    return signed_gap(diff, n_pseudo, feature, xp, on_surface)
 

@@ -240,6 +240,7 @@ def _finish(surface, r, face, xi, dist2):
         npse = pseudo_normal(e, surface.points, surface.faces, surface.face_edges,
                              surface.edge_faces, surface.node_normals, f, feature[ok],
                              local[ok], xi[ok])
-        gap[ok], _, normal[ok] = signed_gap(r[ok] - x, npse, feature[ok])
+        gap[ok], _, normal[ok] = signed_gap(r[ok] - x, npse, feature[ok],
+                                            on_surface=TIE_RTOL * surface.longest_edge)
     return ReferenceResult(face=face, xi=xi, point=point, distance=np.sqrt(dist2), gap=gap,
                            normal=normal, feature=feature, local=local)

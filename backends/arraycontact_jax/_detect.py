@@ -1,20 +1,40 @@
 """Jitted detection: the stages of arraycontact._detect.run_stages on jax.numpy.
 
-Shapes are static: every variable-length buffer (node pairs, face pairs, candidates, attached
-faces) has a capacity chosen on the host. The kernel reports the true counts; when one exceeds
-its capacity the one-shot driver grows the capacity and runs again, so nothing is dropped.
+Two entry points share the stages:
+
+* `plan` / `detect` (jax-md's allocate / update): `plan` sizes every buffer eagerly from the
+  data with a growth factor; `detect(plan, slave_points, master_points)` is jitted with static
+  shapes, takes the coordinates as arrays (so a moving or deforming scene never recompiles),
+  recomputes the master's geometry from them, and returns a `Contacts` pytree whose counts may
+  exceed their capacities (`overflow`). `update_plan` re-plans outside `jit` on overflow.
+  Gradients flow to both coordinate arrays (see _gradients).
+* `run_one_shot`, behind `arraycontact.detect(backend="jax")`: prepares on the host (box
+  intersection, only the nodes and faces that can matter), then grows the capacities and runs
+  again until nothing overflows.
+
+Besides the buffer counts, the plan fixes the face grid's cell size for faces up to the radius
+seen at plan time times the growth factor; a master deformed beyond that reports the count
+"face_radius" above its capacity, like any other overflow.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arraycontact import _grid
-from arraycontact._detect import build_grids, master_arrays, run_stages, scalars
+from arraycontact import _closest_node, _grid, _projection
+from arraycontact._contacts import Contacts, Counts, Feature, Status
+from arraycontact._elements import get_element
+from arraycontact._detect import (ITERATIONS, Static, build_grids, check_options, master_arrays,
+                                  master_geometry, master_topology, run_stages, scalars)
+from arraycontact._prepare import CELL_MARGIN, Prepared
+from arraycontact._surface import Surface, validate_points
+
+from ._gradients import smooth
 
 GROWTH = 1.25
 
@@ -26,23 +46,33 @@ def _kernel(sc, m, slave_x, *, st, capacity):
     return out, counts
 
 
-def _estimate(slave_x, m, sc, st):
-    """Upper-bound pair counts from the stencil cell counts on the host (no pairs built)."""
+def _estimate(slave_x, m, sc, st, chunk=1 << 15):
+    """The pair counts of the data, from stages 3-4 on the host (no projections)."""
     grids = build_grids(np, st, sc, m)
-    reach = np.full(len(slave_x), sc["d_max"])
-    cnt, _ = _grid.stencil_counts(np, grids["node"], slave_x, sc["node_cell"], st.node_table,
-                                  reach)
-    cap = {"node_pairs": int(cnt.sum())}
-    if st.mode == "exact":
-        reach = reach + sc["r_max"] + sc["slack"]
-        cnt, _ = _grid.stencil_counts(np, grids["face"], slave_x, sc["face_cell"],
-                                      st.face_table, reach)
-        cap["face_pairs"] = int(cnt.sum())
-        cap["candidates"] = max(cap["face_pairs"] // 4, len(slave_x))
-    else:
-        deg = np.diff(m["nf_offsets"])
-        cap["attached"] = int(len(slave_x) * max(int(deg.max()), 1))
+    cap = {"node_pairs": 0, **({"face_pairs": 0, "candidates": 0} if st.mode == "exact" else
+                               {"attached": 0})}
+    for i in range(0, len(slave_x), chunk):
+        x = slave_x[i:i + chunk]
+        node, dn, n_node = _closest_node.closest_node(
+            np, grids["node"], m["nodes_x"], x, cell=sc["node_cell"], table=st.node_table,
+            d_max=sc["d_max"], tie=sc["tie"], capacity=None)
+        cap["node_pairs"] += int(n_node)
+        if st.mode == "exact":
+            rho = np.minimum(dn, sc["d_max"]) + sc["slack"]
+            *_, n_pairs, n_cand = _projection.candidate_faces(
+                np, grids["face"], m["centres"], m["radii"], x, rho, cell=sc["face_cell"],
+                table=st.face_table, r_max=sc["r_max"], pair_capacity=None,
+                candidate_capacity=None)
+            cap["face_pairs"] += int(n_pairs)
+            cap["candidates"] += int(n_cand)
+        else:
+            deg = np.diff(m["nf_offsets"])[np.maximum(node, 0)]
+            cap["attached"] += int(np.where(node >= 0, deg, 0).sum())
     return cap
+
+
+def _grown(cap, growth):
+    return {k: max(int(np.ceil(v * growth)), 1) for k, v in cap.items()}
 
 
 def run_one_shot(slave_x, master, prep, st, dtype):
@@ -52,8 +82,7 @@ def run_one_shot(slave_x, master, prep, st, dtype):
         m = master_arrays(master, prep, dtype)
         sc = scalars(prep, master, dtype)
         x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
-        est = _estimate(x, m, sc, st)
-        cap = {k: max(int(np.ceil(v * GROWTH)), 1) for k, v in est.items()}
+        cap = _grown(_estimate(x, m, sc, st), GROWTH)
         m_dev = {k: jnp.asarray(v) for k, v in m.items()}
         sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
         x_dev = jnp.asarray(x)
@@ -63,6 +92,171 @@ def run_one_shot(slave_x, master, prep, st, dtype):
             over = {k: v for k, v in counts.items() if v > cap[k]}
             if not over:
                 break
-            cap.update({k: int(np.ceil(v * GROWTH)) for k, v in over.items()})
+            cap.update(_grown(over, GROWTH))
         out = {k: np.asarray(v) for k, v in out.items()}
     return out, counts, cap
+
+
+# ---------------------------------------------------------------------------------------------
+# plan / detect
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """Buffers and constants of a jitted detection; a pytree (topology arrays are its leaves).
+
+    Build it with `plan`; pass it to `detect`. Everything but `topology` is static."""
+
+    topology: dict
+    master: Surface = field(repr=False)  # connectivity, element, plan-time coordinates
+    static: Static = None
+    capacity: tuple = ()  # sorted (name, capacity) items
+    constants: tuple = ()  # sorted (name, value) items: d_max, cell sizes, tolerances
+    origin: tuple = (0.0, 0.0, 0.0)  # local frame of the computation
+    dtype: str = "float32"
+    n_slaves: int = 0
+    growth: float = GROWTH
+
+    @property
+    def d_max(self) -> float:
+        return dict(self.constants)["d_max"]
+
+
+jax.tree_util.register_pytree_node(
+    Plan,
+    lambda p: ((p.topology,), (p.master, p.static, p.capacity, p.constants, p.origin, p.dtype,
+                               p.n_slaves, p.growth)),
+    lambda aux, ch: Plan(ch[0], *aux))
+
+
+def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, dtype=None,
+         growth=GROWTH, minimum=None) -> Plan:
+    """Size every buffer of `detect` from the current coordinates (eager, on the host).
+
+    master: a Surface (its connectivity is fixed for the plan's life; its coordinates are only
+    the plan-time configuration). slave_points: [n, 3]. d_max: fixed for the plan (default:
+    the seed's rule on the plan-time master). dtype: float32 or float64 (float64 needs
+    `jax_enable_x64`); default: JAX's default float. Capacities are the counts found now times
+    `growth` (and at least `minimum`, a dict of counts, used when re-planning)."""
+    if dtype is None:
+        dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
+    d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
+    if dtype == np.float64 and not jax.config.jax_enable_x64:
+        raise ValueError("dtype float64 needs jax_enable_x64 (jax.config.update or "
+                         "jax.enable_x64())")
+    if not growth >= 1:
+        raise ValueError(f"growth must be >= 1, got {growth}")
+    slave_x = validate_points(slave_points, "slave_points")
+    if master.n_faces == 0:
+        raise ValueError("master has no faces")
+    if len(slave_x) == 0:
+        raise ValueError("slave_points is empty: there is nothing to plan for")
+    x_all = np.concatenate([slave_x, master.points[master.nodes]])
+    lo, hi = x_all.min(0) - d_max, x_all.max(0) + d_max
+    # float32 computes in a frame at the scene's corner (DESIGN section 7); float64 globally.
+    origin = lo if dtype == np.float32 else np.zeros(3)
+    _, radii = master.face_bounds
+    r_cap = float(radii.max()) * growth
+    prep = Prepared(
+        slave_rows=np.arange(len(slave_x)), node_ids=master.nodes,
+        face_ids=np.arange(master.n_faces), origin=origin, d_max=d_max, r_max=r_cap,
+        node_cell=CELL_MARGIN * d_max, face_cell=CELL_MARGIN * (d_max + r_cap),
+        node_table=_grid.table_size(len(master.nodes)),
+        face_table=_grid.table_size(master.n_faces),
+        extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()))
+    st = Static(element=master.element.name, mode=mode, node_table=prep.node_table,
+                face_table=prep.face_table, iterations=ITERATIONS.get(master.element.name, 0),
+                passing_by=mode == "node" and not master.closed)
+    m = master_arrays(master, prep, dtype)
+    sc = scalars(prep, master, dtype)
+    cap = _grown(_estimate((slave_x - origin).astype(dtype), m, sc, st), growth)
+    for k, v in (minimum or {}).items():
+        if k in cap:
+            cap[k] = max(cap[k], int(np.ceil(v * growth)))
+    cap["face_radius"] = r_cap
+    sc.pop("r_max")  # computed from the coordinates at every detect
+    topo = {k: jnp.asarray(v) for k, v in master_topology(master, prep).items()}
+    return Plan(topo, master, st, tuple(sorted(cap.items())), tuple(sorted(sc.items())),
+                tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth)
+
+
+def _check(p: Plan, slave_points, master_points):
+    if not isinstance(p, Plan):
+        raise ValueError("the first argument of detect must be a Plan (arraycontact_jax.plan)")
+    if slave_points.ndim != 2 or slave_points.shape[1] != 3:
+        raise ValueError(f"slave_points must have shape [n, 3], got {slave_points.shape}")
+    if master_points.shape != p.master.points.shape:
+        raise ValueError(f"master_points must have shape {p.master.points.shape} (the plan's "
+                         f"master), got {master_points.shape}")
+
+
+@jax.jit
+def detect(p: Plan, slave_points, master_points) -> Contacts:
+    """Contacts of `slave_points` [n, 3] on the plan's master at `master_points`.
+
+    Jitted, static shapes, no host synchronisation; differentiable with respect to both
+    coordinate arrays. Check `contacts.overflow` (or call `update_plan`): where a count exceeds
+    its capacity the result may be incomplete."""
+    _check(p, slave_points, master_points)
+    dtype = jnp.dtype(p.dtype)
+    origin = jnp.asarray(p.origin, dtype)
+    s = (slave_points - origin).astype(dtype)  # subtract in the input's precision, then cast
+    xm = (master_points - origin).astype(dtype)
+    st, topo, sc = p.static, p.topology, dict(p.constants)
+    m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
+    sc["r_max"] = jnp.max(m["radii"][topo["face_ids"]])
+    grids = build_grids(jnp, st, sc, m)
+    cap = dict(p.capacity)
+    out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap)
+    counts["face_radius"] = sc["r_max"]
+    keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
+    face = jnp.where(keep, out["face"], -1)
+    feature = jnp.where(keep, out["feature"], int(Feature.NONE))
+    xi, point, gap, normal = smooth(get_element(st.element), s, xm, topo, face, feature,
+                                    out["local"], out["xi"], out["gap"], sc["tie"])
+    nan = jnp.asarray(jnp.nan, dtype)
+
+    def masked(v):
+        return jnp.where(keep.reshape(keep.shape + (1,) * (v.ndim - 1)), v, nan)
+
+    n = s.shape[0]
+    return Contacts(
+        active=out["active"], face=face, xi=masked(xi), point=masked(point + origin),
+        gap=masked(gap), distance=masked(jnp.abs(gap)), normal=masked(normal), feature=feature,
+        master_node=out["master_node"], status=out["status"],
+        slave_ids=jnp.arange(n, dtype=jnp.int32), d_max=p.d_max,
+        counts=Counts(slaves_in_box=n, master_nodes_in_box=len(p.master.nodes),
+                      master_faces_in_box=p.master.n_faces, count=counts, capacity=cap))
+
+
+def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Plan:
+    """`p` itself when `contacts` did not overflow, else a plan sized for the current
+    coordinates and at least the counts `contacts` reports (outside `jit`)."""
+    if not bool(contacts.overflow):
+        return p
+    count = {k: float(np.max(np.asarray(v))) for k, v in contacts.counts.count.items()}
+    master = p.master.with_points(np.asarray(master_points, np.float64))
+    return plan(master, np.asarray(slave_points, np.float64), mode=p.static.mode,
+                d_max=p.d_max, dtype=p.dtype, growth=p.growth,
+                minimum={k: v for k, v in count.items() if k != "face_radius"})
+
+
+def _flatten_contacts(c):
+    arrays = tuple(getattr(c, k) for k in _ARRAYS)
+    return (arrays, c.counts.count), (c.d_max, tuple(sorted(c.timings.items())),
+                                     c.counts.slaves_in_box, c.counts.master_nodes_in_box,
+                                     c.counts.master_faces_in_box,
+                                     tuple(sorted(c.counts.capacity.items())))
+
+
+def _unflatten_contacts(aux, children):
+    arrays, count = children
+    d_max, timings, n_s, n_n, n_f, cap = aux
+    return Contacts(**dict(zip(_ARRAYS, arrays)), d_max=d_max,
+                    counts=Counts(n_s, n_n, n_f, count=count, capacity=dict(cap)),
+                    timings=dict(timings))
+
+
+_ARRAYS = ("active", "face", "xi", "point", "gap", "distance", "normal", "feature",
+           "master_node", "status", "slave_ids")
+jax.tree_util.register_pytree_node(Contacts, _flatten_contacts, _unflatten_contacts)

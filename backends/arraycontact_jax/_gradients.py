@@ -1,0 +1,141 @@
+"""Differentiable closest points (DESIGN section 5).
+
+The search (which face, which feature) runs under `stop_gradient`. Given its answer, the
+closest point is re-expressed as a smooth function of the slave and master coordinates:
+
+* the natural coordinates solve R(u) = 0 with xi = base + B u, where R is the stationarity
+  condition of eq. (8) restricted to the feature — both coordinates free on a face interior, the
+  edge parameter on an edge (edges are straight in natural coordinates), none at a vertex;
+  the solution keeps the search's value and takes its derivatives from the implicit-function
+  theorem (a custom JVP that calls itself, so second derivatives are exact too);
+* the point is x(xi); the gap is (s - x)·n on a face interior, and ±|s - x| on an edge or at
+  a vertex, with the search's sign. Where the slave lies on the edge or vertex (distance 0) the
+  gap is (s - x)·n_pseudo and the point s - gap n_pseudo: same values, the derivatives of the
+  surface's tangent plane there (the subgradient along the pseudo-normal), no NaN.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from arraycontact._elements import EDGE, FACE, interpolate, shape_functions
+from arraycontact._normals import pseudo_normal
+from arraycontact._surface import node_normals
+
+
+def _safe_sqrt(a):
+    ok = a > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, a, 1)), 0 * a)
+
+
+def _unit(v):
+    n = _safe_sqrt(jnp.sum(v * v, -1, keepdims=True))
+    return jnp.where(n > 0, v / jnp.where(n > 0, n, 1), 0 * v)
+
+
+def _solve2(m, r):
+    det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    ok = det != 0
+    det = jnp.where(ok, det, 1)
+    x = jnp.stack([r[0] * m[1, 1] - m[0, 1] * r[1], m[0, 0] * r[1] - m[1, 0] * r[0]]) / det
+    return jnp.where(ok, x, 0 * x)
+
+
+def _residual(element, u, s, xe, base, b, mask):
+    """Stationarity of |s - x(xi)|^2 / 2 along the feature's free directions (2 equations);
+    a direction the feature does not have (mask 0) is pinned by u_k = 0."""
+    xi = base + b @ u
+    n = shape_functions(element, xi, jnp)
+    _, dx = interpolate(element, xe, xi, jnp)  # [3, 2]
+    to_slave = n @ (xe - s)  # x(xi) - s from nearby differences (partition of unity)
+    return b.T @ (dx.T @ to_slave) + (1 - mask) * u
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _root(element, u0, s, xe, base, b, mask):
+    return u0
+
+
+@_root.defjvp
+def _root_jvp(element, primals, tangents):
+    u0, s, xe, base, b, mask = primals
+    _, ds, dxe, _, _, _ = tangents
+    u = _root(element, u0, s, xe, base, b, mask)
+    h = jax.jacfwd(_residual, 1)(element, u, s, xe, base, b, mask)
+    _, rhs = jax.jvp(lambda s_, xe_: _residual(element, u, s_, xe_, base, b, mask),
+                     (s, xe), (ds, dxe))
+    return u, -_solve2(h, rhs)
+
+
+def _polish(element, u, s, xe, base, b, mask, steps=2):
+    """Newton steps on R(u) = 0 from the search's answer (met to its KKT tolerance): the
+    values then hold to rounding, as the implicit derivatives assume."""
+    for _ in range(steps):
+        h = jax.jacfwd(_residual, 1)(element, u, s, xe, base, b, mask)
+        u = u - _solve2(h, _residual(element, u, s, xe, base, b, mask))
+    return u
+
+
+def _feature_frame(element, feature, local, xi0):
+    """base, B, mask and the start u0 of the feature's parametrisation xi = base + B u."""
+    k = element.n_corners
+    corners = jnp.asarray(element.corners, xi0.dtype)
+    loc = jnp.maximum(local, 0) % k
+    a, c = corners[loc], corners[(loc + 1) % k]
+    on_face, on_edge = feature == FACE, feature == EDGE
+    t0 = jnp.dot(xi0 - a, c - a) / jnp.dot(c - a, c - a)
+    zero = jnp.zeros(2, xi0.dtype)
+    base = jnp.where(on_face, zero, a)  # the edge start or the vertex
+    b_edge = jnp.stack([c - a, zero], -1)
+    b = jnp.where(on_face, jnp.eye(2, dtype=xi0.dtype), jnp.where(on_edge, b_edge, 0 * b_edge))
+    mask = jnp.where(on_face, jnp.ones(2, xi0.dtype),
+                     jnp.where(on_edge, jnp.asarray([1.0, 0.0], xi0.dtype), zero))
+    u0 = jnp.where(on_face, xi0, jnp.where(on_edge, jnp.stack([t0, 0 * t0]), zero))
+    return base, b, mask, u0
+
+
+def _one(element, on_surface, s, xe, feature, local, xi0, n_pseudo, sign):
+    base, b, mask, u0 = _feature_frame(element, feature, local, jax.lax.stop_gradient(xi0))
+    u0 = _polish(element, u0, jax.lax.stop_gradient(s), jax.lax.stop_gradient(xe), base, b, mask)
+    u = _root(element, u0, s, xe, base, b, mask)
+    xi = base + b @ u
+    to_slave = -(shape_functions(element, xi, jnp) @ (xe - s))  # s - x(xi), nearby terms
+    _, dx = interpolate(element, xe, xi, jnp)
+    n_face = _unit(jnp.cross(dx[:, 0], dx[:, 1]))
+    r2 = jnp.dot(to_slave, to_slave)
+    on = r2 <= on_surface * on_surface  # on the surface: no direction but rounding noise
+    dist = _safe_sqrt(jnp.where(on, 1, r2))
+    along = jnp.dot(to_slave, n_pseudo)
+    gap = jnp.where(feature == FACE, jnp.dot(to_slave, n_face),
+                    jnp.where(on, along, sign * dist))
+    direction = to_slave / jnp.where(on, 1, dist)
+    normal = jnp.where(feature == FACE, n_face, jnp.where(on, n_pseudo, sign * direction))
+    # A slave on an edge or vertex (distance 0) sits on the surface: its closest point is
+    # itself, moving with it along the surface (s - gap * n has that derivative, I - n n^T).
+    # Its natural coordinates are not differentiable there (moving off switches faces).
+    point = jnp.where(on & (feature != FACE), s - gap * normal, s - to_slave)
+    return xi, point, gap, normal
+
+
+def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_surface):
+    """Differentiable xi, point, gap, normal of the search's answer ([n] rows).
+
+    `face`, `feature`, `local` come from the search; `xi` and `gap` are its values, used as the
+    Newton start and for the sign (without gradient); a slave within `on_surface` of an edge or
+    vertex counts as on it, with the feature's pseudo-normal (differentiable). Rows without a
+    face are computed on face 0 at its centre (finite, then masked by the caller)."""
+    ok = face >= 0
+    face = jnp.where(ok, face, 0)
+    feature = jnp.where(ok, feature, FACE)
+    xi = jnp.where(ok[:, None], xi, jnp.asarray(element.centre, slave_x.dtype))
+    sign = jax.lax.stop_gradient(jnp.where(ok & (gap < 0), -1.0, 1.0)).astype(slave_x.dtype)
+    faces = topo["faces"]
+    n_pseudo = pseudo_normal(element, nodes_x, faces, topo["face_edges"], topo["edge_faces"],
+                             node_normals(element, faces, nodes_x, jnp), face, feature,
+                             jnp.maximum(local, 0), jax.lax.stop_gradient(xi), jnp)
+    xe = nodes_x[faces[face]]
+    return jax.vmap(partial(_one, element, on_surface))(slave_x, xe, feature, local, xi, n_pseudo,
+                                                         sign)

@@ -1,0 +1,279 @@
+"""The JAX plan / detect API: static shapes, no recompilation, vmap, exact gradients."""
+
+import jax
+import jax.monitoring
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import arraycontact as ac
+import arraycontact_jax as acj
+from arraycontact import scenes
+from arraycontact._contacts import Feature
+
+from conftest import assert_matches_reference
+
+ELEMENTS = ["tri3", "quad4", "tri6", "quad8", "quad9"]
+
+
+@pytest.fixture(autouse=True)
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def _compare(c, r):
+    """JAX contacts `c` equal NumPy contacts `r`: same integers, floats to rounding."""
+    for k in ("active", "face", "feature", "status", "master_node"):
+        assert np.array_equal(np.asarray(getattr(c, k)), getattr(r, k)), k
+    a = r.active
+    for k in ("gap", "point", "normal", "xi", "distance"):
+        assert np.allclose(np.asarray(getattr(c, k))[a], getattr(r, k)[a], atol=1e-12), k
+        assert np.isnan(np.asarray(getattr(c, k))[~a & (r.status != 3)]).all(), k
+
+
+@pytest.mark.parametrize("mode", ["exact", "node"])
+@pytest.mark.parametrize("make", [lambda: scenes.rough_surfaces(2**10, seed=3),
+                                  lambda: scenes.rough_layers(2**8, quadratic=True, seed=1)],
+                         ids=["rough_tri3", "layers_tri6"])
+def test_plan_detect_equals_numpy(make, mode):
+    s = make()
+    p = acj.plan(s.master, s.slave, mode=mode)
+    c = acj.detect(p, jnp.asarray(s.slave), jnp.asarray(s.master.points))
+    assert not bool(c.overflow)
+    r = ac.detect(s.slave, s.master, mode=mode)
+    _compare(c, r)
+    if mode == "exact":
+        assert_matches_reference(jax.tree.map(np.asarray, c), s.slave, s.master)
+
+
+def test_float32_plan_is_close_to_float64_far_from_the_origin():
+    s = scenes.rough_surfaces(2**10, seed=4)
+    shift = np.array([1e6, -3e6, 2e6]) * s.master.longest_edge
+    master = s.master.with_points(s.master.points + shift)
+    slave = s.slave + shift
+    p = acj.plan(master, slave, dtype=np.float32)
+    c = acj.detect(p, jnp.asarray(slave), jnp.asarray(master.points))
+    assert c.gap.dtype == jnp.float32
+    r = ac.detect(slave, master)
+    same = np.asarray(c.active) == r.active
+    assert same.mean() > 0.999
+    a = r.active & np.asarray(c.active)
+    assert np.abs(np.asarray(c.gap)[a] - r.gap[a]).max() <= 1e-5 * master.longest_edge
+
+
+def test_no_recompilation_over_20_steps_of_a_moving_scene():
+    s = scenes.rough_surfaces(2**10, seed=5)
+    p = acj.plan(s.master, s.slave)
+    rng = np.random.default_rng(0)
+    steps = []
+    for k in range(20):  # rigid motion of the slave and a small deformation of the master
+        a = 0.01 * k
+        rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        slave = (s.slave - s.slave.mean(0)) @ rot.T + s.slave.mean(0) + [0.02 * k, 0, -0.02 * k]
+        master = s.master.points + 0.01 * rng.standard_normal(s.master.points.shape)
+        steps.append((jax.device_put(slave), jax.device_put(master)))
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, *a, **kw: compiles.append(name)
+        if name == "/jax/core/compile/backend_compile_duration" else None)
+    first = None
+    for k, (slave, master) in enumerate(steps):
+        c = acj.detect(p, slave, master)
+        assert not bool(c.overflow)
+        if k == 0:
+            first = len(compiles)
+        if k in (0, 19):
+            r = ac.detect(np.asarray(slave), s.master.with_points(np.asarray(master)), d_max=p.d_max)
+            _compare(c, r)
+    assert first >= 1 and len(compiles) == first, f"{len(compiles) - first} recompilations"
+
+
+def test_overflow_is_reported_and_update_plan_fixes_it():
+    s = scenes.rough_surfaces(2**10, seed=6)
+    p = acj.plan(s.master, s.slave, growth=1.0)
+    # Move the slaves onto the master: more pairs than planned.
+    slave = s.slave - [0, 0, 1.0]
+    c = acj.detect(p, jnp.asarray(slave), jnp.asarray(s.master.points))
+    assert bool(c.overflow)
+    over = [k for k, v in c.counts.capacity.items() if c.counts.count[k] > v]
+    assert over
+    p2 = acj.update_plan(p, c, slave, s.master.points)
+    assert p2 is not p
+    c2 = acj.detect(p2, jnp.asarray(slave), jnp.asarray(s.master.points))
+    assert not bool(c2.overflow)
+    _compare(c2, ac.detect(slave, s.master))
+    assert acj.update_plan(p2, c2, slave, s.master.points) is p2
+    # A master whose faces grow past the planned radius reports it as an overflow too.
+    c3 = acj.detect(p2, jnp.asarray(slave), jnp.asarray(s.master.points * [1.5, 1.5, 1]))
+    assert bool(c3.overflow) and c3.counts.count["face_radius"] > c3.counts.capacity["face_radius"]
+
+
+def test_plan_rejects_bad_input():
+    s = scenes.rough_surfaces(2**8, seed=0)
+    with pytest.raises(ValueError, match="mode"):
+        acj.plan(s.master, s.slave, mode="fast")
+    with pytest.raises(ValueError, match="slave_points"):
+        acj.plan(s.master, s.slave[:, :2])
+    with pytest.raises(ValueError, match="empty"):
+        acj.plan(s.master, np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="growth"):
+        acj.plan(s.master, s.slave, growth=0.5)
+    p = acj.plan(s.master, s.slave)
+    with pytest.raises(ValueError, match="master_points"):
+        acj.detect(p, jnp.asarray(s.slave), jnp.asarray(s.master.points[:-1]))
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match="x64"):
+            acj.plan(s.master, s.slave, dtype=np.float64)
+
+
+def test_vmap_over_scenes_equals_one_by_one():
+    s = scenes.rough_surfaces(2**10, seed=7)
+    p = acj.plan(s.master, s.slave)
+    shifts = np.array([[0, 0, 0], [0.1, 0, 0.1], [0, -0.2, 0.3]])
+    masters = jnp.asarray(s.master.points[None] + shifts[:, None])
+    slaves = jnp.asarray(np.stack([s.slave] * 3))
+    cb = jax.vmap(acj.detect, in_axes=(None, 0, 0))(p, slaves, masters)
+    assert cb.gap.shape == (3, len(s.slave)) and not np.asarray(cb.overflow).any()
+    for i in range(3):
+        ci = acj.detect(p, slaves[i], masters[i])
+        for k in ("face", "feature", "status"):
+            assert np.array_equal(getattr(cb, k)[i], getattr(ci, k))
+        assert np.allclose(cb.gap[i], ci.gap, equal_nan=True, atol=1e-14)
+
+
+# --- gradients ------------------------------------------------------------------------------
+
+
+def _grid_master(element, z):
+    """A 5 x 5 grid of nodes (tri3: 32 faces, quad4: 16, quadratic: 4) at heights z(x, y)."""
+    g = np.linspace(-1, 1, 5)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    return scenes.grid_surface(x, y, z(x, y), element)
+
+
+def _z(slope):
+    """A peak (slope < 0) or a pit (slope > 0) at the origin, gently curved; flat for 0."""
+    c = 0 if slope == 0 else 1
+    return lambda x, y: slope * (np.abs(x) + np.abs(y)) + c * (0.1 * x**2 + 0.05 * y**2
+                                                              + 0.05 * x * y)
+
+
+# (slope, x, y, dz, feature, gap sign): a peak for vertex and edge at positive gaps, a pit for
+# them at negative gaps (below a pit's bottom the closest feature is that vertex or edge);
+# faces on both sides.
+CASES = {-0.8: [(0.0, 0.0, 0.3, Feature.VERTEX, 1), (0.25, 0.01, 0.3, Feature.EDGE, 1),
+                (0.4, 0.55, 0.15, Feature.FACE, 1)],
+         0.8: [(0.01, 0.02, -0.3, Feature.VERTEX, -1), (0.25, 0.01, -0.3, Feature.EDGE, -1),
+               (0.4, 0.55, -0.15, Feature.FACE, -1)]}
+
+
+def _fd_check(fn, slave, master_points, h=1e-6, tol=2e-8, outs=("gap", "point", "normal", "xi"),
+              skip=()):
+    """jacfwd (slave) and jacrev (master) of the differentiable outputs against central
+    differences of the whole detection. Master nodes off the faces touching the chosen faces
+    must get exactly zero (the closest point depends on its face's nodes, a pseudo-normal on
+    the faces around its edge or vertex); the others are differenced."""
+    val = fn(slave, master_points)
+    faces = np.asarray(fn.faces)
+    near = np.isin(faces, faces[np.asarray(val.face)]).any(1)
+    used = np.unique(faces[near])
+
+    def outputs(s, m):
+        c = fn(s, m)
+        return tuple(getattr(c, out) for out in outs)
+
+    js = jax.jacfwd(outputs, 0)(slave, master_points)
+    jm = jax.jacrev(outputs, 1)(slave, master_points)
+    jac = {}
+    for out, a, b in zip(outs, js, jm):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.isfinite(a).all() and np.isfinite(b).all(), out
+        assert not np.delete(b, used, axis=-2).any(), out
+        jac["x", out], jac["m", out] = a, b
+    for which, x, nodes in (("x", slave, range(len(slave))), ("m", master_points, used)):
+        for i in nodes:
+            for k in range(3):
+                e = np.zeros(x.shape)
+                e[i, k] = h
+                pm = [fn(slave + sg * e, master_points) if which == "x" else
+                      fn(slave, master_points + sg * e) for sg in (1, -1)]
+                for out in (o for o in outs if (which, o) not in skip):
+                    fd = (np.asarray(getattr(pm[0], out)) - np.asarray(getattr(pm[1], out))) / (2 * h)
+                    err = np.abs(jac[which, out][..., i, k] - fd).max()
+                    assert err <= tol, f"d{out}/d{which}[{i},{k}] off by {err:.2g}"
+    return val
+
+
+@pytest.mark.parametrize("element", ELEMENTS)
+def test_gradients_match_finite_differences_for_every_feature_and_at_zero_gap(element):
+    """Every feature at positive and negative gaps on a peak and a pit, then slaves exactly on
+    a vertex, an edge and a face of a flat master (zero gap: finite gradients equal to the
+    differences of the signed distance, smooth there). One plan serves the three masters (same
+    connectivity), so each derivative compiles once."""
+    peak = _grid_master(element, _z(-0.8))
+    slaves = {sl: np.array([[x, y, _z(sl)(x, y) + dz] for x, y, dz, _, _ in c])
+              for sl, c in CASES.items()}
+    p = acj.plan(peak, slaves[-0.8], d_max=2.0, growth=2.0)
+
+    def fn(s, m):
+        return acj.detect(p, s, m)
+
+    fn.faces = peak.faces
+    for slope, cases in CASES.items():
+        master = _grid_master(element, _z(slope))
+        c = _fd_check(fn, jnp.asarray(slaves[slope]), jnp.asarray(master.points))
+        assert not bool(c.overflow)
+        assert list(np.asarray(c.feature)) == [int(f) for *_, f, _ in cases]
+        assert (np.sign(np.asarray(c.gap)) == [sg for *_, sg in cases]).all()
+
+    flat = _grid_master(element, _z(0))
+    k = 0.5 if flat.element.linear else 1.0  # a corner node next to the centre
+    on = jnp.asarray([[0.0, 0.0, 0.0], [k / 2 if element[:3] == "tri" else k / 3, 0, 0],
+                      [0.3, 0.2, 0.0]])
+    # Left out where the function has a kink: xi (a slave moving off an edge or vertex changes
+    # faces) and the normal against master nodes (moving the vertex a slave sits on up or down
+    # makes a peak or a pit: one-sided derivatives differ).
+    # Wider steps: above a flat edge the normal is the direction of a 1e-6 offset, whose
+    # solver-tolerance noise would swamp the difference quotient.
+    c = _fd_check(fn, on, jnp.asarray(flat.points), h=1e-4, tol=1e-6,
+                  outs=("gap", "point", "normal"),
+                  skip=(("m", "normal"),))
+    assert np.asarray(c.active).all() and np.abs(np.asarray(c.gap)).max() == 0
+    assert list(np.asarray(c.feature)) == [int(Feature.VERTEX), int(Feature.EDGE),
+                                           int(Feature.FACE)]
+    grad = jax.grad(lambda s: jnp.sum(acj.detect(p, s, jnp.asarray(flat.points)).gap))(on)
+    assert np.allclose(grad, [[0, 0, 1]] * 3)
+    xi = jax.jacfwd(lambda s: acj.detect(p, s, jnp.asarray(flat.points)).xi)(on)
+    assert np.isfinite(xi).all()
+
+
+def test_hessian_and_jacfwd_of_a_penalty_energy():
+    s = scenes.rough_surfaces(2**9, seed=2)
+    slave = s.slave - [0, 0, 1.2]
+    p = acj.plan(s.master, slave, d_max=1.0)
+    mp = jnp.asarray(s.master.points)
+
+    def energy(q):
+        c = acj.detect(p, jnp.asarray(slave) + q, mp)
+        g = jnp.where(c.active, c.gap, 0.0)
+        return 0.5 * 100.0 * jnp.sum(jnp.minimum(g, 0) ** 2)
+
+    q = jnp.zeros(3)
+    grad = jax.grad(energy)
+    hess = jax.hessian(energy)(q)
+    jf = jax.jacfwd(grad)(q)
+    h = 1e-6
+    fd = np.stack([(grad(q + h * e) - grad(q - h * e)) / (2 * h) for e in np.eye(3)], 1)
+    assert np.isfinite(hess).all() and np.abs(hess).max() > 0
+    assert np.allclose(hess, fd, rtol=1e-7, atol=1e-6 * np.abs(fd).max())
+    assert np.allclose(jf, hess)
+
+
+def test_penalty_example_reaches_zero_penetration():
+    from arraycontact_jax.example import push_out
+
+    res = push_out(n_nodes=2**9, steps=60)
+    assert res["min_gap_before"] < -0.1
+    assert res["min_gap_after"] >= -1e-6 * res["length"]
+    assert res["energy_after"] <= 1e-12 and not res["overflow"]
