@@ -1,6 +1,26 @@
-"""Warp back end of arraycontact (kernels for GPU simulators).
+"""Warp back end of arraycontact: graph-capturable detection kernels and the geometry as
+`@wp.func`s for simulators' own kernels.
 
-The kernels come with the Warp back-end issue; until then `arraycontact.detect(...,
-backend="warp")` raises a ValueError that says so."""
+    plan(master, slave_points, *, slave_world, master_world, d_max, device) -> Plan
+    detect(plan, slave_points, master_points) -> dict of arrays (launches only)
+    closest_point_triangle, closest_point_face, start_option_one, face_point: @wp.func
+"""
 
-AVAILABLE = False
+AVAILABLE = True
+
+from ._detect import Plan as Plan  # noqa: E402
+from ._detect import detect as detect  # noqa: E402
+from ._detect import plan as plan  # noqa: E402
+from ._detect import run_one_shot as run_one_shot  # noqa: E402
+from ._geometry import Element as Element  # noqa: E402
+from ._geometry import FaceNodes as FaceNodes  # noqa: E402
+from ._geometry import closest_point_face as closest_point_face  # noqa: E402
+from ._geometry import closest_point_triangle as closest_point_triangle  # noqa: E402
+from ._geometry import element_data as element_data  # noqa: E402
+from ._geometry import face_nodes as face_nodes  # noqa: E402
+from ._geometry import face_point as face_point  # noqa: E402
+from ._geometry import start_option_one as start_option_one  # noqa: E402
+
+__all__ = ["AVAILABLE", "Element", "FaceNodes", "Plan", "closest_point_face",
+           "closest_point_triangle", "detect", "element_data", "face_nodes", "face_point",
+           "plan", "run_one_shot", "start_option_one"]

@@ -1,0 +1,55 @@
+"""Stage 3 in Warp: the closest master node within d_max through the 3x3x3 stencil; ties
+(within `tie`) go to the smallest node id, as in every back end."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ._grid import Grid, cell_key, cell_of
+
+
+@wp.func
+def _cell_near(s: wp.vec3, c: wp.vec3i, cell: float, reach: float):
+    lo = wp.vec3(float(c[0]), float(c[1]), float(c[2])) * cell
+    g = wp.vec3(0.0)
+    for k in range(3):
+        g[k] = wp.max(wp.max(lo[k] - s[k], s[k] - (lo[k] + cell)), 0.0)
+    return wp.length_sq(g) <= reach * reach
+
+
+@wp.func
+def _scan(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
+          node_world: wp.array(dtype=int), d_max: float, limit: float):
+    """Smallest distance within d_max, and the smallest node id at distance <= limit."""
+    c0 = cell_of(s, grid.cell)
+    dmin = float(3.0e38)
+    best = int(-1)
+    for dz in range(-1, 2):
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                c = c0 + wp.vec3i(dx, dy, dz)
+                if _cell_near(s, c, grid.cell, d_max):
+                    key = cell_key(c, world, grid.table)
+                    for k in range(grid.begin[key], grid.end[key]):
+                        j = grid.sorted_ids[k]
+                        if node_world[j] == world:
+                            d = wp.length(nodes[j] - s)
+                            if d <= d_max:
+                                dmin = wp.min(dmin, d)
+                                if d <= limit and (best < 0 or j < best):
+                                    best = j
+    return dmin, best
+
+
+@wp.func
+def closest_node(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
+                 node_world: wp.array(dtype=int), d_max: float, tie: float):
+    """(node id or -1, distance or 3e38)."""
+    dmin, unused = _scan(s, world, grid, nodes, node_world, d_max, -1.0)
+    best = int(-1)
+    if dmin <= d_max:
+        d2, best = _scan(s, world, grid, nodes, node_world, d_max, dmin + tie)
+    return best, dmin
+
+
+__all__ = ["closest_node"]

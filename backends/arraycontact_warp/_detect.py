@@ -1,0 +1,282 @@
+"""Warp detection for simulators: `plan` allocates every buffer once; `detect` only launches
+kernels (no allocation, no host synchronisation), so a CUDA graph can capture and replay it.
+
+Stages, one module each (the names of the other back ends): _prepare (master geometry from
+the current coordinates), _grid (hashed keys with the world id, radix sort, slot ranges),
+_closest_node, _projection (candidates and projections), _select (gap, normal). Each slave is
+one thread that scans its 27 cells twice (smallest distance, then the tie rule), so there is no
+pair buffer to overflow; the one planned quantity that motion can outgrow is the largest face
+radius the face grid's cells were sized for, reported in the device flag `plan.overflow`.
+
+Many worlds: a world id per slave and per master node enters every key and every comparison;
+results per world equal running each world alone. A master without world ids is shared by all
+worlds. Computation is float32 in a local frame at the plan's box corner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from arraycontact._contacts import Contacts, Counts, Feature, Status
+from arraycontact._detect import ITERATIONS, KKT_TOL, TIE_RTOL
+from arraycontact._prepare import CELL_MARGIN
+from arraycontact._surface import Surface, validate_points
+
+from . import _grid, _prepare
+from ._closest_node import closest_node
+from ._geometry import Element, element_data
+from ._projection import Master, scan_faces
+from ._select import classify
+
+GROWTH = 1.25
+
+
+@wp.kernel
+def _detect_kernel(el: Element, m: Master, node_grid: _grid.Grid, face_grid: _grid.Grid,
+                   slaves: wp.array(dtype=wp.vec3), slave_world: wp.array(dtype=int),
+                   shared: int, origin: wp.vec3, d_max: float, tie: float, slack: float,
+                   r_cap: float, iterations: int, tol: float,
+                   active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
+                   xi_out: wp.array(dtype=wp.vec2), point_out: wp.array(dtype=wp.vec3),
+                   gap_out: wp.array(dtype=float), dist_out: wp.array(dtype=float),
+                   normal_out: wp.array(dtype=wp.vec3), feature_out: wp.array(dtype=int),
+                   node_out: wp.array(dtype=int), status_out: wp.array(dtype=int)):
+    i = wp.tid()
+    s = slaves[i] - origin
+    w = slave_world[i]
+    if shared == 1:
+        w = 0
+    node, dn = closest_node(s, w, node_grid, m.points, m.node_world, d_max, tie)
+    node_out[i] = node
+    rho = wp.min(dn, d_max) + slack
+    dmin, f0, xi0, ft0, l0, c0, df0 = scan_faces(el, m, face_grid, s, w, rho, r_cap, -1.0,
+                                                  iterations, tol)
+    nan = wp.nan
+    if dmin <= d_max:
+        d, f, xi, feature, local, conv, diff = scan_faces(el, m, face_grid, s, w, rho, r_cap,
+                                                          dmin + tie, iterations, tol)
+        gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
+        active_out[i] = 1
+        face_out[i] = f
+        xi_out[i] = xi
+        point_out[i] = s - diff + origin
+        gap_out[i] = gap
+        dist_out[i] = dist
+        normal_out[i] = normal
+        feature_out[i] = feature
+        status_out[i] = 0
+        if conv == 0:
+            status_out[i] = 4
+    else:
+        active_out[i] = 0
+        face_out[i] = -1
+        xi_out[i] = wp.vec2(nan, nan)
+        point_out[i] = wp.vec3(nan, nan, nan)
+        gap_out[i] = nan
+        dist_out[i] = nan
+        normal_out[i] = wp.vec3(nan, nan, nan)
+        feature_out[i] = -1
+        status_out[i] = 1
+
+
+OUTPUTS = (("active", wp.int32), ("face", int), ("xi", wp.vec2), ("point", wp.vec3),
+           ("gap", float), ("distance", float), ("normal", wp.vec3), ("feature", int),
+           ("master_node", int), ("status", int))
+
+
+@dataclass(eq=False)
+class Plan:
+    """Every buffer of a Warp detection (see `plan`). `overflow` is a device int array [1]:
+    nonzero when a master face outgrew the radius its grid was planned for."""
+
+    device: object
+    master: Surface
+    n_slaves: int
+    element: Element
+    m: Master
+    node_grid: _grid.Grid
+    face_grid: _grid.Grid
+    node_ids: wp.array
+    face_ids: wp.array
+    slave_world: wp.array
+    shared: int
+    origin: np.ndarray
+    constants: dict
+    slave_in: wp.array
+    master_in: wp.array
+    overflow: wp.array
+    out: dict
+
+
+def _worlds(world, n, what):
+    if world is None:
+        return np.zeros(n, np.int32)
+    w = np.asarray(world)
+    if w.shape != (n,) or w.dtype.kind not in "iu":
+        raise ValueError(f"{what} must be an integer array of shape ({n},), got {w.dtype} "
+                         f"{w.shape}")
+    if len(w) and w.min() < 0:
+        raise ValueError(f"{what} row {int(np.argmin(w))} is negative")
+    return w.astype(np.int32)
+
+
+def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
+         device=None, growth=GROWTH) -> Plan:
+    """Allocate a detection of slaves [n, 3] against `master` (exact mode, float32).
+
+    slave_world [n] and master_world [n_points]: world ids (non-negative ints). Without
+    master_world the master is shared by all worlds. d_max: default the longest master edge.
+    growth: how much larger than now the master's faces may become before `overflow`."""
+    if not isinstance(master, Surface):
+        raise ValueError("master must be an arraycontact.Surface")
+    if master.n_faces == 0:
+        raise ValueError("master has no faces")
+    x = validate_points(slave_points, "slave_points")
+    if len(x) == 0:
+        raise ValueError("slave_points is empty: there is nothing to plan for")
+    if d_max is None:
+        d_max = master.longest_edge
+    if not (np.isscalar(d_max) and np.isfinite(d_max) and d_max > 0):
+        raise ValueError(f"d_max must be a positive finite number, got {d_max}")
+    if not growth >= 1:
+        raise ValueError(f"growth must be >= 1, got {growth}")
+    device = wp.get_device(device)
+    sw = _worlds(slave_world, len(x), "slave_world")
+    shared = master_world is None
+    nw = _worlds(master_world, len(master.points), "master_world")
+    fw = nw[master.faces[:, 0]]
+    bad = (nw[master.faces] != fw[:, None]).any(1)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise ValueError(f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}")
+    e = master.element
+    _, radii = master.face_bounds
+    r_cap = float(radii.max()) * growth
+    pts = master.points[master.nodes]
+    lo = np.minimum(x.min(0), pts.min(0)) - d_max
+    hi = np.maximum(x.max(0), pts.max(0)) + d_max
+    extent = 2 * float((hi - lo).max())
+    eps = float(np.finfo(np.float32).eps)
+    tie = TIE_RTOL[np.dtype(np.float32)] * master.longest_edge
+    consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_cap),
+                  r_cap=r_cap, tol=KKT_TOL[np.dtype(np.float32)],
+                  iterations=ITERATIONS.get(e.name, 0), lebesgue=float(e.lebesgue))
+
+    def arr(a, dtype):
+        return wp.array(a, dtype=dtype, device=device)
+
+    m = Master()
+    m.points = wp.zeros(len(master.points), dtype=wp.vec3, device=device)
+    m.faces = arr(master.faces.astype(np.int32), int)
+    m.face_world, m.node_world = arr(fw, int), arr(nw if not shared else 0 * nw, int)
+    if shared:
+        m.face_world = arr(0 * fw, int)
+    m.centres = wp.zeros(master.n_faces, dtype=wp.vec3, device=device)
+    m.radii = wp.zeros(master.n_faces, dtype=float, device=device)
+    m.node_normals = wp.zeros(len(master.points), dtype=wp.vec3, device=device)
+    m.face_edges = arr(master.face_edges.astype(np.int32), int)
+    m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
+    out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
+    return Plan(device=device, master=master, n_slaves=len(x), element=element_data(e.name, device),
+                m=m, node_grid=_grid.new_grid(len(master.nodes), CELL_MARGIN * d_max, device),
+                face_grid=_grid.new_grid(master.n_faces, CELL_MARGIN * (d_max + r_cap), device),
+                node_ids=arr(master.nodes.astype(np.int32), int),
+                face_ids=arr(np.arange(master.n_faces, dtype=np.int32), int),
+                slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
+                slave_in=wp.zeros(len(x), dtype=wp.vec3, device=device),
+                master_in=wp.zeros(len(master.points), dtype=wp.vec3, device=device),
+                overflow=wp.zeros(1, dtype=int, device=device), out=out)
+
+
+def _kind(a):
+    if isinstance(a, wp.array):
+        return "warp"
+    if type(a).__module__.startswith("jax"):
+        return "jax"
+    return "numpy"
+
+
+def _input(p: Plan, a, staging, what, n):
+    """A vec3 device array holding `a` and the origin the kernels must subtract from it."""
+    kind = _kind(a)
+    if kind == "numpy":
+        # float64 host data: subtract the origin in float64 before the float32 cast.
+        x = validate_points(a, what)
+        if len(x) != n:
+            raise ValueError(f"{what} must have {n} rows (the plan's), got {len(x)}")
+        staging.assign((x - p.origin).astype(np.float32))
+        return staging, wp.vec3(0.0, 0.0, 0.0)
+    if kind == "jax":
+        a = wp.from_jax(a, dtype=wp.vec3)  # DLPack: no copy on the same device
+    if a.dtype != wp.vec3 or a.shape != (n,):
+        raise ValueError(f"{what} must be a wp.array of {n} wp.vec3, got {a.dtype} {a.shape}")
+    if a.device != p.device:
+        raise ValueError(f"{what} is on {a.device}, the plan on {p.device}")
+    return a, wp.vec3(*[float(v) for v in p.origin])
+
+
+def detect(p: Plan, slave_points, master_points):
+    """Launch the detection. Inputs: wp.array of wp.vec3 on the plan's device (used in place:
+    capturable), JAX arrays (DLPack) or NumPy [n, 3]. Returns a dict of output arrays of the
+    slaves' kind (the plan's own buffers for wp.array input, overwritten by the next call):
+    active, face, xi, point, gap, distance, normal, feature, master_node, status."""
+    c = p.constants
+    dev = p.device
+    xm, m_origin = _input(p, master_points, p.master_in, "master_points", len(p.master.points))
+    xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
+    m = p.m
+    wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
+              device=dev)
+    p.overflow.zero_()
+    wp.launch(_prepare.face_bounds, p.master.n_faces,
+              inputs=[m.points, m.faces, c["lebesgue"], c["r_cap"]],
+              outputs=[m.centres, m.radii, p.overflow], device=dev)
+    m.node_normals.zero_()
+    wp.launch(_prepare.node_normals_add, (p.master.n_faces, p.master.faces.shape[1]),
+              inputs=[p.element, m.points, m.faces], outputs=[m.node_normals], device=dev)
+    wp.launch(_prepare.normalise, len(p.master.points), inputs=[m.node_normals], device=dev)
+    _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
+    _grid.build(p.face_grid, m.centres, p.face_ids, m.face_world, p.master.n_faces, dev)
+    o = p.out
+    # The slaves' origin differs from the master's only when they came in different kinds.
+    shift = wp.vec3(*(np.array(s_origin) - np.array(m_origin)))
+    wp.launch(_detect_kernel, p.n_slaves,
+              inputs=[p.element, m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
+                      shift, c["d_max"], c["tie"], c["slack"], c["r_cap"], c["iterations"],
+                      c["tol"]],
+              outputs=[o[k] for k, _ in OUTPUTS], device=dev)
+    kind = _kind(slave_points)
+    if kind == "warp":
+        return o
+    if kind == "jax":
+        return {k: wp.to_jax(v) for k, v in o.items()}
+    res = {k: v.numpy() for k, v in o.items()}
+    res["point"] = res["point"].astype(np.float64) + m_origin_np(p, m_origin)
+    return res
+
+
+def m_origin_np(p, m_origin):
+    # NumPy results come back in the global frame (the kernels' frame is the plan's origin
+    # when the master came in as NumPy).
+    return p.origin if tuple(m_origin) == (0.0, 0.0, 0.0) else np.zeros(3)
+
+
+def run_one_shot(slave_x, master, prep, st, dtype):
+    """`arraycontact.detect(backend="warp")`: plan, detect, host arrays out."""
+    if st.mode != "exact":
+        raise ValueError("the warp back end implements mode='exact' only")
+    if np.dtype(dtype) != np.float32:
+        raise ValueError("the warp back end computes in float32: pass dtype='float32'")
+    x = slave_x[prep.slave_rows]
+    p = plan(master, x, d_max=prep.d_max)
+    out = detect(p, x, master.points)
+    out["active"] = out["active"].astype(bool)
+    out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back
+    flag = int(p.overflow.numpy()[0])
+    return out, {"face_radius_overflow": flag}, {"face_radius_overflow": 0}
+
+
+__all__ = ["Plan", "plan", "detect", "run_one_shot", "Feature", "Status", "Contacts", "Counts"]

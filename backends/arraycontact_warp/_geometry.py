@@ -1,0 +1,368 @@
+"""Point-to-face geometry as `@wp.func`s (the twins of arraycontact._geometry), exported so a
+simulator can call them from its own kernels.
+
+    closest_point_triangle(p, a, b, c) -> (xi, feature, local)          tri3, Voronoi regions
+    closest_point_face(el, r, xe, xi0, iterations, tol) -> (xi, feature, local, converged)
+        any element (quad4, tri6, quad8, quad9; tri3 too) by the active-set Newton method of
+        seed 003 eq. (8), in the frame of xe (face nodes relative to a nearby origin).
+    face_point(el, xe, xi) -> x(xi)
+
+Element data travel in an `Element` struct (`element_data(name, device)` builds it); face nodes
+in a `FaceNodes` struct of up to 9 points (`face_nodes(points, faces, f, origin)`).
+feature: 0 face interior, 1 edge (local = edge id, from corner local to local + 1), 2 vertex
+(local = corner id).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from arraycontact._elements import get_element
+
+FACE = wp.constant(0)
+EDGE = wp.constant(1)
+VERTEX = wp.constant(2)
+
+
+@wp.struct
+class Element:
+    nn: int  # nodes per face
+    n_corners: int
+    n_mono: int
+    n_cons: int
+    linear_tri: int  # tri3: closed form
+    coef: wp.array2d(dtype=float)  # N_i = sum_j coef[i, j] xi^px[j] eta^py[j]
+    px: wp.array(dtype=int)
+    py: wp.array(dtype=int)
+    cons_a: wp.array(dtype=wp.vec2)  # domain: a_j . xi >= b_j
+    cons_b: wp.array(dtype=float)
+    cons_edge: wp.array(dtype=int)  # local edge of constraint j
+    nodes: wp.array(dtype=wp.vec2)  # natural coordinates of the nodes
+    centre: wp.vec2
+
+
+@wp.struct
+class FaceNodes:
+    x: wp.types.matrix(shape=(9, 3), dtype=float)  # node coordinates, row per node
+
+
+def element_data(name, device=None) -> Element:
+    e = get_element(name)
+    el = Element()
+    el.nn, el.n_corners = e.nodes_per_face, e.n_corners
+    el.n_mono, el.n_cons = len(e.monomials), len(e.constraints_b)
+    el.linear_tri = int(e.name == "tri3")
+    el.coef = wp.array(e.coefficients.astype(np.float32), dtype=float, device=device)
+    el.px = wp.array([p for p, _ in e.monomials], dtype=int, device=device)
+    el.py = wp.array([q for _, q in e.monomials], dtype=int, device=device)
+    el.cons_a = wp.array(e.constraints_a.astype(np.float32), dtype=wp.vec2, device=device)
+    el.cons_b = wp.array(e.constraints_b.astype(np.float32), dtype=float, device=device)
+    el.cons_edge = wp.array(e.constraint_edge, dtype=int, device=device)
+    el.nodes = wp.array(e.nodes.astype(np.float32), dtype=wp.vec2, device=device)
+    el.centre = wp.vec2(*[float(v) for v in e.centre])
+    return el
+
+
+@wp.func
+def _pw(x: float, p: int):
+    if p == 0:
+        return 1.0
+    if p == 1:
+        return x
+    return x * x
+
+
+@wp.func
+def _dpw(x: float, p: int):
+    if p == 0:
+        return 0.0
+    if p == 1:
+        return 1.0
+    return 2.0 * x
+
+
+@wp.func
+def _ddpw(p: int):
+    if p == 2:
+        return 2.0
+    return 0.0
+
+
+@wp.func
+def shape(el: Element, xi: wp.vec2, i: int):
+    """N_i, dN_i/dxi, dN_i/deta, and the three second derivatives (xixi, xieta, etaeta)."""
+    n = float(0.0)
+    d0 = float(0.0)
+    d1 = float(0.0)
+    h00 = float(0.0)
+    h01 = float(0.0)
+    h11 = float(0.0)
+    for j in range(el.n_mono):
+        c = el.coef[i, j]
+        p = el.px[j]
+        q = el.py[j]
+        n += c * _pw(xi[0], p) * _pw(xi[1], q)
+        d0 += c * _dpw(xi[0], p) * _pw(xi[1], q)
+        d1 += c * _pw(xi[0], p) * _dpw(xi[1], q)
+        h00 += c * _ddpw(p) * _pw(xi[1], q)
+        h01 += c * _dpw(xi[0], p) * _dpw(xi[1], q)
+        h11 += c * _pw(xi[0], p) * _ddpw(q)
+    return n, d0, d1, h00, h01, h11
+
+
+@wp.func
+def _row(xe: FaceNodes, i: int):
+    return wp.vec3(xe.x[i, 0], xe.x[i, 1], xe.x[i, 2])
+
+
+@wp.func
+def face_point(el: Element, xe: FaceNodes, xi: wp.vec2):
+    x = wp.vec3(0.0)
+    for i in range(el.nn):
+        n, d0, d1, h00, h01, h11 = shape(el, xi, i)
+        x += n * _row(xe, i)
+    return x
+
+
+@wp.func
+def face_tangents(el: Element, xe: FaceNodes, xi: wp.vec2):
+    t0 = wp.vec3(0.0)
+    t1 = wp.vec3(0.0)
+    for i in range(el.nn):
+        n, d0, d1, h00, h01, h11 = shape(el, xi, i)
+        t0 += d0 * _row(xe, i)
+        t1 += d1 * _row(xe, i)
+    return t0, t1
+
+
+@wp.func
+def face_nodes(points: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int), f: int,
+               origin: wp.vec3):
+    """The nodes of face f relative to `origin` (nearby values subtract exactly)."""
+    xe = FaceNodes()
+    for i in range(faces.shape[1]):
+        p = points[faces[f, i]] - origin
+        xe.x[i, 0] = p[0]
+        xe.x[i, 1] = p[1]
+        xe.x[i, 2] = p[2]
+    return xe
+
+
+@wp.func
+def _sdiv(a: float, b: float):
+    if b != 0.0:
+        return a / b
+    return 0.0
+
+
+@wp.func
+def closest_point_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Closest point on triangle (a, b, c) to p by Voronoi regions: xi = (v, w) with
+    x = a + v (b - a) + w (c - a), feature, local (same regions and order as the NumPy twin)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec2(0.0, 0.0), VERTEX, 0
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec2(1.0, 0.0), VERTEX, 1
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        return wp.vec2(_sdiv(d1, d1 - d3), 0.0), EDGE, 0
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec2(0.0, 1.0), VERTEX, 2
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        return wp.vec2(0.0, _sdiv(d2, d2 - d6)), EDGE, 2
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = _sdiv(d4 - d3, (d4 - d3) + (d5 - d6))
+        return wp.vec2(1.0 - w, w), EDGE, 1
+    den = va + vb + vc
+    return wp.vec2(_sdiv(vb, den), _sdiv(vc, den)), FACE, -1
+
+
+@wp.func
+def _objective(el: Element, xe: FaceNodes, r: wp.vec3, xi: wp.vec2):
+    return wp.length_sq(r - face_point(el, xe, xi))
+
+
+@wp.func
+def _solve2(m: wp.mat22, v: wp.vec2):
+    det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    return wp.vec2(_sdiv(v[0] * m[1, 1] - m[0, 1] * v[1], det),
+                   _sdiv(m[0, 0] * v[1] - m[1, 0] * v[0], det))
+
+
+@wp.func
+def _cross2(a: wp.vec2, b: wp.vec2):
+    return a[0] * b[1] - a[1] * b[0]
+
+
+@wp.func
+def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, iterations: int,
+                       tol: float):
+    """Active-set Newton on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8): exact
+    Hessian (Gauss-Newton where it is not positive definite); the working set holds at most two
+    constraints (w1, w2 = -1 when empty). Returns xi, feature, local, converged."""
+    xi = xi0
+    w1 = int(-1)
+    w2 = int(-1)
+    for j in range(el.n_cons):
+        if wp.abs(wp.dot(el.cons_a[j], xi) - el.cons_b[j]) <= 1.0e-6:
+            if w1 < 0:
+                w1 = j
+            elif w2 < 0:
+                w2 = j
+    converged = int(0)
+    for it in range(iterations + 1):
+        # derivatives
+        x = wp.vec3(0.0)
+        t0 = wp.vec3(0.0)
+        t1 = wp.vec3(0.0)
+        s00 = wp.vec3(0.0)
+        s01 = wp.vec3(0.0)
+        s11 = wp.vec3(0.0)
+        for i in range(el.nn):
+            n, d0, d1, h00, h01, h11 = shape(el, xi, i)
+            xr = _row(xe, i)
+            x += n * xr
+            t0 += d0 * xr
+            t1 += d1 * xr
+            s00 += h00 * xr
+            s01 += h01 * xr
+            s11 += h11 * xr
+        d = r - x
+        g = wp.vec2(-wp.dot(t0, d), -wp.dot(t1, d))
+        gn = wp.mat22(wp.dot(t0, t0), wp.dot(t0, t1), wp.dot(t0, t1), wp.dot(t1, t1))
+        h = gn - wp.mat22(wp.dot(s00, d), wp.dot(s01, d), wp.dot(s01, d), wp.dot(s11, d))
+        scale = wp.max(gn[0, 0] + gn[1, 1], 1.0e-30)
+        # multipliers of the working set and the KKT residual
+        lam1 = float(0.0)
+        lam2 = float(0.0)
+        proj = g
+        if w1 >= 0 and w2 >= 0:
+            lam = _solve2(wp.mat22(el.cons_a[w1][0], el.cons_a[w2][0],
+                                   el.cons_a[w1][1], el.cons_a[w2][1]), g)
+            lam1 = lam[0]
+            lam2 = lam[1]
+            proj = g - lam1 * el.cons_a[w1] - lam2 * el.cons_a[w2]
+        elif w1 >= 0:
+            a1 = el.cons_a[w1]
+            lam1 = _sdiv(wp.dot(a1, g), wp.dot(a1, a1))
+            proj = g - lam1 * a1
+        kkt = wp.length(proj) / scale
+        neg = float(0.0)
+        jmin = int(-1)
+        if w1 >= 0 and lam1 < neg:
+            neg = lam1
+            jmin = w1
+        if w2 >= 0 and lam2 < neg:
+            neg = lam2
+            jmin = w2
+        kkt = wp.max(kkt, -neg / scale)
+        if kkt <= tol:
+            converged = 1
+            break
+        if it == iterations:
+            break
+        pd = h[0, 0] > 0.0 and (h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]) > 0.0
+        if not pd:
+            h = gn
+        # drop the constraint with the most negative multiplier unless the step would go back
+        # through it
+        v1 = w1
+        v2 = w2
+        if jmin >= 0:
+            if jmin == w1:
+                v1 = w2
+                v2 = -1
+            else:
+                v2 = -1
+        p = wp.vec2(0.0)
+        if v1 < 0:
+            p = -_solve2(h, g)
+        elif v2 < 0:
+            a1 = el.cons_a[v1]
+            t = wp.vec2(-a1[1], a1[0])
+            tht = wp.dot(t, h * t)
+            if tht <= 0.0:
+                tht = wp.dot(t, gn * t)
+            p = -_sdiv(wp.dot(t, g), tht) * t
+        if jmin >= 0 and wp.dot(el.cons_a[jmin], p) >= 0.0:
+            w1 = v1
+            w2 = v2
+        else:
+            p = wp.vec2(0.0)
+            if w1 < 0:
+                p = -_solve2(h, g)
+            elif w2 < 0:
+                a1 = el.cons_a[w1]
+                t = wp.vec2(-a1[1], a1[0])
+                tht = wp.dot(t, h * t)
+                if tht <= 0.0:
+                    tht = wp.dot(t, gn * t)
+                p = -_sdiv(wp.dot(t, g), tht) * t
+        # ratio test
+        amin = float(1.0e30)
+        jb = int(-1)
+        for j in range(el.n_cons):
+            if j != w1 and j != w2:
+                ap = wp.dot(el.cons_a[j], p)
+                if ap < 0.0:
+                    step_j = wp.max(-(wp.dot(el.cons_a[j], xi) - el.cons_b[j]) / ap, 0.0)
+                    if step_j < amin:
+                        amin = step_j
+                        jb = j
+        alpha = wp.min(amin, 1.0)
+        f0 = _objective(el, xe, r, xi)
+        ftol = 16.0 * 1.2e-7 * (f0 + scale)
+        for k in range(4):
+            if _objective(el, xe, r, xi + alpha * p) > f0 + ftol:
+                alpha = 0.5 * alpha
+        new = xi + alpha * p
+        if jb >= 0 and amin <= alpha:
+            ab = el.cons_a[jb]
+            new = new + _sdiv(el.cons_b[jb] - wp.dot(ab, new), wp.dot(ab, ab)) * ab
+            if w1 < 0:
+                w1 = jb
+            elif w2 < 0:
+                w2 = jb
+        xi = new
+    feature = FACE
+    local = int(-1)
+    if w1 >= 0 and w2 >= 0:
+        e1 = el.cons_edge[w1]
+        e2 = el.cons_edge[w2]
+        feature = VERTEX
+        local = e1
+        if (e1 + 1) % el.n_corners == e2:
+            local = e2
+    elif w1 >= 0:
+        feature = EDGE
+        local = el.cons_edge[w1]
+    return xi, feature, local, converged
+
+
+@wp.func
+def start_option_one(el: Element, r: wp.vec3, xe: FaceNodes):
+    """Seed 003 start (I): the closest of the corners and the centre."""
+    best = el.nodes[0]
+    best_d = _objective(el, xe, r, best)
+    for c in range(1, el.n_corners):
+        d = _objective(el, xe, r, el.nodes[c])
+        if d < best_d:
+            best_d = d
+            best = el.nodes[c]
+    if _objective(el, xe, r, el.centre) < best_d:
+        best = el.centre
+    return best

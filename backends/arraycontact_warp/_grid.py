@@ -1,0 +1,69 @@
+"""Stage 2 in Warp: one hashed key per item (cell and world), a radix sort of the keys, and the
+range of every table slot from the sorted keys (adjacent differences). No dense cell array."""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.struct
+class Grid:
+    cell: float
+    table: int  # slots, a power of two
+    sorted_ids: wp.array(dtype=int)  # item ids in key order (first n of 2n: radix scratch)
+    keys: wp.array(dtype=int)
+    begin: wp.array(dtype=int)  # [table]
+    end: wp.array(dtype=int)
+
+
+@wp.func
+def cell_of(x: wp.vec3, cell: float):
+    return wp.vec3i(int(wp.floor(x[0] / cell)), int(wp.floor(x[1] / cell)),
+                    int(wp.floor(x[2] / cell)))
+
+
+@wp.func
+def cell_key(c: wp.vec3i, world: int, table: int):
+    # Large odd multipliers (Teschner et al. 2003) in wrap-around unsigned arithmetic.
+    h = (wp.uint32(c[0]) * wp.uint32(73856093)) ^ (wp.uint32(c[1]) * wp.uint32(19349663))
+    h = h ^ (wp.uint32(c[2]) * wp.uint32(83492791)) ^ (wp.uint32(world) * wp.uint32(2654435761))
+    return int(h & wp.uint32(table - 1))
+
+
+@wp.kernel
+def _keys(x: wp.array(dtype=wp.vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int),
+          grid: Grid):
+    k = wp.tid()
+    i = ids[k]
+    grid.keys[k] = cell_key(cell_of(x[i], grid.cell), world[i], grid.table)
+    grid.sorted_ids[k] = i
+
+
+@wp.kernel
+def _ranges(n: int, grid: Grid):
+    k = wp.tid()
+    key = grid.keys[k]
+    if k == 0 or grid.keys[k - 1] != key:
+        grid.begin[key] = k
+    if k == n - 1 or grid.keys[k + 1] != key:
+        grid.end[key] = k + 1
+
+
+def build(grid: Grid, x, ids, world, n: int, device):
+    """Fill `grid` with items ids[:n] at x[ids] (launches only: capturable)."""
+    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+    wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n)
+    grid.begin.zero_()
+    grid.end.zero_()
+    wp.launch(_ranges, n, inputs=[n, grid], device=device)
+
+
+def new_grid(n: int, cell: float, device) -> Grid:
+    table = max(64, 1 << int(max(2 * n, 1) - 1).bit_length())
+    g = Grid()
+    g.cell, g.table = float(cell), table
+    g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
+    g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
+    g.begin = wp.zeros(table, dtype=int, device=device)
+    g.end = wp.zeros(table, dtype=int, device=device)
+    return g

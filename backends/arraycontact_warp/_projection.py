@@ -1,0 +1,103 @@
+"""Stage 4 in Warp: candidate faces by their balls within min(closest-node distance, d_max)
+through the 3x3x3 stencil of the face grid, and the closest point on each (tri3 in closed form,
+other elements by the active-set method from start I and, on curved faces, also from the
+centre and the mid-edge nodes: the same starts as the NumPy back end). Each slave scans its
+candidates twice: the smallest distance first, then the tie rule (smallest face id within
+`tie` of it), so no pair buffer exists and nothing can overflow."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ._closest_node import _cell_near
+from ._geometry import (Element, FaceNodes, closest_point_face, closest_point_triangle,
+                        face_nodes, face_point, start_option_one)
+from ._grid import Grid, cell_key, cell_of
+
+
+@wp.struct
+class Master:
+    points: wp.array(dtype=wp.vec3)  # local frame
+    faces: wp.array2d(dtype=int)
+    face_world: wp.array(dtype=int)
+    node_world: wp.array(dtype=int)
+    centres: wp.array(dtype=wp.vec3)
+    radii: wp.array(dtype=float)
+    node_normals: wp.array(dtype=wp.vec3)
+    face_edges: wp.array2d(dtype=int)
+    edge_faces: wp.array2d(dtype=int)
+
+
+@wp.func
+def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):
+    """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
+    converged, s - point."""
+    x0 = m.points[m.faces[f, 0]]
+    xe = face_nodes(m.points, m.faces, f, x0)
+    r = s - x0
+    xi = wp.vec2(0.0)
+    feature = int(0)
+    local = int(-1)
+    conv = int(1)
+    if el.linear_tri == 1:
+        xi, feature, local = closest_point_triangle(
+            r, wp.vec3(0.0), wp.vec3(xe.x[1, 0], xe.x[1, 1], xe.x[1, 2]),
+            wp.vec3(xe.x[2, 0], xe.x[2, 1], xe.x[2, 2]))
+    else:
+        xi, feature, local, conv = closest_point_face(el, r, xe, start_option_one(el, r, xe),
+                                                      iterations, tol)
+        if el.nn > el.n_corners:
+            best = wp.length_sq(r - face_point(el, xe, xi))
+            for k in range(el.n_corners + 1):
+                start = el.centre
+                if k > 0:
+                    start = el.nodes[el.n_corners + k - 1]
+                xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
+                d2 = wp.length_sq(r - face_point(el, xe, xi2))
+                if d2 < best:
+                    best = d2
+                    xi = xi2
+                    feature = f2
+                    local = l2
+                    conv = c2
+    return xi, feature, local, conv, r - face_point(el, xe, xi)
+
+
+@wp.func
+def scan_faces(el: Element, m: Master, grid: Grid, s: wp.vec3, world: int, rho: float,
+               r_max: float, limit: float, iterations: int, tol: float):
+    """Over the faces whose ball is within rho of s: the smallest distance, and the smallest
+    face id at distance <= limit with its projection."""
+    c0 = cell_of(s, grid.cell)
+    dmin = float(3.0e38)
+    best = int(-1)
+    b_xi = wp.vec2(0.0)
+    b_feature = int(-1)
+    b_local = int(-1)
+    b_conv = int(0)
+    b_diff = wp.vec3(0.0)
+    for dz in range(-1, 2):
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                c = c0 + wp.vec3i(dx, dy, dz)
+                if _cell_near(s, c, grid.cell, rho + r_max):
+                    key = cell_key(c, world, grid.table)
+                    for k in range(grid.begin[key], grid.end[key]):
+                        f = grid.sorted_ids[k]
+                        if m.face_world[f] == world:
+                            if wp.length(s - m.centres[f]) - m.radii[f] <= rho:
+                                xi, feature, local, conv, diff = project(el, m, s, f,
+                                                                         iterations, tol)
+                                d = wp.length(diff)
+                                dmin = wp.min(dmin, d)
+                                if d <= limit and (best < 0 or f < best):
+                                    best = f
+                                    b_xi = xi
+                                    b_feature = feature
+                                    b_local = local
+                                    b_conv = conv
+                                    b_diff = diff
+    return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff
+
+
+__all__ = ["Master", "project", "scan_faces"]

@@ -1,0 +1,74 @@
+"""Stage 5 in Warp: the signed gap and normal of the chosen closest point from the pseudo-
+normal of its feature (face normal, sum of the normals of the faces sharing the edge, angle-
+weighted node normal), as arraycontact._normals does."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ._geometry import EDGE, FACE, Element, face_tangents, face_nodes
+from ._projection import Master
+
+
+@wp.func
+def _unit(v: wp.vec3):
+    n = wp.length(v)
+    if n > 0.0:
+        return v / n
+    return v
+
+
+@wp.func
+def face_normal(el: Element, m: Master, f: int, xi: wp.vec2):
+    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
+    t0, t1 = face_tangents(el, xe, xi)
+    return _unit(wp.cross(t0, t1))
+
+
+@wp.func
+def pseudo_normal(el: Element, m: Master, f: int, feature: int, local: int, xi: wp.vec2):
+    if feature == FACE:
+        return face_normal(el, m, f, xi)
+    k = el.n_corners
+    if feature == EDGE:
+        ca = local
+        cb = (local + 1) % k
+        xa = el.nodes[ca]
+        xb = el.nodes[cb]
+        t = wp.dot(xi - xa, xb - xa) / wp.dot(xb - xa, xb - xa)
+        na = m.faces[f, ca]
+        nb = m.faces[f, cb]
+        e = m.face_edges[f, local]
+        n = wp.vec3(0.0)
+        for side in range(2):
+            g = m.edge_faces[e, side]
+            if g >= 0:
+                ia = int(0)
+                ib = int(0)
+                for c in range(k):
+                    if m.faces[g, c] == na:
+                        ia = c
+                    if m.faces[g, c] == nb:
+                        ib = c
+                xg = el.nodes[ia] + t * (el.nodes[ib] - el.nodes[ia])
+                n += face_normal(el, m, g, xg)
+        return _unit(n)
+    return m.node_normals[m.faces[f, local]]
+
+
+@wp.func
+def classify(el: Element, m: Master, f: int, feature: int, local: int, xi: wp.vec2,
+             diff: wp.vec3, on_surface: float):
+    """gap, distance, normal (gap < 0: penetration)."""
+    npse = pseudo_normal(el, m, f, feature, local, xi)
+    dist = wp.length(diff)
+    s = float(1.0)
+    if wp.dot(diff, npse) < 0.0:
+        s = -1.0
+    normal = npse
+    if dist > on_surface and feature != FACE:
+        normal = s * diff / dist
+    return s * dist, dist, normal
+
+
+__all__ = ["pseudo_normal", "classify", "face_normal"]

@@ -1,0 +1,111 @@
+"""GPU benchmarks (issues 5 and 6): arraycontact's jitted JAX detection against Warp's own
+BVH closest-point query and hash-grid closest-node search, same points, same run.
+
+    python benchmarks/gpu.py jax --sizes 16 20 --out DIR     # on a CUDA machine with Warp
+
+For each size: two rough surfaces of 2^k nodes each (float32), the JAX plan time, the first
+detect (compilation) and the steady-state detect (median of synchronised repeats, coordinates
+as device arrays, as inside a simulation loop), the error against the brute-force reference on
+a random subset, and the peers: `wp.Mesh` build + `mesh_query_point_no_sign`, refit + query, and
+`wp.HashGrid` build + closest-node query. One JSON record per size goes to DIR/gpu.jsonl.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import arraycontact as ac
+
+sys.path.insert(0, str(Path(__file__).parent))
+from run import errors, make_scene  # noqa: E402
+
+
+def bench_jax(scene, repeats, mode="exact"):
+    import jax
+    import jax.numpy as jnp
+
+    import arraycontact_jax as acj
+
+    t0 = time.perf_counter()
+    p = acj.plan(scene.master, scene.slave, mode=mode, dtype=np.float32)
+    plan_s = time.perf_counter() - t0
+    s = jax.device_put(jnp.asarray(scene.slave, jnp.float32))
+    m = jax.device_put(jnp.asarray(scene.master.points, jnp.float32))
+    t0 = time.perf_counter()
+    c = jax.block_until_ready(acj.detect(p, s, m))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        c = jax.block_until_ready(acj.detect(p, s, m))
+        times.append(time.perf_counter() - t0)
+    c = jax.tree.map(np.asarray, c)
+    return c, dict(plan_s=plan_s, first_call_s=first, steady_s=statistics.median(times),
+                   steady_min_s=min(times), device=str(jax.devices()[0].device_kind),
+                   overflow=bool(c.overflow),
+                   counts={k: float(v) for k, v in c.counts.count.items()},
+                   capacity=dict(c.counts.capacity))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("what", choices=["jax"])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[16, 20])
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--check", type=int, default=256)
+    ap.add_argument("--device", default="cuda", help="Warp device of the peers")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    a = ap.parse_args()
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    from peers_warp import hashgrid_peer, mesh_peers
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for k in a.sizes:
+        scene = make_scene("rough_close", k)
+        c, rec = bench_jax(scene, a.repeats)
+        d_max = c.d_max
+        mesh = mesh_peers(scene.master, scene.slave, d_max, a.repeats, a.device)
+        grid = hashgrid_peer(scene.master, scene.slave, d_max, a.repeats, a.device)
+        ok = c.active & (mesh["face"] >= 0)
+        rec.update(
+            suite="gpu-jax", scene="rough_close", log2_nodes=k, n_slaves=len(scene.slave),
+            n_master_faces=scene.master.n_faces, backend="jax", dtype="float32", mode="exact",
+            active=int(c.active.sum()), errors=errors(c, scene, a.check, "float32"),
+            peers=dict(
+                warp_mesh_build_query=dict(zip(("first_s", "steady_s"), mesh["build_query"])),
+                warp_mesh_refit_query=dict(zip(("first_s", "steady_s"), mesh["refit_query"])),
+                warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"),
+                                                    grid["build_query"])),
+                warp_mesh_active_agreement=float(((mesh["face"] >= 0) == c.active).mean()),
+                warp_mesh_max_distance_diff=float(np.abs(mesh["distance"][ok]
+                                                         - c.distance[ok]).max())
+                if ok.any() else None))
+        pk = rec["peers"]
+        rec["ratio_to_mesh_build_query"] = rec["steady_s"] / pk["warp_mesh_build_query"]["steady_s"]
+        rec["ratio_to_mesh_refit_query"] = rec["steady_s"] / pk["warp_mesh_refit_query"]["steady_s"]
+        with open(out / "gpu.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        print(f"2^{k} {rec['device']}: plan {rec['plan_s']:.2f} s, first {rec['first_call_s']:.2f}"
+              f" s, steady {rec['steady_s'] * 1e3:.2f} ms | wp.Mesh build+query "
+              f"{pk['warp_mesh_build_query']['steady_s'] * 1e3:.2f} ms, refit+query "
+              f"{pk['warp_mesh_refit_query']['steady_s'] * 1e3:.2f} ms, HashGrid node "
+              f"{pk['warp_hashgrid_closest_node']['steady_s'] * 1e3:.2f} ms | ratio to "
+              f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
+              f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
+              f"{rec['overflow']}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
