@@ -1,7 +1,7 @@
 """GPU benchmarks (issues 5 and 6): arraycontact's jitted JAX detection against Warp's own
 BVH closest-point query and hash-grid closest-node search, same points, same run.
 
-    python benchmarks/gpu.py jax --sizes 16 20 --out DIR     # on a CUDA machine with Warp
+    python benchmarks/gpu.py all --sizes 16 20 22 --out DIR    # on a CUDA machine with Warp
 
 For each size: two rough surfaces of 2^k nodes each (float32), the JAX plan time, the first
 detect (compilation) and the steady-state detect (median of synchronised repeats, coordinates
@@ -54,10 +54,60 @@ def bench_jax(scene, repeats, mode="exact"):
                    capacity=dict(c.counts.capacity))
 
 
+def bench_warp(scene, repeats, device="cuda"):
+    import warp as wp
+
+    import arraycontact_warp as acw
+
+    t0 = time.perf_counter()
+    p = acw.plan(scene.master, scene.slave, device=device)
+    plan_s = time.perf_counter() - t0
+    # Device arrays in the plan's frame, as a simulator holds them.
+    xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
+    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
+                  device=device)
+    p.origin = np.zeros(3)  # the arrays above are already local
+
+    def run():
+        acw.detect(p, xs, xm)
+
+    t0 = time.perf_counter()
+    run()
+    wp.synchronize_device(device)
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        run()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    graph_s = None
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedCapture(device=device) as cap:
+            run()
+        gt = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            wp.capture_launch(cap.graph)
+            wp.synchronize_device(device)
+            gt.append(time.perf_counter() - t0)
+        graph_s = statistics.median(gt)
+    o = {k: v.numpy() for k, v in p.out.items()}
+    n = len(scene.slave)
+    c = ac.Contacts(active=o["active"].astype(bool), face=o["face"], xi=o["xi"],
+                    point=o["point"], gap=o["gap"], distance=o["distance"], normal=o["normal"],
+                    feature=o["feature"], master_node=o["master_node"], status=o["status"],
+                    slave_ids=np.arange(n), d_max=p.constants["d_max"])
+    return c, dict(plan_s=plan_s, first_call_s=first, steady_s=statistics.median(times),
+                   steady_min_s=min(times), graph_replay_s=graph_s,
+                   device=wp.get_device(device).name,
+                   overflow=bool(p.overflow.numpy()[0]))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("what", choices=["jax"])
+    ap.add_argument("what", choices=["jax", "warp", "all"])
     ap.add_argument("--sizes", type=int, nargs="*", default=[16, 20])
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--check", type=int, default=256)
@@ -72,39 +122,47 @@ def main():
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
+    backends = ["jax", "warp"] if a.what == "all" else [a.what]
     for k in a.sizes:
         scene = make_scene("rough_close", k)
-        c, rec = bench_jax(scene, a.repeats)
-        d_max = c.d_max
+        d_max = scene.master.longest_edge
         mesh = mesh_peers(scene.master, scene.slave, d_max, a.repeats, a.device)
         grid = hashgrid_peer(scene.master, scene.slave, d_max, a.repeats, a.device)
-        ok = c.active & (mesh["face"] >= 0)
-        rec.update(
-            suite="gpu-jax", scene="rough_close", log2_nodes=k, n_slaves=len(scene.slave),
-            n_master_faces=scene.master.n_faces, backend="jax", dtype="float32", mode="exact",
-            active=int(c.active.sum()), errors=errors(c, scene, a.check, "float32"),
-            peers=dict(
-                warp_mesh_build_query=dict(zip(("first_s", "steady_s"), mesh["build_query"])),
-                warp_mesh_refit_query=dict(zip(("first_s", "steady_s"), mesh["refit_query"])),
-                warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"),
-                                                    grid["build_query"])),
+        peers = dict(
+            warp_mesh_build_query=dict(zip(("first_s", "steady_s"), mesh["build_query"])),
+            warp_mesh_refit_query=dict(zip(("first_s", "steady_s"), mesh["refit_query"])),
+            warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"), grid["build_query"])))
+        for backend in backends:
+            if backend == "jax":
+                c, rec = bench_jax(scene, a.repeats)
+            else:
+                c, rec = bench_warp(scene, a.repeats, a.device)
+            ok = c.active & (mesh["face"] >= 0)
+            rec.update(
+                suite="gpu", scene="rough_close", log2_nodes=k, n_slaves=len(scene.slave),
+                n_master_faces=scene.master.n_faces, backend=backend, dtype="float32",
+                mode="exact", active=int(c.active.sum()),
+                errors=errors(c, scene, a.check, "float32"), peers=peers,
                 warp_mesh_active_agreement=float(((mesh["face"] >= 0) == c.active).mean()),
                 warp_mesh_max_distance_diff=float(np.abs(mesh["distance"][ok]
                                                          - c.distance[ok]).max())
-                if ok.any() else None))
-        pk = rec["peers"]
-        rec["ratio_to_mesh_build_query"] = rec["steady_s"] / pk["warp_mesh_build_query"]["steady_s"]
-        rec["ratio_to_mesh_refit_query"] = rec["steady_s"] / pk["warp_mesh_refit_query"]["steady_s"]
-        with open(out / "gpu.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        print(f"2^{k} {rec['device']}: plan {rec['plan_s']:.2f} s, first {rec['first_call_s']:.2f}"
-              f" s, steady {rec['steady_s'] * 1e3:.2f} ms | wp.Mesh build+query "
-              f"{pk['warp_mesh_build_query']['steady_s'] * 1e3:.2f} ms, refit+query "
-              f"{pk['warp_mesh_refit_query']['steady_s'] * 1e3:.2f} ms, HashGrid node "
-              f"{pk['warp_hashgrid_closest_node']['steady_s'] * 1e3:.2f} ms | ratio to "
-              f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
-              f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
-              f"{rec['overflow']}", flush=True)
+                if ok.any() else None)
+            rec["ratio_to_mesh_build_query"] = (rec["steady_s"]
+                                                / peers["warp_mesh_build_query"]["steady_s"])
+            rec["ratio_to_mesh_refit_query"] = (rec["steady_s"]
+                                                / peers["warp_mesh_refit_query"]["steady_s"])
+            with open(out / "gpu.jsonl", "a") as f:
+                f.write(json.dumps(rec) + "\n")
+            g = rec.get("graph_replay_s")
+            print(f"2^{k} {backend} {rec['device']}: plan {rec['plan_s']:.2f} s, first "
+                  f"{rec['first_call_s']:.2f} s, steady {rec['steady_s'] * 1e3:.3f} ms"
+                  + (f", graph replay {g * 1e3:.3f} ms" if g else "") + " | wp.Mesh build+query "
+                  f"{peers['warp_mesh_build_query']['steady_s'] * 1e3:.3f} ms, refit+query "
+                  f"{peers['warp_mesh_refit_query']['steady_s'] * 1e3:.3f} ms, HashGrid node "
+                  f"{peers['warp_hashgrid_closest_node']['steady_s'] * 1e3:.3f} ms | ratio to "
+                  f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
+                  f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
+                  f"{rec['overflow']}", flush=True)
 
 
 if __name__ == "__main__":

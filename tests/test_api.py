@@ -22,7 +22,7 @@ def test_backend_packages_importable():
     import arraycontact_jax
     import arraycontact_warp
 
-    assert callable(arraycontact_jax.run_one_shot) and arraycontact_warp.AVAILABLE is False
+    assert callable(arraycontact_jax.run_one_shot) and arraycontact_warp.AVAILABLE is True
 
 
 MASTER, SLAVE = random_scene(0, n=4)
@@ -31,7 +31,7 @@ MASTER, SLAVE = random_scene(0, n=4)
 @pytest.mark.parametrize("kwargs, match", [
     (dict(mode="fast"), "mode must be one of"),
     (dict(backend="torch"), "backend must be one of"),
-    (dict(backend="warp"), "not available yet"),
+    (dict(backend="warp", mode="node"), "mode='exact' only"),
     (dict(d_max=0.0), "d_max must be a positive"),
     (dict(d_max=np.nan), "d_max must be a positive"),
     (dict(dtype=np.float16), "dtype must be float32 or float64"),

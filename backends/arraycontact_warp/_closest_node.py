@@ -7,6 +7,9 @@ import warp as wp
 
 from ._grid import Grid, cell_key, cell_of
 
+# Forward only: no adjoint code (halves what the compiler sees).
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.func
 def _cell_near(s: wp.vec3, c: wp.vec3i, cell: float, reach: float):

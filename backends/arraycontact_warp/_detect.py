@@ -31,6 +31,9 @@ from ._geometry import Element, element_data
 from ._projection import Master, scan_faces
 from ._select import classify
 
+# Forward only: no adjoint code (halves what the compiler sees).
+wp.set_module_options({"enable_backward": False})
+
 GROWTH = 1.25
 
 
@@ -52,12 +55,25 @@ def _detect_kernel(el: Element, m: Master, node_grid: _grid.Grid, face_grid: _gr
     node, dn = closest_node(s, w, node_grid, m.points, m.node_world, d_max, tie)
     node_out[i] = node
     rho = wp.min(dn, d_max) + slack
-    dmin, f0, xi0, ft0, l0, c0, df0 = scan_faces(el, m, face_grid, s, w, rho, r_cap, -1.0,
-                                                  iterations, tol)
+    # Two scans: the smallest distance, then the smallest face id within `tie` of it (one call
+    # site in a loop keeps the generated code small).
+    limit = float(-1.0)
+    dmin = float(3.0e38)
+    f = int(-1)
+    xi = wp.vec2(0.0)
+    feature = int(-1)
+    local = int(-1)
+    conv = int(0)
+    diff = wp.vec3(0.0)
+    for scan in range(2):
+        if scan == 0 or dmin <= d_max:
+            d, f, xi, feature, local, conv, diff = scan_faces(el, m, face_grid, s, w, rho,
+                                                              r_cap, limit, iterations, tol)
+            if scan == 0:
+                dmin = d
+                limit = dmin + tie
     nan = wp.nan
     if dmin <= d_max:
-        d, f, xi, feature, local, conv, diff = scan_faces(el, m, face_grid, s, w, rho, r_cap,
-                                                          dmin + tie, iterations, tol)
         gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
         active_out[i] = 1
         face_out[i] = f

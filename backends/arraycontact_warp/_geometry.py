@@ -20,6 +20,9 @@ import warp as wp
 
 from arraycontact._elements import get_element
 
+# Forward only: no adjoint code (halves what the compiler sees).
+wp.set_module_options({"enable_backward": False})
+
 FACE = wp.constant(0)
 EDGE = wp.constant(1)
 VERTEX = wp.constant(2)

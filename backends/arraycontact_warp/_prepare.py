@@ -8,6 +8,9 @@ import warp as wp
 
 from ._geometry import Element, face_tangents, shape
 
+# Forward only: no adjoint code (halves what the compiler sees).
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.kernel
 def localise(x: wp.array(dtype=wp.vec3), origin: wp.vec3, out: wp.array(dtype=wp.vec3)):

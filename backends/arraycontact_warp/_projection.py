@@ -14,6 +14,9 @@ from ._geometry import (Element, FaceNodes, closest_point_face, closest_point_tr
                         face_nodes, face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
 
+# Forward only: no adjoint code (halves what the compiler sees).
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.struct
 class Master:
@@ -44,22 +47,26 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
             r, wp.vec3(0.0), wp.vec3(xe.x[1, 0], xe.x[1, 1], xe.x[1, 2]),
             wp.vec3(xe.x[2, 0], xe.x[2, 1], xe.x[2, 2]))
     else:
-        xi, feature, local, conv = closest_point_face(el, r, xe, start_option_one(el, r, xe),
-                                                      iterations, tol)
+        # Start I, then on curved faces the centre and each mid-edge node; the closest result
+        # wins, the first on a tie. One call site keeps the generated code small.
+        n_starts = 1
         if el.nn > el.n_corners:
-            best = wp.length_sq(r - face_point(el, xe, xi))
-            for k in range(el.n_corners + 1):
-                start = el.centre
-                if k > 0:
-                    start = el.nodes[el.n_corners + k - 1]
-                xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
-                d2 = wp.length_sq(r - face_point(el, xe, xi2))
-                if d2 < best:
-                    best = d2
-                    xi = xi2
-                    feature = f2
-                    local = l2
-                    conv = c2
+            n_starts = el.n_corners + 2
+        best = float(3.0e38)
+        for k in range(n_starts):
+            start = el.centre
+            if k == 0:
+                start = start_option_one(el, r, xe)
+            elif k > 1:
+                start = el.nodes[el.n_corners + k - 2]
+            xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
+            d2 = wp.length_sq(r - face_point(el, xe, xi2))
+            if d2 < best:
+                best = d2
+                xi = xi2
+                feature = f2
+                local = l2
+                conv = c2
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 

@@ -9,6 +9,9 @@ import warp as wp
 from ._geometry import EDGE, FACE, Element, face_tangents, face_nodes
 from ._projection import Master
 
+# Forward only: no adjoint code (halves what the compiler sees).
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.func
 def _unit(v: wp.vec3):

@@ -1,0 +1,174 @@
+"""The Warp back end against the NumPy back end and the reference (Warp's CPU device in CI; the
+same tests capture and replay CUDA graphs where a GPU is present)."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import arraycontact as ac
+import arraycontact_warp as acw
+from arraycontact import scenes
+
+from conftest import assert_matches_reference
+
+wp.config.quiet = True
+DEVICE = "cuda" if wp.is_cuda_available() else "cpu"
+
+SCENES = {
+    "rough_tri3": lambda: scenes.rough_surfaces(2**10, seed=0),
+    "rough_quad4": lambda: scenes.rough_surfaces(2**10, seed=1, element="quad4"),
+    "layers_tri6": lambda: scenes.rough_layers(2**8, quadratic=True, seed=1),
+    "patch_quad8": lambda: scenes.curved_patch(6, element="quad8", n_slaves=600),
+    "patch_quad9": lambda: scenes.curved_patch(6, element="quad9", n_slaves=600),
+    "sphere_quad4": lambda: scenes.sphere_on_plane(2**10),
+}
+
+
+def _same_as_numpy(o, r, L):
+    act = o["active"].astype(bool)
+    assert np.array_equal(act, r.active)
+    for k in ("face", "feature", "master_node", "status"):
+        assert np.array_equal(o[k], getattr(r, k)), k
+    a = r.active
+    for k in ("gap", "distance"):
+        assert np.abs(o[k][a] - getattr(r, k)[a]).max() <= 2e-5 * L, k
+    # Points agree to the float32 KKT tolerance (1e-4 in natural coordinates) times the size.
+    assert np.abs(o["point"][a] - r.point[a]).max() <= 2e-4 * L
+    assert np.isnan(o["gap"][~a]).all() and (o["face"][~a] == -1).all()
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_warp_equals_numpy_float32_and_the_reference(name):
+    s = SCENES[name]()
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    o = acw.detect(p, s.slave, s.master.points)
+    assert int(p.overflow.numpy()[0]) == 0
+    r = ac.detect(s.slave, s.master, dtype=np.float32)
+    _same_as_numpy(o, r, s.master.longest_edge)
+    c = ac.detect(s.slave, s.master, backend="warp")
+    assert_matches_reference(c, s.slave, s.master, dtype=np.float32)
+
+
+def test_warp_far_from_the_origin():
+    s = scenes.rough_surfaces(2**10, seed=2)
+    shift = np.array([1e6, -2e6, 3e6]) * s.master.longest_edge
+    master = s.master.with_points(s.master.points + shift)
+    c = ac.detect(s.slave + shift, master, backend="warp")
+    assert_matches_reference(c, s.slave + shift, master, dtype=np.float32)
+
+
+def test_worlds_equal_running_each_world_alone():
+    a = scenes.rough_surfaces(2**9, seed=3)
+    b = scenes.rough_surfaces(2**9, seed=4, element="tri3")
+    # Two worlds on top of each other: without world ids they would see each other's master.
+    pts = np.concatenate([a.master.points, b.master.points])
+    faces = np.concatenate([a.master.faces, b.master.faces + len(a.master.points)])
+    master = ac.Surface(pts, faces, "tri3")
+    slaves = np.concatenate([a.slave, b.slave])
+    sw = np.r_[np.zeros(len(a.slave), int), np.ones(len(b.slave), int)]
+    mw = np.r_[np.zeros(len(a.master.points), int), np.ones(len(b.master.points), int)]
+    d_max = max(a.master.longest_edge, b.master.longest_edge)
+    p = acw.plan(master, slaves, slave_world=sw, master_world=mw, d_max=d_max, device=DEVICE)
+    o = acw.detect(p, slaves, master.points)
+    for s, off, rows in ((a, 0, sw == 0), (b, len(a.master.faces), sw == 1)):
+        q = acw.plan(s.master, s.slave, d_max=d_max, device=DEVICE)
+        alone = acw.detect(q, s.slave, s.master.points)
+        got_face = o["face"][rows]
+        assert np.array_equal(got_face, np.where(alone["face"] >= 0, alone["face"] + off, -1))
+        assert np.allclose(o["gap"][rows], alone["gap"], equal_nan=True, atol=1e-6)
+    # A master without world ids is shared by every world.
+    p = acw.plan(a.master, np.concatenate([a.slave, a.slave]), slave_world=np.r_[
+        np.zeros(len(a.slave), int), np.full(len(a.slave), 5)], device=DEVICE)
+    o = acw.detect(p, np.concatenate([a.slave, a.slave]), a.master.points)
+    n = len(a.slave)
+    assert np.array_equal(o["face"][:n], o["face"][n:]) and (o["face"] >= 0).any()
+
+
+def test_bad_worlds_and_inputs():
+    s = scenes.rough_surfaces(2**8, seed=0)
+    with pytest.raises(ValueError, match="slave_world"):
+        acw.plan(s.master, s.slave, slave_world=np.zeros(3, int))
+    with pytest.raises(ValueError, match="negative"):
+        acw.plan(s.master, s.slave, slave_world=-np.ones(len(s.slave), int))
+    mw = np.zeros(len(s.master.points), int)
+    mw[s.master.faces[0, 0]] = 1
+    with pytest.raises(ValueError, match="different worlds"):
+        acw.plan(s.master, s.slave, master_world=mw)
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    with pytest.raises(ValueError, match="slave_points"):
+        acw.detect(p, s.slave[:-1], s.master.points)
+    with pytest.raises(ValueError, match="not finite"):
+        acw.detect(p, np.full_like(s.slave, np.nan), s.master.points)
+    with pytest.raises(ValueError, match="float32"):
+        ac.detect(s.slave, s.master, backend="warp", dtype=np.float64)
+
+
+def test_overflow_flag_when_faces_outgrow_the_plan():
+    s = scenes.rough_surfaces(2**9, seed=5)
+    p = acw.plan(s.master, s.slave, device=DEVICE, growth=1.0)
+    acw.detect(p, s.slave, s.master.points)
+    assert int(p.overflow.numpy()[0]) == 0
+    acw.detect(p, s.slave, s.master.points * [1.5, 1.5, 1.0])
+    assert int(p.overflow.numpy()[0]) == 1
+
+
+def test_device_arrays_in_place_and_graph_capture():
+    """wp.array inputs are used in place (outputs are the plan's buffers); on CUDA the whole
+    detection is captured once and replayed on new coordinates written into the same arrays."""
+    s = scenes.rough_surfaces(2**10, seed=6)
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    o = acw.detect(p, xs, xm)
+    assert o["gap"] is p.out["gap"]
+    moved = s.slave + [0.1, -0.05, -0.3]
+    if DEVICE == "cuda":
+        with wp.ScopedCapture(device=DEVICE) as cap:
+            acw.detect(p, xs, xm)
+        xs.assign(moved.astype(np.float32))
+        wp.capture_launch(cap.graph)
+    else:
+        xs.assign(moved.astype(np.float32))
+        acw.detect(p, xs, xm)
+    r = ac.detect(moved, s.master, dtype=np.float32)
+    got = {k: v.numpy() for k, v in p.out.items()}
+    assert np.array_equal(got["face"], r.face)
+    a = r.active
+    assert np.abs(got["gap"][a] - r.gap[a]).max() <= 1e-4 * s.master.longest_edge
+
+
+def test_exported_geometry_in_a_user_kernel():
+    """The README's example: a simulator's own kernel calls the exported @wp.func."""
+
+    @wp.kernel
+    def nearest_on_triangles(q: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.vec3),
+                             xi_out: wp.array(dtype=wp.vec2), feature_out: wp.array(dtype=int)):
+        i = wp.tid()
+        xi, feature, local = acw.closest_point_triangle(q[i], tri[0], tri[1], tri[2])
+        xi_out[i] = xi
+        feature_out[i] = feature
+
+    rng = np.random.default_rng(0)
+    q = rng.uniform(-1, 2, (200, 3)).astype(np.float32)
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    xi = wp.zeros(200, dtype=wp.vec2, device=DEVICE)
+    feat = wp.zeros(200, dtype=int, device=DEVICE)
+    wp.launch(nearest_on_triangles, 200, inputs=[wp.array(q, dtype=wp.vec3, device=DEVICE),
+                                                  wp.array(tri, dtype=wp.vec3, device=DEVICE)],
+              outputs=[xi, feat], device=DEVICE)
+    master = ac.Surface(tri, [[0, 1, 2]], "tri3")
+    ref = ac.reference.closest_points(q.astype(float), master)
+    assert np.allclose(xi.numpy(), ref.xi, atol=1e-6)
+    assert np.array_equal(feat.numpy(), ref.feature)
+
+
+def test_jax_arrays_in_and_out():
+    jnp = pytest.importorskip("jax.numpy")
+    s = scenes.rough_surfaces(2**9, seed=7)
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    xs, xm = (jnp.asarray((v - p.origin).astype(np.float32)) for v in (s.slave, s.master.points))
+    p.origin = np.zeros(3)  # the arrays above are in the plan's frame already
+    o = acw.detect(p, xs, xm)
+    assert type(o["gap"]).__module__.startswith("jax")
+    r = ac.detect(s.slave, s.master, dtype=np.float32)
+    assert np.array_equal(np.asarray(o["face"]), r.face)
