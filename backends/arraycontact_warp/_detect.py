@@ -257,11 +257,9 @@ def detect(p: Plan, slave_points, master_points):
     _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
     _grid.build(p.face_grid, m.centres, p.face_ids, m.face_world, p.master.n_faces, dev)
     o = p.out
-    # The slaves' origin differs from the master's only when they came in different kinds.
-    shift = wp.vec3(*(np.array(s_origin) - np.array(m_origin)))
     wp.launch(_detect_kernel, p.n_slaves,
               inputs=[p.element, m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
-                      shift, c["d_max"], c["tie"], c["slack"], c["r_cap"], c["iterations"],
+                      s_origin, c["d_max"], c["tie"], c["slack"], c["r_cap"], c["iterations"],
                       c["tol"]],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
     kind = _kind(slave_points)
@@ -270,14 +268,9 @@ def detect(p: Plan, slave_points, master_points):
     if kind == "jax":
         return {k: wp.to_jax(v) for k, v in o.items()}
     res = {k: v.numpy() for k, v in o.items()}
-    res["point"] = res["point"].astype(np.float64) + m_origin_np(p, m_origin)
+    # NumPy slaves were staged in the plan's frame: back to the global frame in float64.
+    res["point"] = res["point"].astype(np.float64) + p.origin
     return res
-
-
-def m_origin_np(p, m_origin):
-    # NumPy results come back in the global frame (the kernels' frame is the plan's origin
-    # when the master came in as NumPy).
-    return p.origin if tuple(m_origin) == (0.0, 0.0, 0.0) else np.zeros(3)
 
 
 def run_one_shot(slave_x, master, prep, st, dtype):
