@@ -31,8 +31,9 @@ from ._geometry import Element, element_data
 from ._projection import Master, scan_faces
 from ._select import classify
 
-# Forward only: no adjoint code (halves what the compiler sees).
-wp.set_module_options({"enable_backward": False})
+# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
+# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
 

@@ -14,8 +14,9 @@ from ._geometry import (Element, FaceNodes, closest_point_face, closest_point_tr
                         face_nodes, face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
 
-# Forward only: no adjoint code (halves what the compiler sees).
-wp.set_module_options({"enable_backward": False})
+# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
+# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
 @wp.struct
