@@ -73,6 +73,7 @@ def _detect_kernel(el: Element, m: Master, node_grid: _grid.Grid, face_grid: _gr
             if scan == 0:
                 dmin = d
                 limit = dmin + tie
+                rho = wp.min(rho, limit + slack)  # the second scan needs only faces this near
     nan = wp.nan
     if dmin <= d_max:
         gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
