@@ -16,7 +16,7 @@ convergence flag.
 
 from __future__ import annotations
 
-from ._elements import shape_functions
+from ._elements import EDGE, VERTEX, shape_functions
 from ._geometry import (closest_point_face, closest_point_triangle, start_option_one,
                         start_option_two)
 from ._grid import stencil_counts
@@ -51,6 +51,9 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
         converged = xp.ones(r.shape[0], dtype=bool)
     else:
         xi, feature, local, converged = _best_of_starts(xp, element, r, xe, iterations, tol)
+        if element.linear:
+            xi, feature, local, converged = _straight_edges(xp, element, r, xe, xi, feature,
+                                                            local, converged)
     point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
     diff = r - point  # slave minus closest point, exact of the frame's offset
     return xi, point + x0, diff, feature, local, converged
@@ -80,3 +83,34 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
     best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)  # the first start on a tie
     return tuple(v[best] for v in res[:4])
+
+
+def _straight_edges(xp, element, r, xe, xi, feature, local, converged):
+    """quad4: the closest point on each (straight) edge in closed form; an edge point at most
+    as far as Newton's answer replaces it. On a degenerate face (a collapsed edge, coincident
+    nodes) Newton can stop at a stationary corner of the parametrisation; the edges cannot."""
+    k = element.n_corners
+    corners = xp.asarray(element.corners, dtype=xe.dtype)
+    x = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
+    best_d = xp.sum((r - x) ** 2, -1)
+    edge_d = None
+    for e in range(k):
+        a, b = e, (e + 1) % k
+        xa, ab = xe[:, a], xe[:, b] - xe[:, a]
+        ll = xp.sum(ab * ab, -1)
+        t = xp.clip(xp.sum((r - xa) * ab, -1) / xp.where(ll > 0, ll, 1), 0, 1)
+        t = xp.where(ll > 0, t, 0 * t)
+        d = xp.sum((r - xa - t[:, None] * ab) ** 2, -1)
+        f = xp.where(t <= 0, VERTEX, xp.where(t >= 1, VERTEX, EDGE)).astype(feature.dtype)
+        loc = xp.where(t <= 0, a, xp.where(t >= 1, b, e)).astype(local.dtype)
+        x_e = corners[a] + t[:, None] * (corners[b] - corners[a])
+        if edge_d is None:
+            edge_d, e_xi, e_f, e_loc = d, x_e, f, loc
+            continue
+        take = d < edge_d  # the first edge on a tie
+        edge_d = xp.where(take, d, edge_d)
+        e_xi = xp.where(take[:, None], x_e, e_xi)
+        e_f, e_loc = xp.where(take, f, e_f), xp.where(take, loc, e_loc)
+    use = edge_d <= best_d
+    return (xp.where(use[:, None], e_xi, xi), xp.where(use, e_f, feature),
+            xp.where(use, e_loc, local), converged | use)

@@ -47,7 +47,9 @@ def test_bad_options(kwargs, match):
     (np.zeros((4, 2)), r"slave must have shape \[n, 3\]"),
     (np.array([[0, 0, 0], [1, np.nan, 0]]), "slave row 1 is not finite"),
     (np.array([[0, 0, "a"]]), "real numeric"),
+    (np.array([[0, 0, np.inf]]), "slave row 0 is not finite"),
 ])
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
 def test_bad_slaves(backend, slave, match):
     with pytest.raises(ValueError, match=match):
         ac.detect(slave, MASTER, backend=backend)
@@ -58,6 +60,7 @@ def test_bad_master():
         ac.detect(SLAVE, MASTER.points)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
 def test_empty_sets(backend):
     c = ac.detect(np.zeros((0, 3)), MASTER, backend=backend)
     assert len(c) == 0 and c.pairs().shape == (0, 2)

@@ -16,11 +16,11 @@ DEVICE = "cuda" if wp.is_cuda_available() else "cpu"
 
 SCENES = {
     "rough_tri3": lambda: scenes.rough_surfaces(2**10, seed=0),
-    "rough_quad4": lambda: scenes.rough_surfaces(2**10, seed=1, element="quad4"),
-    "layers_tri6": lambda: scenes.rough_layers(2**8, quadratic=True, seed=1),
-    "patch_quad8": lambda: scenes.curved_patch(6, element="quad8", n_slaves=600),
-    "patch_quad9": lambda: scenes.curved_patch(6, element="quad9", n_slaves=600),
-    "sphere_quad4": lambda: scenes.sphere_on_plane(2**10),
+    "rough_quad4": lambda: scenes.rough_surfaces(2**9, seed=1, element="quad4"),
+    "layers_tri6": lambda: scenes.rough_layers(2**7, quadratic=True, seed=1),
+    "patch_quad8": lambda: scenes.curved_patch(4, element="quad8", n_slaves=300),
+    "patch_quad9": lambda: scenes.curved_patch(4, element="quad9", n_slaves=300),
+    "sphere_quad4": lambda: scenes.sphere_on_plane(2**9),
 }
 
 
@@ -45,8 +45,9 @@ def test_warp_equals_numpy_float32_and_the_reference(name):
     assert int(p.overflow.numpy()[0]) == 0
     r = ac.detect(s.slave, s.master, dtype=np.float32)
     _same_as_numpy(o, r, s.master.longest_edge)
-    c = ac.detect(s.slave, s.master, backend="warp")
-    assert_matches_reference(c, s.slave, s.master, dtype=np.float32)
+    if name in ("rough_tri3", "layers_tri6"):  # the others: equal to NumPy, tested there
+        c = ac.detect(s.slave, s.master, backend="warp")
+        assert_matches_reference(c, s.slave, s.master, dtype=np.float32)
 
 
 def test_warp_far_from_the_origin():

@@ -10,7 +10,7 @@ from __future__ import annotations
 import warp as wp
 
 from ._closest_node import _cell_near
-from ._geometry import (Element, FaceNodes, closest_point_face, closest_point_triangle,
+from ._geometry import (EDGE, VERTEX, Element, FaceNodes, closest_point_face, closest_point_triangle,
                         face_nodes, face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
 
@@ -30,6 +30,41 @@ class Master:
     node_normals: wp.array(dtype=wp.vec3)
     face_edges: wp.array2d(dtype=int)
     edge_faces: wp.array2d(dtype=int)
+
+
+@wp.func
+def straight_edges(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, feature: int, local: int,
+                   conv: int):
+    """quad4: the closest point on each straight edge in closed form replaces Newton's answer
+    when at most as far (a degenerate face can stop Newton at a stationary corner)."""
+    best = wp.length_sq(r - face_point(el, xe, xi))
+    k = el.n_corners
+    e_d = float(3.0e38)
+    e_xi = xi
+    e_f = feature
+    e_l = local
+    for e in range(k):
+        b = (e + 1) % k
+        xa = wp.vec3(xe.x[e, 0], xe.x[e, 1], xe.x[e, 2])
+        ab = wp.vec3(xe.x[b, 0], xe.x[b, 1], xe.x[b, 2]) - xa
+        ll = wp.dot(ab, ab)
+        t = float(0.0)
+        if ll > 0.0:
+            t = wp.clamp(wp.dot(r - xa, ab) / ll, 0.0, 1.0)
+        d = wp.length_sq(r - xa - t * ab)
+        if d < e_d:
+            e_d = d
+            e_xi = el.nodes[e] + t * (el.nodes[b] - el.nodes[e])
+            e_f = EDGE
+            e_l = e
+            if t <= 0.0:
+                e_f = VERTEX
+            elif t >= 1.0:
+                e_f = VERTEX
+                e_l = b
+    if e_d <= best:
+        return e_xi, e_f, e_l, 1
+    return xi, feature, local, conv
 
 
 @wp.func
@@ -68,6 +103,8 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
                 feature = f2
                 local = l2
                 conv = c2
+        if el.nn == el.n_corners:
+            xi, feature, local, conv = straight_edges(el, r, xe, xi, feature, local, conv)
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
