@@ -22,26 +22,39 @@ def _cell_near(s: wp.vec3, c: wp.vec3i, cell: float, reach: float):
 
 
 @wp.func
+def stencil_offset(q: int):
+    """The q-th of the 27 stencil cells, the slave's own cell first: searching it first makes
+    the running minimum small early, which prunes the other cells and candidates."""
+    j = q - 1
+    if q == 0:
+        j = 13
+    elif q <= 13:
+        j = q - 1
+    else:
+        j = q
+    return wp.vec3i(j % 3 - 1, (j // 3) % 3 - 1, j // 9 - 1)
+
+
+@wp.func
 def _scan(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
           node_world: wp.array(dtype=int), d_max: float, limit: float):
     """Smallest distance within d_max, and the smallest node id at distance <= limit."""
     c0 = cell_of(s, grid.cell)
     dmin = float(3.0e38)
     best = int(-1)
-    for dz in range(-1, 2):
-        for dy in range(-1, 2):
-            for dx in range(-1, 2):
-                c = c0 + wp.vec3i(dx, dy, dz)
-                if _cell_near(s, c, grid.cell, d_max):
-                    key = cell_key(c, world, grid.table)
-                    for k in range(grid.begin[key], grid.end[key]):
-                        j = grid.sorted_ids[k]
-                        if node_world[j] == world:
-                            d = wp.length(nodes[j] - s)
-                            if d <= d_max:
-                                dmin = wp.min(dmin, d)
-                                if d <= limit and (best < 0 or j < best):
-                                    best = j
+    for q in range(27):
+        c = c0 + stencil_offset(q)
+        # Cells beyond the running minimum (or the tie limit) cannot change the answer.
+        if _cell_near(s, c, grid.cell, wp.min(d_max, wp.max(dmin, limit))):
+            key = cell_key(c, world, grid.table)
+            for k in range(grid.begin[key], grid.end[key]):
+                j = grid.sorted_ids[k]
+                if node_world[j] == world:
+                    d = wp.length(nodes[j] - s)
+                    if d <= d_max:
+                        dmin = wp.min(dmin, d)
+                        if d <= limit and (best < 0 or j < best):
+                            best = j
     return dmin, best
 
 

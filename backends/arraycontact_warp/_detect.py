@@ -69,7 +69,8 @@ def _detect_kernel(el: Element, m: Master, node_grid: _grid.Grid, face_grid: _gr
     for scan in range(2):
         if scan == 0 or dmin <= d_max:
             d, f, xi, feature, local, conv, diff = scan_faces(el, m, face_grid, s, w, rho,
-                                                              r_cap, limit, iterations, tol)
+                                                              r_cap, limit, slack, iterations,
+                                                              tol)
             if scan == 0:
                 dmin = d
                 limit = dmin + tie

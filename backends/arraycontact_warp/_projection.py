@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._closest_node import _cell_near
+from ._closest_node import _cell_near, stencil_offset
 from ._geometry import (EDGE, VERTEX, Element, FaceNodes, closest_point_face, closest_point_triangle,
                         face_nodes, face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
@@ -110,9 +110,10 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
 
 @wp.func
 def scan_faces(el: Element, m: Master, grid: Grid, s: wp.vec3, world: int, rho: float,
-               r_max: float, limit: float, iterations: int, tol: float):
+               r_max: float, limit: float, slack: float, iterations: int, tol: float):
     """Over the faces whose ball is within rho of s: the smallest distance, and the smallest
-    face id at distance <= limit with its projection."""
+    face id at distance <= limit with its projection. The reach shrinks to the running minimum
+    (plus rounding slack) as closer faces are found: no farther face can hold the answer."""
     c0 = cell_of(s, grid.cell)
     dmin = float(3.0e38)
     best = int(-1)
@@ -121,27 +122,26 @@ def scan_faces(el: Element, m: Master, grid: Grid, s: wp.vec3, world: int, rho: 
     b_local = int(-1)
     b_conv = int(0)
     b_diff = wp.vec3(0.0)
-    for dz in range(-1, 2):
-        for dy in range(-1, 2):
-            for dx in range(-1, 2):
-                c = c0 + wp.vec3i(dx, dy, dz)
-                if _cell_near(s, c, grid.cell, rho + r_max):
-                    key = cell_key(c, world, grid.table)
-                    for k in range(grid.begin[key], grid.end[key]):
-                        f = grid.sorted_ids[k]
-                        if m.face_world[f] == world:
-                            if wp.length(s - m.centres[f]) - m.radii[f] <= rho:
-                                xi, feature, local, conv, diff = project(el, m, s, f,
-                                                                         iterations, tol)
-                                d = wp.length(diff)
-                                dmin = wp.min(dmin, d)
-                                if d <= limit and (best < 0 or f < best):
-                                    best = f
-                                    b_xi = xi
-                                    b_feature = feature
-                                    b_local = local
-                                    b_conv = conv
-                                    b_diff = diff
+    reach = rho
+    for q in range(27):
+        c = c0 + stencil_offset(q)
+        if _cell_near(s, c, grid.cell, reach + r_max):
+            key = cell_key(c, world, grid.table)
+            for k in range(grid.begin[key], grid.end[key]):
+                f = grid.sorted_ids[k]
+                if m.face_world[f] == world:
+                    if wp.length(s - m.centres[f]) - m.radii[f] <= reach:
+                        xi, feature, local, conv, diff = project(el, m, s, f, iterations, tol)
+                        d = wp.length(diff)
+                        dmin = wp.min(dmin, d)
+                        reach = wp.min(reach, wp.max(dmin, limit) + slack)
+                        if d <= limit and (best < 0 or f < best):
+                            best = f
+                            b_xi = xi
+                            b_feature = feature
+                            b_local = local
+                            b_conv = conv
+                            b_diff = diff
     return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff
 
 
