@@ -82,7 +82,16 @@ def bench_warp(scene, repeats, device="cuda"):
         wp.synchronize_device(device)
         times.append(time.perf_counter() - t0)
     graph_s = None
+    kernels = None
     if wp.get_device(device).is_cuda:
+        # Time per kernel / copy / memset of one detection (CUDA activity timing).
+        with wp.ScopedTimer("detect", cuda_filter=wp.TIMING_ALL, synchronize=True,
+                            print=False) as timer:
+            run()
+        kernels = {}
+        for r in timer.timing_results:
+            kernels[r.name] = kernels.get(r.name, 0.0) + r.elapsed / 1e3
+
         with wp.ScopedCapture(device=device) as cap:
             run()
         gt = []
@@ -99,7 +108,7 @@ def bench_warp(scene, repeats, device="cuda"):
                     feature=o["feature"], master_node=o["master_node"], status=o["status"],
                     slave_ids=np.arange(n), d_max=p.constants["d_max"])
     return c, dict(plan_s=plan_s, first_call_s=first, steady_s=statistics.median(times),
-                   steady_min_s=min(times), graph_replay_s=graph_s,
+                   steady_min_s=min(times), graph_replay_s=graph_s, kernels_s=kernels,
                    device=wp.get_device(device).name,
                    overflow=bool(p.overflow.numpy()[0]))
 
@@ -163,6 +172,10 @@ def main():
                   f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
                   f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
                   f"{rec['overflow']}", flush=True)
+            if rec.get("kernels_s"):
+                print("   per kernel ms: " + ", ".join(
+                    f"{n[:40]} {t * 1e3:.3f}" for n, t in sorted(rec["kernels_s"].items(),
+                                                                key=lambda kv: -kv[1])))
 
 
 if __name__ == "__main__":

@@ -72,39 +72,41 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
     """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
     converged, s - point."""
     x0 = m.points[m.faces[f, 0]]
-    xe = face_nodes(m.points, m.faces, f, x0)
     r = s - x0
+    if el.linear_tri == 1:
+        # Straight from the node array: no per-face node block (which lives in slow local
+        # memory) on the path most scenes take.
+        b = m.points[m.faces[f, 1]] - x0
+        c = m.points[m.faces[f, 2]] - x0
+        xi, feature, local = closest_point_triangle(r, wp.vec3(0.0), b, c)
+        return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
+    xe = face_nodes(m.points, m.faces, f, x0)
     xi = wp.vec2(0.0)
     feature = int(0)
     local = int(-1)
     conv = int(1)
-    if el.linear_tri == 1:
-        xi, feature, local = closest_point_triangle(
-            r, wp.vec3(0.0), wp.vec3(xe.x[1, 0], xe.x[1, 1], xe.x[1, 2]),
-            wp.vec3(xe.x[2, 0], xe.x[2, 1], xe.x[2, 2]))
-    else:
-        # Start I, then on curved faces the centre and each mid-edge node; the closest result
-        # wins, the first on a tie. One call site keeps the generated code small.
-        n_starts = 1
-        if el.nn > el.n_corners:
-            n_starts = el.n_corners + 2
-        best = float(3.0e38)
-        for k in range(n_starts):
-            start = el.centre
-            if k == 0:
-                start = start_option_one(el, r, xe)
-            elif k > 1:
-                start = el.nodes[el.n_corners + k - 2]
-            xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
-            d2 = wp.length_sq(r - face_point(el, xe, xi2))
-            if d2 < best:
-                best = d2
-                xi = xi2
-                feature = f2
-                local = l2
-                conv = c2
-        if el.nn == el.n_corners:
-            xi, feature, local, conv = straight_edges(el, r, xe, xi, feature, local, conv)
+    # Start I, then on curved faces the centre and each mid-edge node; the closest result
+    # wins, the first on a tie. One call site keeps the generated code small.
+    n_starts = 1
+    if el.nn > el.n_corners:
+        n_starts = el.n_corners + 2
+    best = float(3.0e38)
+    for k in range(n_starts):
+        start = el.centre
+        if k == 0:
+            start = start_option_one(el, r, xe)
+        elif k > 1:
+            start = el.nodes[el.n_corners + k - 2]
+        xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
+        d2 = wp.length_sq(r - face_point(el, xe, xi2))
+        if d2 < best:
+            best = d2
+            xi = xi2
+            feature = f2
+            local = l2
+            conv = c2
+    if el.nn == el.n_corners:
+        xi, feature, local, conv = straight_edges(el, r, xe, xi, feature, local, conv)
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
