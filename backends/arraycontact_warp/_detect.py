@@ -15,6 +15,8 @@ worlds. Computation is float32 in a local frame at the plan's box corner.
 
 from __future__ import annotations
 
+from typing import Any
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +29,7 @@ from arraycontact._surface import Surface, validate_points
 
 from . import _grid, _prepare
 from ._closest_node import closest_node
-from ._geometry import Element, element_data
+from ._geometry import Element, Triangles, element_data, triangle_data
 from ._projection import Master, scan_faces
 from ._select import classify
 
@@ -39,7 +41,7 @@ GROWTH = 1.25
 
 
 @wp.kernel
-def _detect_kernel(el: Element, m: Master, node_grid: _grid.Grid, face_grid: _grid.Grid,
+def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.Grid,
                    slaves: wp.array(dtype=wp.vec3), slave_world: wp.array(dtype=int),
                    shared: int, origin: wp.vec3, d_max: float, tie: float, slack: float,
                    r_cap: float, iterations: int, tol: float,
@@ -115,6 +117,7 @@ class Plan:
     master: Surface
     n_slaves: int
     element: Element
+    kernel_element: object  # Triangles for tri3 (a specialised kernel), else the Element
     m: Master
     node_grid: _grid.Grid
     face_grid: _grid.Grid
@@ -199,7 +202,9 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
-    return Plan(device=device, master=master, n_slaves=len(x), element=element_data(e.name, device),
+    element = element_data(e.name, device)
+    return Plan(device=device, master=master, n_slaves=len(x), element=element,
+                kernel_element=triangle_data(device) if e.name == "tri3" else element,
                 m=m, node_grid=_grid.new_grid(len(master.nodes), CELL_MARGIN * d_max, device),
                 face_grid=_grid.new_grid(master.n_faces, CELL_MARGIN * (d_max + r_cap), device),
                 node_ids=arr(master.nodes.astype(np.int32), int),
@@ -261,7 +266,7 @@ def detect(p: Plan, slave_points, master_points):
     _grid.build(p.face_grid, m.centres, p.face_ids, m.face_world, p.master.n_faces, dev)
     o = p.out
     wp.launch(_detect_kernel, p.n_slaves,
-              inputs=[p.element, m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
+              inputs=[p.kernel_element, m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
                       s_origin, c["d_max"], c["tie"], c["slack"], c["r_cap"], c["iterations"],
                       c["tol"]],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)

@@ -35,7 +35,6 @@ class Element:
     n_corners: int
     n_mono: int
     n_cons: int
-    linear_tri: int  # tri3: closed form
     coef: wp.array2d(dtype=float)  # N_i = sum_j coef[i, j] xi^px[j] eta^py[j]
     px: wp.array(dtype=int)
     py: wp.array(dtype=int)
@@ -47,8 +46,24 @@ class Element:
 
 
 @wp.struct
+class Triangles:
+    """tri3 only: the kernels specialise on this type (no curved-face solver in the way)."""
+
+    n_corners: int
+    nodes: wp.array(dtype=wp.vec2)
+
+
+@wp.struct
 class FaceNodes:
     x: wp.types.matrix(shape=(9, 3), dtype=float)  # node coordinates, row per node
+
+
+def triangle_data(device=None) -> Triangles:
+    t = Triangles()
+    t.n_corners = 3
+    t.nodes = wp.array(np.array([[0, 0], [1, 0], [0, 1]], np.float32), dtype=wp.vec2,
+                       device=device)
+    return t
 
 
 def element_data(name, device=None) -> Element:
@@ -56,7 +71,6 @@ def element_data(name, device=None) -> Element:
     el = Element()
     el.nn, el.n_corners = e.nodes_per_face, e.n_corners
     el.n_mono, el.n_cons = len(e.monomials), len(e.constraints_b)
-    el.linear_tri = int(e.name == "tri3")
     el.coef = wp.array(e.coefficients.astype(np.float32), dtype=float, device=device)
     el.px = wp.array([p for p, _ in e.monomials], dtype=int, device=device)
     el.py = wp.array([q for _, q in e.monomials], dtype=int, device=device)

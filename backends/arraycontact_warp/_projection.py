@@ -7,10 +7,12 @@ candidates twice: the smallest distance first, then the tie rule (smallest face 
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from ._closest_node import _cell_near, stencil_offset
-from ._geometry import (EDGE, VERTEX, Element, FaceNodes, closest_point_face, closest_point_triangle,
+from ._geometry import (EDGE, VERTEX, Element, FaceNodes, Triangles, closest_point_face, closest_point_triangle,
                         face_nodes, face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
 
@@ -68,18 +70,23 @@ def straight_edges(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, feature:
 
 
 @wp.func
+def project(el: Triangles, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):
+    """tri3: Voronoi regions, the nodes straight from the node array (a per-face node block
+    would live in slow local memory)."""
+    x0 = m.points[m.faces[f, 0]]
+    r = s - x0
+    b = m.points[m.faces[f, 1]] - x0
+    c = m.points[m.faces[f, 2]] - x0
+    xi, feature, local = closest_point_triangle(r, wp.vec3(0.0), b, c)
+    return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
+
+
+@wp.func
 def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):
     """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
     converged, s - point."""
     x0 = m.points[m.faces[f, 0]]
     r = s - x0
-    if el.linear_tri == 1:
-        # Straight from the node array: no per-face node block (which lives in slow local
-        # memory) on the path most scenes take.
-        b = m.points[m.faces[f, 1]] - x0
-        c = m.points[m.faces[f, 2]] - x0
-        xi, feature, local = closest_point_triangle(r, wp.vec3(0.0), b, c)
-        return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
     xe = face_nodes(m.points, m.faces, f, x0)
     xi = wp.vec2(0.0)
     feature = int(0)
@@ -111,7 +118,7 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
 
 
 @wp.func
-def scan_faces(el: Element, m: Master, grid: Grid, s: wp.vec3, world: int, rho: float,
+def scan_faces(el: Any, m: Master, grid: Grid, s: wp.vec3, world: int, rho: float,
                r_max: float, limit: float, slack: float, iterations: int, tol: float):
     """Over the faces whose ball is within rho of s: the smallest distance, and the smallest
     face id at distance <= limit with its projection. The reach shrinks to the running minimum

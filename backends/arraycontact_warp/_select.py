@@ -4,9 +4,11 @@ weighted node normal), as arraycontact._normals does."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
-from ._geometry import EDGE, FACE, Element, face_tangents, face_nodes
+from ._geometry import EDGE, FACE, Element, Triangles, face_nodes, face_tangents
 from ._projection import Master
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -30,7 +32,13 @@ def face_normal(el: Element, m: Master, f: int, xi: wp.vec2):
 
 
 @wp.func
-def pseudo_normal(el: Element, m: Master, f: int, feature: int, local: int, xi: wp.vec2):
+def face_normal(el: Triangles, m: Master, f: int, xi: wp.vec2):
+    a = m.points[m.faces[f, 0]]
+    return _unit(wp.cross(m.points[m.faces[f, 1]] - a, m.points[m.faces[f, 2]] - a))
+
+
+@wp.func
+def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: wp.vec2):
     if feature == FACE:
         return face_normal(el, m, f, xi)
     k = el.n_corners
@@ -61,7 +69,7 @@ def pseudo_normal(el: Element, m: Master, f: int, feature: int, local: int, xi: 
 
 
 @wp.func
-def classify(el: Element, m: Master, f: int, feature: int, local: int, xi: wp.vec2,
+def classify(el: Any, m: Master, f: int, feature: int, local: int, xi: wp.vec2,
              diff: wp.vec3, on_surface: float):
     """gap, distance, normal (gap < 0: penetration)."""
     npse = pseudo_normal(el, m, f, feature, local, xi)
