@@ -1,7 +1,10 @@
 """The benchmark runner: scenes as data, one record per (scene, size, back end, dtype, mode).
 
     python benchmarks/run.py cpu            # issue 3: 2^16 and 2^20 nodes per surface, CPU
-    python benchmarks/run.py cpu --sizes 12 14 --quick
+    python benchmarks/run.py pareto         # issue 7: time against error, every variant
+    python benchmarks/run.py scaling        # issue 7: 2^12 .. 2^20, time per slave, memory
+    python benchmarks/run.py peers          # issue 7: Open3D, libigl, Warp BVH (CPU), cKDTree
+    python benchmarks/report.py             # RESULTS tables and plots from results/*.jsonl
 
 Every record holds the scene, sizes, back end, device, dtype, mode, the first call (compile
 and caches) apart from the steady state (median of repeats), the time per stage where the back
@@ -17,6 +20,7 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -33,10 +37,21 @@ SCENES = {
     "tyre_road": ("cylinder_on_road", dict(radius=40.0, depth=0.5)),
 }
 
+_EVERY = [(b, d, m) for b in ("numpy", "jax", "warp") for d in ("float64", "float32")
+          for m in ("exact", "node") if not (b == "warp" and (d == "float64" or m == "node"))]
 SUITES = {
     "cpu": dict(scenes=["rough_close"], sizes=[16, 20],
                 runs=[("numpy", "float64", "exact"), ("numpy", "float64", "node"),
                       ("numpy", "float32", "exact"), ("jax", "float32", "exact")]),
+    # Every back end x dtype x mode x d_max factor (times the default d_max).
+    "pareto": dict(scenes=["rough_close", "tyre_road"], sizes=[14], runs=_EVERY,
+                   d_max_factors=[0.5, 1.0, 2.0]),
+    "scaling": dict(scenes=["rough_close"], sizes=[12, 14, 16, 18, 20],
+                    runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
+                    memory=True),
+    "peers": dict(scenes=["rough_close", "tyre_road"], sizes=[16],
+                  runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
+                  peers=True),
 }
 
 
@@ -96,6 +111,70 @@ def kdtree_peer(scene, d_max, repeats):
     return dict(peer="scipy cKDTree closest node (build + query)", first_s=first, steady_s=steady)
 
 
+def peer_records(scene, d_max, repeats, n_check):
+    """Closest-point peers on the same points: Open3D, libigl, Warp's BVH on the CPU device.
+    Each is timed (first call apart) and checked against the reference on the same subset."""
+    tri = scene.master.faces if scene.master.element.name == "tri3" else np.concatenate(
+        [scene.master.faces[:, [0, 1, 2]], scene.master.faces[:, [0, 2, 3]]])
+    pts = scene.master.points
+    q = scene.slave
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(q), min(n_check, len(q)), replace=False)
+    ref = ac.reference.closest_points(q[idx], scene.master)
+    out = {}
+
+    def record(name, fn):
+        try:
+            dist, first, steady = timed(fn, repeats)
+        except ImportError as e:
+            out[name] = dict(error=f"not installed: {e}")
+            return
+        near = ref.distance <= d_max
+        err = float(np.abs(dist[idx][near] - ref.distance[near]).max() / scene.master.longest_edge)
+        out[name] = dict(first_s=first, steady_s=steady, max_distance_error_rel=err)
+
+    def open3d():
+        import open3d as o3d
+
+        sc = o3d.t.geometry.RaycastingScene()
+        sc.add_triangles(o3d.core.Tensor(pts.astype(np.float32)),
+                         o3d.core.Tensor(tri.astype(np.uint32)))
+        r = sc.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
+        return np.linalg.norm(r["points"].numpy() - q, axis=1)
+
+    def libigl():
+        import igl
+
+        d2, _, _ = igl.point_mesh_squared_distance(q, pts, tri.astype(np.int64))
+        return np.sqrt(d2)
+
+    def warp_bvh():
+        import warp as wp
+
+        sys.path.insert(0, str(HERE))
+        from peers_warp import mesh_peers
+
+        wp.config.quiet = True
+        r = mesh_peers(scene.master, q, d_max, repeats=1, device="cpu")
+        return np.where(r["face"] >= 0, r["distance"], np.inf)
+
+    record("open3d RaycastingScene.compute_closest_points (build + query)", open3d)
+    record("libigl point_mesh_squared_distance (AABB build + query)", libigl)
+    record("warp wp.Mesh BVH on the CPU device (build + query)", warp_bvh)
+    return out
+
+
+def _peak_bytes(fn):
+    """Peak Python-visible allocation (NumPy arrays included) of one call."""
+    import tracemalloc
+
+    tracemalloc.start()
+    fn()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak
+
+
 def run_suite(suite, sizes=None, repeats=2, n_check=512, out=None):
     cfg = SUITES[suite]
     records = []
@@ -103,27 +182,40 @@ def run_suite(suite, sizes=None, repeats=2, n_check=512, out=None):
     for scene_name in cfg["scenes"]:
         for log2n in sizes or cfg["sizes"]:
             scene = make_scene(scene_name, log2n)
+            d0 = ac.detect(scene.slave[:1], scene.master).d_max
             peer = None
-            for backend, dtype, mode in cfg["runs"]:
-                c, first, steady = timed(
-                    lambda: ac.detect(scene.slave, scene.master, backend=backend, mode=mode,
-                                      dtype=dtype), repeats)
-                if peer is None:
-                    peer = kdtree_peer(scene, c.d_max, repeats)
-                rec = dict(suite=suite, scene=scene_name, log2_nodes=log2n,
-                           n_slaves=len(scene.slave), n_master_faces=scene.master.n_faces,
-                           element=scene.master.element.name, backend=backend, device=device,
-                           dtype=dtype, mode=mode, first_call_s=first, steady_s=steady,
-                           stages_s={k: v for k, v in c.timings.items()},
-                           active=int(c.active.sum()), counts=c.counts.count,
-                           errors=errors(c, scene, n_check, dtype), peer=peer,
-                           ratio_to_peer=steady / peer["steady_s"])
-                records.append(rec)
-                _print(rec)
-    if out:
-        with open(out, "a") as f:
-            for r in records:
-                f.write(json.dumps(r) + "\n")
+            for factor in cfg.get("d_max_factors", [1.0]):
+                for backend, dtype, mode in cfg["runs"]:
+                    d_max = d0 * factor
+
+                    def call():
+                        return ac.detect(scene.slave, scene.master, backend=backend, mode=mode,
+                                         dtype=dtype, d_max=d_max)
+
+                    c, first, steady = timed(call, repeats)
+                    if peer is None:
+                        peer = kdtree_peer(scene, d_max, repeats)
+                    rec = dict(suite=suite, scene=scene_name, log2_nodes=log2n,
+                               n_slaves=len(scene.slave), n_master_faces=scene.master.n_faces,
+                               element=scene.master.element.name, backend=backend,
+                               device=device, dtype=dtype, mode=mode, d_max_factor=factor,
+                               d_max=d_max, first_call_s=first, steady_s=steady,
+                               stages_s={k: v for k, v in c.timings.items()},
+                               active=int(c.active.sum()), counts=c.counts.count,
+                               errors=errors(c, scene, n_check, dtype), peer=peer,
+                               ratio_to_peer=steady / peer["steady_s"],
+                               time_per_slave_s=steady / len(scene.slave))
+                    if cfg.get("memory") and backend == "numpy":
+                        rec["peak_bytes"] = _peak_bytes(call)
+                        rec["bytes_per_node"] = rec["peak_bytes"] / (len(scene.slave)
+                                                                     + len(scene.master.points))
+                    if cfg.get("peers") and backend == "numpy":
+                        rec["peers"] = peer_records(scene, d_max, repeats, n_check)
+                    records.append(rec)
+                    _print(rec)
+                    if out:
+                        with open(out, "a") as f:
+                            f.write(json.dumps(rec) + "\n")
     return records
 
 
@@ -137,12 +229,17 @@ def _print(r):
     st = ", ".join(f"{k} {v * 1e3:.0f}" for k, v in r["stages_s"].items()
                    if k not in ("detect", "total"))
     e = r["errors"]
-    print(f"{r['scene']} 2^{r['log2_nodes']} {r['backend']:5s} {r['dtype']} {r['mode']:5s} | "
+    print(f"{r['scene']} 2^{r['log2_nodes']} {r['backend']:5s} {r['dtype']} {r['mode']:5s} "
+          f"d_max x{r.get('d_max_factor', 1.0)} | "
           f"first {r['first_call_s']:.3f} s, steady {r['steady_s']:.3f} s "
           f"({r['ratio_to_peer']:.1f}x cKDTree {r['peer']['steady_s']:.3f} s) | "
           f"active {r['active']} | miss {e['miss_rate']:.2g} wrong face "
           f"{e['wrong_face_rate']:.2g} gap err {e['max_gap_error_rel']:.2g}"
-          + (f" | stages ms: {st}" if st else ""), flush=True)
+          + (f" | stages ms: {st}" if st else "")
+          + (f" | peak {r['bytes_per_node']:.0f} B/node" if "bytes_per_node" in r else "")
+          + "".join(f"\n    peer {k}: " + (v.get("error") or f"{v['steady_s']:.3f} s, "
+                                               f"dist err {v['max_distance_error_rel']:.1e}")
+                    for k, v in r.get("peers", {}).items()), flush=True)
 
 
 def main():

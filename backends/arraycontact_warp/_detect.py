@@ -22,14 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from arraycontact._contacts import Contacts, Counts, Feature, Status
 from arraycontact._detect import ITERATIONS, KKT_TOL, TIE_RTOL
 from arraycontact._prepare import CELL_MARGIN
 from arraycontact._surface import Surface, validate_points
 
 from . import _grid, _prepare
 from ._closest_node import closest_node
-from ._geometry import Element, Triangles, element_data, triangle_data
+from ._geometry import Element, element_data, triangle_data
 from ._projection import Master, scan_faces
 from ._select import classify
 
@@ -296,4 +295,4 @@ def run_one_shot(slave_x, master, prep, st, dtype):
     return out, {"face_radius_overflow": flag}, {"face_radius_overflow": 0}
 
 
-__all__ = ["Plan", "plan", "detect", "run_one_shot", "Feature", "Status", "Contacts", "Counts"]
+__all__ = ["Plan", "plan", "detect", "run_one_shot"]

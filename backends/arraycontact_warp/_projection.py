@@ -81,8 +81,9 @@ def project(el: Triangles, m: Master, s: wp.vec3, f: int, iterations: int, tol: 
     return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
 
 
+# A Warp overload of the tri3 `project` above, chosen by the element struct's type.
 @wp.func
-def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):
+def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):  # noqa: F811
     """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
     converged, s - point."""
     x0 = m.points[m.faces[f, 0]]

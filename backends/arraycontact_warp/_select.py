@@ -31,8 +31,9 @@ def face_normal(el: Element, m: Master, f: int, xi: wp.vec2):
     return _unit(wp.cross(t0, t1))
 
 
+# A Warp overload: tri3 normals in closed form.
 @wp.func
-def face_normal(el: Triangles, m: Master, f: int, xi: wp.vec2):
+def face_normal(el: Triangles, m: Master, f: int, xi: wp.vec2):  # noqa: F811
     a = m.points[m.faces[f, 0]]
     return _unit(wp.cross(m.points[m.faces[f, 1]] - a, m.points[m.faces[f, 2]] - a))
 

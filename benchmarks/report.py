@@ -1,0 +1,157 @@
+"""Tables and plots of the issue-7 suites, from the records in results/*.jsonl.
+
+    python benchmarks/run.py pareto && python benchmarks/run.py scaling \\
+        && python benchmarks/run.py peers && python benchmarks/report.py
+
+Writes results/pareto.png, results/scaling.png and the section between the markers
+<!-- report --> and <!-- /report --> of RESULTS.md (the rest of RESULTS.md is left alone).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).parent
+RES = HERE / "results"
+BEGIN, END = "<!-- report -->", "<!-- /report -->"
+
+
+def load(name):
+    f = RES / f"{name}.jsonl"
+    return [json.loads(line) for line in open(f)] if f.exists() else []
+
+
+def _err(r):
+    e = r["errors"]
+    return e["miss_rate"] + e["wrong_face_rate"]
+
+
+def pareto(records):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    marks = {"numpy": "o", "jax": "s", "warp": "^"}
+    for ax, scene in zip(axes, ("rough_close", "tyre_road")):
+        rs = [r for r in records if r["scene"] == scene]
+        for r in rs:
+            face = "none" if r["dtype"] == "float32" else None
+            colour = "C0" if r["mode"] == "exact" else "C3"
+            ax.scatter(r["time_per_slave_s"] * 1e6, max(_err(r), 1e-4) * 100,
+                       marker=marks[r["backend"]], s=30 + 40 * r["d_max_factor"],
+                       facecolors=face, edgecolors=colour, color=colour)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("time per slave (us), steady state, this CPU")
+        ax.set_ylabel("missed + wrong-face slaves (%)  [0 drawn at 0.01]")
+        ax.set_title(f"{scene}, 2^{rs[0]['log2_nodes'] if rs else '?'} nodes per surface")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].text(0.02, 0.02, "blue: exact, red: node; o numpy, s jax, ^ warp;\n"
+                 "filled float64, hollow float32; size ~ d_max factor (0.5, 1, 2)",
+                 transform=axes[0].transAxes, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(RES / "pareto.png", dpi=110)
+    lines = ["| scene | back end | dtype | mode | d_max x | time / slave | miss | wrong face | "
+             "gap error / edge | active |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(records, key=lambda r: (r["scene"], r["mode"], r["backend"], r["dtype"],
+                                            r["d_max_factor"])):
+        e = r["errors"]
+        lines.append(f"| {r['scene']} | {r['backend']} | {r['dtype']} | {r['mode']} | "
+                     f"{r['d_max_factor']:g} | {r['time_per_slave_s'] * 1e6:.2f} us | "
+                     f"{e['miss_rate'] * 100:.2g} % | {e['wrong_face_rate'] * 100:.2g} % | "
+                     f"{e['max_gap_error_rel']:.1e} | {r['active']} |")
+    return lines
+
+
+def scaling(records):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines = ["| back end | nodes / surface | time / slave | peak bytes / node |",
+             "|---|---|---|---|"]
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    slopes = {}
+    for backend in sorted({r["backend"] for r in records}):
+        rs = sorted((r for r in records if r["backend"] == backend), key=lambda r: r["n_slaves"])
+        n = np.array([r["n_slaves"] for r in rs], float)
+        t = np.array([r["steady_s"] for r in rs])
+        slopes[backend] = float(np.polyfit(np.log(n), np.log(t), 1)[0]) if len(rs) > 1 else None
+        ax.loglog(n, t, "o-", label=f"{backend} {rs[0]['dtype']} (slope {slopes[backend]:.2f})")
+        for r in rs:
+            mem = f"{r['bytes_per_node']:.0f}" if "bytes_per_node" in r else "-"
+            lines.append(f"| {backend} {r['dtype']} | 2^{r['log2_nodes']} | "
+                         f"{r['time_per_slave_s'] * 1e6:.2f} us | {mem} |")
+    ax.set_xlabel("slave nodes (= master nodes)")
+    ax.set_ylabel("steady-state detection time (s), this CPU")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(RES / "scaling.png", dpi=110)
+    lines.append("")
+    lines.append("Log-log slope of time against nodes (1 = linear): " + ", ".join(
+        f"{b} {s:.2f}" for b, s in slopes.items() if s is not None) + ".")
+    return lines
+
+
+def peers(records):
+    lines = ["| scene | arraycontact (exact) / peer | time | max distance error / edge |",
+             "|---|---|---|---|"]
+    for r in records:
+        e = r["errors"]
+        lines.append(f"| {r['scene']} 2^{r['log2_nodes']} | arraycontact {r['backend']} "
+                     f"{r['dtype']} | {r['steady_s']:.3f} s | {e['max_gap_error_rel']:.1e} |")
+        if r["backend"] == "numpy":
+            lines.append(f"| | scipy cKDTree (closest node only) | {r['peer']['steady_s']:.3f} s"
+                         f" | (no closest point) |")
+            for name, p in r.get("peers", {}).items():
+                if "error" in p:
+                    lines.append(f"| | {name} | {p['error']} | |")
+                else:
+                    lines.append(f"| | {name} | {p['steady_s']:.3f} s | "
+                                 f"{p['max_distance_error_rel']:.1e} |")
+    return lines
+
+
+def main():
+    out = []
+    rec = load("pareto")
+    if rec:
+        out += ["### Run time against error — `python benchmarks/run.py pareto`", "",
+                "Every back end x dtype x mode x d_max factor (times the default d_max) on the "
+                "rough surfaces and the tyre on a rough road, 2^14 nodes each; errors against "
+                "the reference on 256 random slaves. Plot: `results/pareto.png`.", ""]
+        out += pareto(rec) + [""]
+    rec = load("scaling")
+    if rec:
+        out += ["### Scaling — `python benchmarks/run.py scaling`", "",
+                "Rough surfaces, 2^12 .. 2^20 nodes each; peak bytes per node is the largest "
+                "NumPy allocation of one call (tracemalloc) over slave + master nodes. Plot: "
+                "`results/scaling.png`.", ""]
+        out += scaling(rec) + [""]
+    rec = load("peers")
+    if rec:
+        out += ["### Peers on the same points — `python benchmarks/run.py peers`", "",
+                "Open3D, libigl and Warp's BVH answer the unsigned closest-point question "
+                "(no feature, no signed gap, no tie rule); they are built and queried on the "
+                "same points in the same run.", ""]
+        out += peers(rec) + [""]
+    f = HERE / "RESULTS.md"
+    text = f.read_text()
+    block = BEGIN + "\n" + "\n".join(out) + "\n" + END
+    if BEGIN in text:
+        text = text[:text.index(BEGIN)] + block + text[text.index(END) + len(END):]
+    else:
+        text = text.rstrip() + "\n\n## Issue 7 suites (regenerated by benchmarks/report.py)\n\n" \
+            + block + "\n"
+    f.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
