@@ -4,6 +4,7 @@
     python benchmarks/run.py pareto         # issue 7: time against error, every variant
     python benchmarks/run.py scaling        # issue 7: 2^12 .. 2^20, time per slave, memory
     python benchmarks/run.py peers          # issue 7: Open3D, libigl, Warp BVH (CPU), cKDTree
+    python benchmarks/run.py table1         # issue 7: seed 000 Table 1 at 2^20 nodes each
     python benchmarks/report.py             # RESULTS tables and plots from results/*.jsonl
 
 Every record holds the scene, sizes, back end, device, dtype, mode, the first call (compile
@@ -35,6 +36,12 @@ SCENES = {
     "rough_close": ("rough_surfaces", dict(gap=1.0, rms=0.5)),
     "rough_quad4": ("rough_surfaces", dict(gap=1.0, rms=0.5, element="quad4")),
     "tyre_road": ("cylinder_on_road", dict(radius=40.0, depth=0.5)),
+    # Seed 000 Table 1 (quadrilateral faces): close, convex, close but not touching.
+    "table1_close": ("rough_surfaces", dict(gap=1.0, rms=0.5, element="quad4")),
+    "table1_convex": ("rough_surfaces", dict(gap=1.0, rms=0.5, curvature=2e-4,
+                                             element="quad4")),
+    "table1_apart": ("rough_surfaces", dict(gap=4.0, rms=0.5, curvature=2e-4,
+                                            element="quad4")),
 }
 
 _EVERY = [(b, d, m) for b in ("numpy", "jax", "warp") for d in ("float64", "float32")
@@ -49,6 +56,8 @@ SUITES = {
     "scaling": dict(scenes=["rough_close"], sizes=[12, 14, 16, 18, 20],
                     runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
                     memory=True),
+    "table1": dict(scenes=["table1_close", "table1_convex", "table1_apart"], sizes=[20],
+                   runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")]),
     "peers": dict(scenes=["rough_close", "tyre_road"], sizes=[16],
                   runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
                   peers=True),
@@ -202,6 +211,9 @@ def run_suite(suite, sizes=None, repeats=2, n_check=512, out=None):
                                d_max=d_max, first_call_s=first, steady_s=steady,
                                stages_s={k: v for k, v in c.timings.items()},
                                active=int(c.active.sum()), counts=c.counts.count,
+                               penetrating=int((c.active & (c.gap < 0)).sum()),
+                               nodes_in_box=c.counts.slaves_in_box
+                               + c.counts.master_nodes_in_box,
                                errors=errors(c, scene, n_check, dtype), peer=peer,
                                ratio_to_peer=steady / peer["steady_s"],
                                time_per_slave_s=steady / len(scene.slave))
