@@ -149,6 +149,16 @@ def main():
                 "NumPy allocation of one call (tracemalloc) over slave + master nodes. Plot: "
                 "`results/scaling.png`.", ""]
         out += scaling(rec) + [""]
+    rec = load("skips")
+    if rec:
+        out += ["### What each skip saves — `python benchmarks/skips.py`", "",
+                "NumPy float64 on this CPU, the same scene with and without the skip in one run "
+                "(see the script for the scenes). Keeping the grid of a master that does not "
+                "move is not implemented yet, so not measured.", "",
+                "| skip | with | without | saved |", "|---|---|---|---|"]
+        out += [f"| {r['skip']} | {r['with_skip_s'] * 1e3:.1f} ms | "
+                f"{r['without_skip_s'] * 1e3:.1f} ms | {r['saved_fraction'] * 100:.0f} % |"
+                for r in rec] + [""]
     rec = load("table1")
     if rec:
         out += ["### Seed 000 Table 1 at 2^20 nodes per surface — `python benchmarks/run.py "
