@@ -70,10 +70,17 @@ def master_geometry(xp, element, topo, nodes_x):
 
 
 def master_arrays(master: Surface, prep: Prepared, dtype):
-    """Master topology and geometry in the local frame (float `dtype`), on the host."""
+    """Master topology and geometry in the local frame (float `dtype`), on the host. The face
+    balls and node normals are the Surface's cached ones (they do not depend on the frame)."""
     topo = master_topology(master, prep)
-    x = (master.points - prep.origin).astype(dtype)
-    return {**topo, **master_geometry(np, master.element, topo, x)}
+    centres, radii = master.face_bounds
+    prev_n, next_n, concave = _select.boundary_geometry(
+        np, master.points, topo["prev_node"], topo["next_node"], topo["prev_face"],
+        topo["next_face"], master.face_normals)
+    return dict(topo, nodes_x=(master.points - prep.origin).astype(dtype),
+                centres=(centres - prep.origin).astype(dtype), radii=radii.astype(dtype),
+                node_normals=master.node_normals.astype(dtype), prev_normal=prev_n.astype(dtype),
+                next_normal=next_n.astype(dtype), concave=concave)
 
 
 def scalars(prep: Prepared, master: Surface, dtype):
