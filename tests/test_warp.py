@@ -138,6 +138,19 @@ def test_device_arrays_in_place_and_graph_capture():
     assert np.abs(got["gap"][a] - r.gap[a]).max() <= 1e-4 * s.master.longest_edge
 
 
+def test_a_master_that_does_not_move_keeps_its_grid():
+    s = scenes.rough_surfaces(2**9, seed=8)
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    with pytest.raises(ValueError, match="previous detect"):
+        acw.detect(p, s.slave)
+    first = acw.detect(p, s.slave, s.master.points)
+    moved = s.slave + [0.05, 0.0, -0.2]
+    again = acw.detect(p, moved)  # master stages skipped
+    r = ac.detect(moved, s.master, dtype=np.float32)
+    assert np.array_equal(again["face"], r.face) and not np.array_equal(again["face"],
+                                                                        first["face"])
+
+
 def test_exported_geometry_in_a_user_kernel():
     """The README's example: a simulator's own kernel calls the exported @wp.func."""
 

@@ -130,6 +130,7 @@ class Plan:
     master_in: wp.array
     overflow: wp.array
     out: dict
+    master_ready: bool = False  # the master stages have run at least once
 
 
 def _worlds(world, n, what):
@@ -241,15 +242,10 @@ def _input(p: Plan, a, staging, what, n):
     return a, wp.vec3(*[float(v) for v in p.origin])
 
 
-def detect(p: Plan, slave_points, master_points):
-    """Launch the detection. Inputs: wp.array of wp.vec3 on the plan's device (used in place:
-    capturable), JAX arrays (DLPack) or NumPy [n, 3]. Returns a dict of output arrays of the
-    slaves' kind (the plan's own buffers for wp.array input, overwritten by the next call):
-    active, face, xi, point, gap, distance, normal, feature, master_node, status."""
+def _master_stages(p: Plan, master_points):
     c = p.constants
     dev = p.device
     xm, m_origin = _input(p, master_points, p.master_in, "master_points", len(p.master.points))
-    xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
     m = p.m
     wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
               device=dev)
@@ -263,9 +259,28 @@ def detect(p: Plan, slave_points, master_points):
     wp.launch(_prepare.normalise, len(p.master.points), inputs=[m.node_normals], device=dev)
     _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
     _grid.build(p.face_grid, m.centres, p.face_ids, m.face_world, p.master.n_faces, dev)
+    p.master_ready = True
+
+
+def detect(p: Plan, slave_points, master_points=None):
+    """Launch the detection. Inputs: wp.array of wp.vec3 on the plan's device (used in place:
+    capturable), JAX arrays (DLPack) or NumPy [n, 3]. Returns a dict of output arrays of the
+    slaves' kind (the plan's own buffers for wp.array input, overwritten by the next call):
+    active, face, xi, point, gap, distance, normal, feature, master_node, status.
+    master_points=None reuses the master's geometry and grids of the previous call (a master
+    that does not move: only the slave kernel runs)."""
+    c = p.constants
+    dev = p.device
+    xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
+    if master_points is None:
+        # A master that does not move keeps its geometry and grids from the last call.
+        if not p.master_ready:
+            raise ValueError("master_points=None needs a previous detect with the master")
+    else:
+        _master_stages(p, master_points)
     o = p.out
     wp.launch(_detect_kernel, p.n_slaves,
-              inputs=[p.kernel_element, m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
+              inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
                       s_origin, c["d_max"], c["tie"], c["slack"], c["r_cap"], c["iterations"],
                       c["tol"]],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
@@ -274,7 +289,9 @@ def detect(p: Plan, slave_points, master_points):
         return o
     if kind == "jax":
         return {k: wp.to_jax(v) for k, v in o.items()}
-    res = {k: v.numpy() for k, v in o.items()}
+    # Copies: on the CPU device .numpy() is a view of the plan's buffers, which the next call
+    # overwrites.
+    res = {k: v.numpy().copy() for k, v in o.items()}
     # NumPy slaves were staged in the plan's frame: back to the global frame in float64.
     res["point"] = res["point"].astype(np.float64) + p.origin
     return res
