@@ -165,8 +165,9 @@ def main():
                 "table1`", "", "quad4 faces, two rough surfaces of 2^20 nodes each: close (gap "
                 "1, RMS 0.5), convex (curvature 2e-4), close but apart (convex, gap 4). Nodes "
                 "in box = slaves + master nodes inside the grown-box intersection. The paper's "
-                "times are from its 2012 hardware and code; ours from this 2-core machine "
-                "(NumPy, one core) and Warp's CPU device.", ""]
+                "times are from its 2012 hardware and code; ours from Warp's CPU device on this "
+                "2-core machine (NumPy's quad4 Newton path takes minutes per call at this "
+                "size here).", ""]
         out += table1(rec) + [""]
     rec = load("peers")
     if rec:

@@ -56,8 +56,9 @@ SUITES = {
     "scaling": dict(scenes=["rough_close"], sizes=[12, 14, 16, 18, 20],
                     runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
                     memory=True),
+    # Warp's CPU device only: NumPy quad4 at 2^20 takes minutes per call on this machine.
     "table1": dict(scenes=["table1_close", "table1_convex", "table1_apart"], sizes=[20],
-                   runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")]),
+                   runs=[("warp", "float32", "exact")]),
     "peers": dict(scenes=["rough_close", "tyre_road"], sizes=[16],
                   runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
                   peers=True),
