@@ -61,9 +61,9 @@ def pareto(records):
         ax.set_ylabel("missed + wrong-face slaves (%)  [0 drawn at 0.01]")
         ax.set_title(f"{scene}, 2^{rs[0]['log2_nodes'] if rs else '?'} nodes per surface")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].text(0.02, 0.02, "blue: exact, red: node; o numpy, s jax, ^ warp;\n"
+    axes[1].text(0.02, 0.9, "blue: exact, red: node; o numpy, s jax, ^ warp;\n"
                  "filled float64, hollow float32; size ~ d_max factor (0.5, 1, 2)",
-                 transform=axes[0].transAxes, fontsize=8)
+                 transform=axes[1].transAxes, fontsize=8)
     fig.tight_layout()
     fig.savefig(RES / "pareto.png", dpi=110)
     lines = ["| scene | back end | dtype | mode | d_max x | time / slave | miss | wrong face | "
