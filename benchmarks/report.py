@@ -1,7 +1,7 @@
 """Tables and plots of the issue-7 suites, from the records in results/*.jsonl.
 
-    python benchmarks/run.py pareto && python benchmarks/run.py scaling \\
-        && python benchmarks/run.py peers && python benchmarks/report.py
+    python benchmarks/report.py --run     # run every suite (about 40 min here), then report
+    python benchmarks/report.py           # report from the records already there
 
 Writes results/pareto.png, results/scaling.png and the section between the markers
 <!-- report --> and <!-- /report --> of RESULTS.md (the rest of RESULTS.md is left alone).
@@ -143,7 +143,23 @@ def table1(records):
     return lines
 
 
+SUITES = ("pareto", "scaling", "peers", "table1")
+
+
+def run_all():
+    import subprocess
+    import sys
+
+    for suite in SUITES:
+        subprocess.run([sys.executable, str(HERE / "run.py"), suite], check=True)
+    subprocess.run([sys.executable, str(HERE / "skips.py")], check=True)
+
+
 def main():
+    import sys
+
+    if "--run" in sys.argv[1:]:
+        run_all()
     out = []
     rec = load("pareto")
     if rec:

@@ -9,7 +9,8 @@ import pytest
 import arraycontact as ac
 from arraycontact import scenes
 
-RUNS = [("numpy", "float64"), ("numpy", "float32"), ("jax", "float32"), ("warp", "float32")]
+RUNS = [("numpy", "float64"), ("numpy", "float32"), ("jax", "float64"), ("jax", "float32"),
+        ("warp", "float32")]
 
 
 def _tol(dtype, L, offset=0.0):
