@@ -171,7 +171,7 @@ def main():
     rec = load("scaling")
     if rec:
         out += ["### Scaling — `python benchmarks/run.py scaling`", "",
-                "Rough surfaces, 2^12 .. 2^20 nodes each; peak bytes per node is the largest "
+                "Rough surfaces, 2^12 .. 2^22 nodes each; peak bytes per node is the largest "
                 "NumPy allocation of one call (tracemalloc) over slave + master nodes. Plot: "
                 "`results/scaling.png`.", ""]
         out += scaling(rec) + [""]

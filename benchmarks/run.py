@@ -53,7 +53,7 @@ SUITES = {
     # Every back end x dtype x mode x d_max factor (times the default d_max).
     "pareto": dict(scenes=["rough_close", "tyre_road"], sizes=[14], runs=_EVERY,
                    d_max_factors=[0.5, 1.0, 2.0]),
-    "scaling": dict(scenes=["rough_close"], sizes=[12, 14, 16, 18, 20],
+    "scaling": dict(scenes=["rough_close"], sizes=[12, 14, 16, 18, 20, 22],
                     runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
                     memory=True),
     # Warp's CPU device only: NumPy quad4 at 2^20 takes minutes per call on this machine.
