@@ -71,16 +71,9 @@ def bench_warp(scene, repeats, device="cuda"):
     def run():
         acw.detect(p, xs, xm)
 
-    t0 = time.perf_counter()
-    run()
-    wp.synchronize_device(device)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        wp.synchronize_device(device)
-        times.append(time.perf_counter() - t0)
+    from peers_warp import timed
+
+    first, steady = timed(run, repeats, device)
     graph_s = None
     kernels = None
     if wp.get_device(device).is_cuda:
@@ -107,8 +100,8 @@ def bench_warp(scene, repeats, device="cuda"):
                     point=o["point"], gap=o["gap"], distance=o["distance"], normal=o["normal"],
                     feature=o["feature"], master_node=o["master_node"], status=o["status"],
                     slave_ids=np.arange(n), d_max=p.constants["d_max"])
-    return c, dict(plan_s=plan_s, first_call_s=first, steady_s=statistics.median(times),
-                   steady_min_s=min(times), graph_replay_s=graph_s, kernels_s=kernels,
+    return c, dict(plan_s=plan_s, first_call_s=first, steady_s=steady,
+                   graph_replay_s=graph_s, kernels_s=kernels,
                    device=wp.get_device(device).name,
                    overflow=bool(p.overflow.numpy()[0]))
 

@@ -46,7 +46,8 @@ def _grid_query(grid: wp.uint64, q: wp.array(dtype=wp.vec3), nodes: wp.array(dty
     node_out[i] = best
 
 
-def _timed(fn, repeats, device):
+def timed(fn, repeats, device):
+    """(first call s, median of `repeats` synchronised calls s)."""
     t0 = time.perf_counter()
     fn()
     wp.synchronize_device(device)
@@ -88,8 +89,8 @@ def mesh_peers(surface, q, d_max, repeats=10, device="cuda"):
         wp.launch(_mesh_query, len(q), inputs=[holder["mesh"].id, qa, float(d_max)],
                   outputs=[face, dist], device=device)
 
-    b = _timed(build_query, repeats, device)
-    r = _timed(refit_query, repeats, device)
+    b = timed(build_query, repeats, device)
+    r = timed(refit_query, repeats, device)
     return dict(build_query=b, refit_query=r, face=face.numpy(), distance=dist.numpy())
 
 
@@ -106,5 +107,5 @@ def hashgrid_peer(surface, q, d_max, repeats=10, device="cuda"):
         wp.launch(_grid_query, len(q), inputs=[grid.id, qa, na, float(d_max)], outputs=[out],
                   device=device)
 
-    t = _timed(run, repeats, device)
+    t = timed(run, repeats, device)
     return dict(build_query=t, node=out.numpy())

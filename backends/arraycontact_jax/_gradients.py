@@ -22,26 +22,9 @@ import jax
 import jax.numpy as jnp
 
 from arraycontact._elements import EDGE, FACE, interpolate, shape_functions
+from arraycontact._geometry import _solve2
 from arraycontact._normals import pseudo_normal
-from arraycontact._surface import node_normals
-
-
-def _safe_sqrt(a):
-    ok = a > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, a, 1)), 0 * a)
-
-
-def _unit(v):
-    n = _safe_sqrt(jnp.sum(v * v, -1, keepdims=True))
-    return jnp.where(n > 0, v / jnp.where(n > 0, n, 1), 0 * v)
-
-
-def _solve2(m, r):
-    det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    ok = det != 0
-    det = jnp.where(ok, det, 1)
-    x = jnp.stack([r[0] * m[1, 1] - m[0, 1] * r[1], m[0, 0] * r[1] - m[1, 0] * r[0]]) / det
-    return jnp.where(ok, x, 0 * x)
+from arraycontact._surface import _unit, node_normals
 
 
 def _residual(element, u, s, xe, base, b, mask):
@@ -67,7 +50,7 @@ def _root_jvp(element, primals, tangents):
     h = jax.jacfwd(_residual, 1)(element, u, s, xe, base, b, mask)
     _, rhs = jax.jvp(lambda s_, xe_: _residual(element, u, s_, xe_, base, b, mask),
                      (s, xe), (ds, dxe))
-    return u, -_solve2(h, rhs)
+    return u, -_solve2(h, rhs, jnp)
 
 
 def _polish(element, u, s, xe, base, b, mask, steps=2):
@@ -75,7 +58,7 @@ def _polish(element, u, s, xe, base, b, mask, steps=2):
     values then hold to rounding, as the implicit derivatives assume."""
     for _ in range(steps):
         h = jax.jacfwd(_residual, 1)(element, u, s, xe, base, b, mask)
-        u = u - _solve2(h, _residual(element, u, s, xe, base, b, mask))
+        u = u - _solve2(h, _residual(element, u, s, xe, base, b, mask), jnp)
     return u
 
 
@@ -104,10 +87,10 @@ def _one(element, on_surface, s, xe, feature, local, xi0, n_pseudo, sign):
     xi = base + b @ u
     to_slave = -(shape_functions(element, xi, jnp) @ (xe - s))  # s - x(xi), nearby terms
     _, dx = interpolate(element, xe, xi, jnp)
-    n_face = _unit(jnp.cross(dx[:, 0], dx[:, 1]))
+    n_face = _unit(jnp.cross(dx[:, 0], dx[:, 1]), jnp)
     r2 = jnp.dot(to_slave, to_slave)
     on = r2 <= on_surface * on_surface  # on the surface: no direction but rounding noise
-    dist = _safe_sqrt(jnp.where(on, 1, r2))
+    dist = jnp.sqrt(jnp.where(on, 1, r2))
     along = jnp.dot(to_slave, n_pseudo)
     gap = jnp.where(feature == FACE, jnp.dot(to_slave, n_face),
                     jnp.where(on, along, sign * dist))

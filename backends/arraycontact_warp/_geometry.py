@@ -227,6 +227,22 @@ def _cross2(a: wp.vec2, b: wp.vec2):
 
 
 @wp.func
+def _newton_step(el: Element, h: wp.mat22, gn: wp.mat22, g: wp.vec2, w1: int, w2: int):
+    """Newton step in the null space of the working set {w1, w2} (-1: empty slot); h is
+    positive definite or Gauss-Newton's, the tangent curvature falls back to Gauss-Newton's."""
+    if w1 < 0:
+        return -_solve2(h, g)
+    if w2 < 0:
+        a1 = el.cons_a[w1]
+        t = wp.vec2(-a1[1], a1[0])
+        tht = wp.dot(t, h * t)
+        if tht <= 0.0:
+            tht = wp.dot(t, gn * t)
+        return -_sdiv(wp.dot(t, g), tht) * t
+    return wp.vec2(0.0)
+
+
+@wp.func
 def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, iterations: int,
                        tol: float):
     """Active-set Newton on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8): exact
@@ -306,30 +322,12 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
                 v2 = -1
             else:
                 v2 = -1
-        p = wp.vec2(0.0)
-        if v1 < 0:
-            p = -_solve2(h, g)
-        elif v2 < 0:
-            a1 = el.cons_a[v1]
-            t = wp.vec2(-a1[1], a1[0])
-            tht = wp.dot(t, h * t)
-            if tht <= 0.0:
-                tht = wp.dot(t, gn * t)
-            p = -_sdiv(wp.dot(t, g), tht) * t
+        p = _newton_step(el, h, gn, g, v1, v2)
         if jmin >= 0 and wp.dot(el.cons_a[jmin], p) >= 0.0:
             w1 = v1
             w2 = v2
         else:
-            p = wp.vec2(0.0)
-            if w1 < 0:
-                p = -_solve2(h, g)
-            elif w2 < 0:
-                a1 = el.cons_a[w1]
-                t = wp.vec2(-a1[1], a1[0])
-                tht = wp.dot(t, h * t)
-                if tht <= 0.0:
-                    tht = wp.dot(t, gn * t)
-                p = -_sdiv(wp.dot(t, g), tht) * t
+            p = _newton_step(el, h, gn, g, w1, w2)
         # ratio test
         amin = float(1.0e30)
         jb = int(-1)
