@@ -71,6 +71,96 @@ def _solve2(m, r, xp):
     return xp.stack([_safe_div(x0, det, xp), _safe_div(x1, det, xp)], -1)
 
 
+def _edge_polynomial(element, e, r, xe, xp):
+    """Edge e (corner e to corner e+1) as x(t) - r = p0 + p1 t + p2 t^2, t in [0, 1]: exact for
+    every element here (edges have degree <= 2), from the edge's values at t = 0, 1/2, 1."""
+    a, b = element.edge_nodes[e, :2]
+    ts = np.array([0.0, 0.5, 1.0])
+    n = xp.asarray(shape_functions(element, element.nodes[a] + ts[:, None] * (
+        element.nodes[b] - element.nodes[a])), dtype=xe.dtype)  # [3, nn]
+    x = xp.einsum("tn,...nk->...tk", n, xe)
+    x0, xm, x1 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
+    return x0 - r, 4 * xm - 3 * x0 - x1, 2 * (x0 + x1) - 4 * xm
+
+
+def closest_point_edge(element, e, r, xe, xp=np, steps=12):
+    """The closest point to r [..., 3] on edge e of faces xe [..., nn, 3], over the whole edge:
+    t in [0, 1] and the squared distance.
+
+    The squared distance along the edge is a quartic whose derivative f(t) = c3 t^3 + ... + c0
+    is a cubic. The roots of f' split [0, 1] into at most three pieces on which f is monotone;
+    a piece where f rises through zero holds exactly one local minimum, found by Newton's
+    method kept inside the shrinking sign-change bracket (bisection when Newton leaves it).
+    The global minimum is the smallest of those minima and the ends: no start can miss it."""
+    p0, p1, p2 = _edge_polynomial(element, e, r, xe, xp)
+    c3 = 2 * _dot(p2, p2, xp)
+    c2 = 3 * _dot(p1, p2, xp)
+    c1 = _dot(p1, p1, xp) + 2 * _dot(p0, p2, xp)
+    c0 = _dot(p0, p1, xp)
+
+    def f(t):
+        return ((c3 * t + c2) * t + c1) * t + c0
+
+    def df(t):
+        return (3 * c3 * t + 2 * c2) * t + c1
+
+    def phi(t):
+        x = p0 + t[..., None] * (p1 + t[..., None] * p2)
+        return _dot(x, x, xp)
+
+    # Roots of f' = 3 c3 t^2 + 2 c2 t + c1 (the stable quadratic formula), clipped to [0, 1].
+    qa, qb = 3 * c3, 2 * c2
+    disc = qb * qb - 4 * qa * c1
+    sq = xp.sqrt(xp.maximum(disc, 0))
+    q = -0.5 * (qb + xp.where(qb >= 0, sq, -sq))
+    real = disc > 0
+    s1 = xp.clip(xp.where(real, _safe_div(q, qa, xp), 0 * q), 0, 1)
+    s2 = xp.clip(xp.where(real, _safe_div(c1, q, xp), 0 * q), 0, 1)
+    s1, s2 = xp.minimum(s1, s2), xp.maximum(s1, s2)
+    zero = 0 * c0
+    best_t, best_d = zero + 1, phi(zero + 1)
+    for a, b in ((zero, s1), (s1, s2), (s2, zero + 1)):
+        lo, hi = a, b
+        flo, fhi = f(lo), f(hi)
+        rises = (flo <= 0) & (fhi >= 0)
+        # Start at the secant root; keep the bracket [lo, hi] with f(lo) <= 0 <= f(hi).
+        t = xp.where(fhi > flo, lo - flo * _safe_div(hi - lo, fhi - flo, xp), lo)
+        for _ in range(steps):
+            ft = f(t)
+            lo = xp.where(ft <= 0, t, lo)
+            hi = xp.where(ft >= 0, t, hi)
+            d = df(t)
+            tn = t - _safe_div(ft, d, xp)
+            # Inclusive: a converged Newton step lands on the bracket's end it just set.
+            t = xp.where((d > 0) & (tn >= lo) & (tn <= hi), tn, 0.5 * (lo + hi))
+        t = xp.where(rises, xp.clip(t, a, b), a)  # a piece without a minimum: its start
+        d = phi(t)
+        take = d < best_d
+        best_t, best_d = xp.where(take, t, best_t), xp.where(take, d, best_d)
+    return best_t, best_d
+
+
+def closest_point_edges(element, r, xe, xp=np):
+    """The closest point over all edges of each face: xi, feature (EDGE or VERTEX), local id
+    and squared distance. The first edge wins a tie."""
+    k = element.n_corners
+    out = None
+    for e in range(k):
+        t, d = closest_point_edge(element, e, r, xe, xp)
+        a, b = element.edge_nodes[e, :2]
+        xi = xp.asarray(element.nodes[a], xe.dtype) + t[..., None] * xp.asarray(
+            element.nodes[b] - element.nodes[a], xe.dtype)
+        f = xp.where((t <= 0) | (t >= 1), VERTEX, EDGE).astype(xp.int32)
+        loc = xp.where(t <= 0, a, xp.where(t >= 1, b, e)).astype(xp.int32)
+        if out is None:
+            out = [xi, f, loc, d]
+            continue
+        take = d < out[3]
+        out = [xp.where(take[..., None], xi, out[0]), xp.where(take, f, out[1]),
+               xp.where(take, loc, out[2]), xp.where(take, d, out[3])]
+    return tuple(out)
+
+
 def start_option_one(element, r, xe, xp=np):
     """Seed 003 start (I): the closest of the corners and the centre, in natural coordinates."""
     cand = np.concatenate([element.corners, element.centre[None]], 0)  # [k+1, 2]
@@ -95,13 +185,17 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
     iterations (static shapes):
 
     - "active_set": a primal active-set method. Each iteration drops the working-set
-      constraint with the most negative multiplier, takes a Newton step in the null space of
-      the remaining working set, halves it while the distance grows, and stops at the first
-      constraint it meets (ratio test).
-    - "sqp": sequential quadratic programming. Each iteration solves the quadratic model
-      exactly on the element's domain (in 2-D the QP's solution is the best feasible one of:
-      the free minimiser, the minimiser on each constraint line, each corner), then halves
-      the step while the distance grows; iterates stay feasible.
+      constraint with the most negative multiplier; with no working constraint it takes the
+      Newton step (with its second-order correction where that is closer), with one it goes
+      to the closest point of that edge (exact: closest_point_edge); it halves the step while
+      the distance grows and stops at the first constraint it meets (ratio test).
+    - "sqp": sequential quadratic programming. Each iteration takes the best feasible one of:
+      the free Newton step of the quadratic model, its second-order correction, and the exact
+      closest point on each edge (which holds the model's minimiser on each constraint line
+      and each corner); it halves the step while the distance grows; iterates stay feasible.
+
+    Both count one iteration per evaluation of the derivatives at an iterate; the edges'
+    closed-form solutions are part of the iteration that uses them.
 
     Returns xi, feature, local, converged (KKT residual <= tol), iterations used (the first
     iteration after which the KKT conditions held) and the final KKT residual (in natural
@@ -138,6 +232,23 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         scale = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], xp.finfo(xe.dtype).tiny)
         return g, h, gn, scale
 
+    def chebyshev(xi, p, h):
+        # The second-order (Chebyshev) correction of a Newton step p on the gradient
+        # g = J^T (x - r): solve h c = -1/2 g''(p, p) with g''(p, p) = 2 X''(., p)^T (J p) +
+        # J^T X''(p, p), the term (x - r) . X'''(., p, p) left out (it vanishes as the
+        # residual does). Near a zero-residual solution (a point on the face) the error of
+        # p + c is cubic in that of xi instead of quadratic: one derivative evaluation fewer.
+        # (Zero on tri3, whose X'' is zero.)
+        _, dx = interpolate(element, xe, xi, xp)
+        d2 = xp.einsum("...ns,...nk->...ks", shape_second_derivatives(element, xi, xp), xe)
+        jp = xp.einsum("...ka,...a->...k", dx, p)
+        m0 = d2[..., 0] * p[..., 0:1] + d2[..., 1] * p[..., 1:2]  # X''(e_xi, p)
+        m1 = d2[..., 1] * p[..., 0:1] + d2[..., 2] * p[..., 1:2]  # X''(e_eta, p)
+        xpp = m0 * p[..., 0:1] + m1 * p[..., 1:2]
+        c = 2 * xp.stack([_dot(m0, jp, xp), _dot(m1, jp, xp)], -1)
+        c = c + xp.einsum("...ka,...k->...a", dx, xpp)
+        return p - _solve2(h, 0.5 * c, xp)
+
     def multipliers(g, w):
         # KKT: g = sum_{j in W} lambda_j a_j. With one active row, lambda = a.g/|a|^2; with two,
         # solve the 2x2 system. Rows outside W get +inf so they are never dropped.
@@ -154,19 +265,37 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         lam = xp.where((ar == j2[..., None]) & (nw[..., None] == 2), l2[..., None], lam)
         return xp.where(w, lam, np.inf)
 
-    def step(g, h, gn, w):
-        # Newton on the working set's null space, with the exact curvature where it is
-        # positive and Gauss-Newton's (always positive on a non-degenerate face) where not.
+    def edge_points(xi):
+        # The exact closest point on each edge, as a step from xi: [..., n_edges, 2]. A working
+        # set of one constraint is an edge, and the closest point on it is known in closed
+        # form (closest_point_edge), so one iteration lands on it however curved the edge.
+        out = []
+        for e in range(element.n_corners):
+            t, _ = closest_point_edge(element, e, r, xe, xp)
+            a, c = element.edge_nodes[e, :2]
+            out.append(xp.asarray(element.nodes[a], xe.dtype) + t[..., None] * xp.asarray(
+                element.nodes[c] - element.nodes[a], xe.dtype) - xi)
+        return xp.stack(out, -2)
+
+    def step(xi, g, h, gn, w, p_edges):
+        # Free: Newton with the exact curvature where it is positive definite, Gauss-Newton's
+        # (always positive on a non-degenerate face) where not, plus its second-order
+        # correction. One working constraint: to that edge's closest point. Two: stay.
         nw = xp.sum(w, -1)
         j1 = xp.argmax(w, -1)
-        a1 = A[j1]
-        t = xp.stack([-a1[..., 1], a1[..., 0]], -1)  # tangent of the active constraint
         pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
-        p0 = -_solve2(xp.where(pd[..., None, None], h, gn), g, xp)
-        tht = xp.einsum("...a,...ab,...b->...", t, h, t)
-        tgt = xp.einsum("...a,...ab,...b->...", t, gn, t)
-        p1 = -_safe_div(_dot(t, g, xp), xp.where(tht > 0, tht, tgt), xp)[..., None] * t
+        hq = xp.where(pd[..., None, None], h, gn)
+        p0 = -_solve2(hq, g, xp)
+        # Only for a Newton step that stays on the face: far outside, the correction of a poor
+        # model step is no better and can stall the ratio test.
+        inside = ((xi + p0) @ A.T - b >= 0).all(-1)
+        p0 = xp.where(inside[..., None], better(xi, p0, chebyshev(xi, p0, hq)), p0)
+        p1 = xp.take_along_axis(p_edges, xp.asarray(ce)[j1][..., None, None], -2)[..., 0, :]
         return xp.where((nw == 0)[..., None], p0, xp.where((nw == 1)[..., None], p1, 0 * p0))
+
+    def better(xi, p, q):
+        # The step to the smaller distance (p on a tie).
+        return xp.where((objective(xi + q) < objective(xi + p))[..., None], q, p)
 
     def residual(g, w, scale):
         lam = multipliers(g, w)
@@ -189,10 +318,11 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         jmin = xp.argmin(lam, -1)
         drop = (xp.min(lam, -1) < 0) & ~done
         w_drop = w & ~((xp.arange(m) == jmin[..., None]) & drop[..., None])
-        p_drop = step(g, h, gn, w_drop)
+        p_edges = edge_points(xi)
+        p_drop = step(xi, g, h, gn, w_drop, p_edges)
         drop = drop & (_dot(A[jmin], p_drop, xp) >= 0)
         w = xp.where(drop[..., None], w_drop, w)
-        p = xp.where(drop[..., None], p_drop, step(g, h, gn, w))
+        p = xp.where(drop[..., None], p_drop, step(xi, g, h, gn, w, p_edges))
         # Ratio test against the constraints outside the working set.
         ap = p @ A.T
         slack = xi @ A.T - b
@@ -216,8 +346,6 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         w = w | ((xp.arange(m) == jb[..., None]) & blocked[..., None])
         return xp.where(done[..., None], xi, new), w, done, iters
 
-    corners = xp.asarray(element.corners, dtype=xe.dtype)
-
     def sqp_iteration(it, state):
         xi, w, done, iters = state
         g, h, gn, scale = derivatives(xi)
@@ -228,41 +356,11 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         done = done | newly
         pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
         hq = xp.where(pd[..., None, None], h, gn)
-        cands = [-_solve2(hq, g, xp)]
-        for j in range(m):
-            a = A[j]
-            t = xp.stack([-a[1], a[0]])
-            q0 = xi + ((b[j] - xi @ a) / (a @ a))[..., None] * a
-            # The edge on this constraint line runs between two corners: s in [lo, hi].
-            e0, e1 = element.edge_nodes[element.constraint_edge[j], :2]
-            sa = (corners[e0] - q0) @ t / (t @ t)
-            sb = (corners[e1] - q0) @ t / (t @ t)
-            lo, hi = xp.minimum(sa, sb), xp.maximum(sa, sb)
-            # The closest point on the (curved) edge: Newton on the true distance along the
-            # line, from the quadratic model's minimiser, kept on the edge. Edges are
-            # polynomials of degree <= 2, so a few steps reach it from anywhere near.
-            tht = xp.einsum("a,...ab,b->...", t, h, t)
-            curv = xp.where(tht > 0, tht, xp.einsum("a,...ab,b->...", t, hq, t))
-            s_ = -_safe_div(_dot(t, g + xp.einsum("...ab,...b->...a", hq, q0 - xi), xp),
-                            curv, xp)
-            s_ = xp.clip(s_, lo, hi)
-            for _ in range(3):
-                q = q0 + s_[..., None] * t
-                x, dx = interpolate(element, xe, q, xp)
-                d = x - r
-                xt = xp.einsum("...ka,a->...k", dx, t)
-                d2 = xp.einsum("...ns,...nk->...ks", shape_second_derivatives(element, q, xp), xe)
-                xtt = (d2[..., 0] * t[0] * t[0] + 2 * d2[..., 1] * t[0] * t[1]
-                       + d2[..., 2] * t[1] * t[1])
-                f1 = _dot(d, xt, xp)
-                f2 = _dot(xt, xt, xp) + _dot(d, xtt, xp)
-                f2 = xp.where(f2 > 0, f2, _dot(xt, xt, xp))
-                s_ = xp.clip(s_ - _safe_div(f1, f2, xp), lo, hi)
-            cands.append(q0 + s_[..., None] * t - xi)
-        cands += [corners[c] - xi for c in range(element.n_corners)]
-        p_all = xp.stack(cands, -2)  # [..., n_cand, 2]
+        p_newton = -_solve2(hq, g, xp)
+        cands = xp.stack([p_newton, chebyshev(xi, p_newton, hq)], -2)
+        p_all = xp.concatenate([cands, edge_points(xi)], -2)  # [..., n_cand, 2]
         feas = ((xi[..., None, :] + p_all) @ A.T - b >= -feasible_tol).all(-1)
-        # Choose by the true distance: the edge candidates are exact, the model is not.
+        # Choose by the true distance: the edge candidates are exact, the model's are not.
         f_all = objective(xi[..., None, :] + p_all)
         best = xp.argmin(xp.where(feas, f_all, np.inf), -1)
         p = xp.take_along_axis(p_all, best[..., None, None], -2)[..., 0, :]

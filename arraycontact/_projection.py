@@ -16,9 +16,11 @@ convergence flag.
 
 from __future__ import annotations
 
-from ._elements import EDGE, VERTEX, shape_functions
-from ._geometry import (closest_point_face, closest_point_triangle, start_option_one,
-                        start_option_two)
+import numpy as np
+
+from ._elements import shape_functions
+from ._geometry import (closest_point_edges, closest_point_face, closest_point_triangle,
+                        start_option_one, start_option_two)
 from ._grid import stencil_counts
 from ._xp import compact, expand, norm
 
@@ -51,9 +53,6 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
         converged = xp.ones(r.shape[0], dtype=bool)
     else:
         xi, feature, local, converged = _best_of_starts(xp, element, r, xe, iterations, tol)
-        if element.linear:
-            xi, feature, local, converged = _straight_edges(xp, element, r, xe, xi, feature,
-                                                            local, converged)
     point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
     diff = r - point  # slave minus closest point, exact of the frame's offset
     return xi, point + x0, diff, feature, local, converged
@@ -62,7 +61,8 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
 
 def _best_of_starts(xp, element, r, xe, iterations, tol):
     """Active-set Newton from start option I and, on curved faces, also from the centre
-    (option II) and each mid-edge node; the closest result wins (the first on a tie).
+    (option II) and each mid-edge node; the closest result wins (the first on a tie), unless
+    the exact minimum over the edges (`_edges`) is at most as far.
 
     The distance to a curved face can have several local minima; these starts sit in the
     basins that matter for points within an element size of the face (see
@@ -73,6 +73,7 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
         k = element.n_corners
         starts += [xp.zeros_like(starts[0]) + xp.asarray(element.nodes[i], xe.dtype)
                    for i in range(k, 2 * k)]
+        starts.append(_lattice_start(xp, element, r, xe))
     # All starts as one batch: one traced iteration loop on JAX, not one per start.
     n_s, n_p = len(starts), r.shape[0]
     rs = xp.reshape(xp.broadcast_to(r, (n_s,) + r.shape), (-1, 3))
@@ -82,35 +83,30 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xes)
     d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
     best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)  # the first start on a tie
-    return tuple(v[best] for v in res[:4])
+    return _edges(xp, element, r, xe, *(v[best] for v in res[:4]))
 
 
-def _straight_edges(xp, element, r, xe, xi, feature, local, converged):
-    """quad4: the closest point on each (straight) edge in closed form; an edge point at most
-    as far as Newton's answer replaces it. On a degenerate face (a collapsed edge, coincident
-    nodes) Newton can stop at a stationary corner of the parametrisation; the edges cannot."""
-    k = element.n_corners
-    corners = xp.asarray(element.corners, dtype=xe.dtype)
+def _lattice_start(xp, element, r, xe, n=5):
+    """The closest of an n x n lattice of interior points (n (n + 1) / 2 on triangles): a start
+    in the basin of an interior minimum that the node starts miss on a strongly distorted
+    face. Only distances are evaluated: cheap beside a Newton run."""
+    s = np.linspace(0.1, 0.8, n) if element.kind == "tri" else np.linspace(-0.8, 0.8, n)
+    g = np.stack(np.meshgrid(s, s, indexing="ij"), -1).reshape(-1, 2)
+    if element.kind == "tri":
+        g = g[g.sum(1) <= 0.9 + 1e-9]
+    x = xp.einsum("cn,pnk->pck", xp.asarray(shape_functions(element, g), xe.dtype), xe)
+    best = xp.argmin(xp.sum((x - r[:, None]) ** 2, -1), -1)
+    return xp.asarray(g, xe.dtype)[best]
+
+
+def _edges(xp, element, r, xe, xi, feature, local, converged):
+    """The closest point over each face's edges, solved exactly (closest_point_edges), replaces
+    Newton's answer when at most as far. On a curved or distorted face the global minimum can
+    lie on an edge no start's Newton path reaches; on a degenerate quad4 (a collapsed edge,
+    coincident nodes) Newton can stop at a stationary corner of the parametrisation. The
+    edges cannot be missed either way."""
     x = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
-    best_d = xp.sum((r - x) ** 2, -1)
-    edge_d = None
-    for e in range(k):
-        a, b = e, (e + 1) % k
-        xa, ab = xe[:, a], xe[:, b] - xe[:, a]
-        ll = xp.sum(ab * ab, -1)
-        t = xp.clip(xp.sum((r - xa) * ab, -1) / xp.where(ll > 0, ll, 1), 0, 1)
-        t = xp.where(ll > 0, t, 0 * t)
-        d = xp.sum((r - xa - t[:, None] * ab) ** 2, -1)
-        f = xp.where(t <= 0, VERTEX, xp.where(t >= 1, VERTEX, EDGE)).astype(feature.dtype)
-        loc = xp.where(t <= 0, a, xp.where(t >= 1, b, e)).astype(local.dtype)
-        x_e = corners[a] + t[:, None] * (corners[b] - corners[a])
-        if edge_d is None:
-            edge_d, e_xi, e_f, e_loc = d, x_e, f, loc
-            continue
-        take = d < edge_d  # the first edge on a tie
-        edge_d = xp.where(take, d, edge_d)
-        e_xi = xp.where(take[:, None], x_e, e_xi)
-        e_f, e_loc = xp.where(take, f, e_f), xp.where(take, loc, e_loc)
-    use = edge_d <= best_d
+    e_xi, e_f, e_loc, e_d = closest_point_edges(element, r, xe, xp)
+    use = e_d <= xp.sum((r - x) ** 2, -1)
     return (xp.where(use[:, None], e_xi, xi), xp.where(use, e_f, feature),
             xp.where(use, e_loc, local), converged | use)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import arraycontact as ac
-from arraycontact._elements import get_element, shape_functions
+from arraycontact._elements import get_element, interpolate, shape_functions
 from arraycontact._geometry import (closest_point_face, closest_point_triangle,
                                     start_option_one, start_option_two)
 from arraycontact._projection import _best_of_starts
@@ -17,34 +17,79 @@ def _face(element, noise, seed):
     return e, pts, ac.Surface(pts, [np.arange(e.nodes_per_face)], element)
 
 
-@pytest.mark.parametrize("element", ["quad4", "tri6", "quad8", "quad9"])
-@pytest.mark.parametrize("noise", [0.1, 0.3])
-def test_best_of_starts_is_the_global_closest_point(element, noise):
-    """Curved and distorted faces, points within about an element size: the detection's
-    multi-start Newton equals the brute-force reference, and its point lies on the face.
+def _folded(e, pts):
+    """The smallest cosine between the face's normal anywhere and its mean normal: negative
+    where the face folds over itself (a negative Jacobian, which FE codes reject)."""
+    s = np.linspace(0, 1, 41) if e.kind == "tri" else np.linspace(-1, 1, 41)
+    g = np.stack(np.meshgrid(s, s), -1).reshape(-1, 2)
+    g = g[g.sum(1) <= 1] if e.kind == "tri" else g
+    _, dx = interpolate(e, np.broadcast_to(pts, (len(g),) + pts.shape), g)
+    n = np.cross(dx[..., 0], dx[..., 1])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return (n @ (n.mean(0) / np.linalg.norm(n.mean(0)))).min()
 
-    Known limit (the quadratic-faces issue stays open on it): on very distorted quadratic
-    faces (nodes moved by 0.3 element sizes) a few points in 1000 have a closer local
-    minimum that none of the starts reaches."""
-    e, pts, s = _face(element, noise, seed=int(noise * 10))
-    rng = np.random.default_rng(5)
-    q = np.c_[rng.uniform(-1.3, 1.3, (2000, 2)), rng.uniform(-0.8, 0.8, 2000)]
+
+def _points_near(e, n, seed):
+    rng = np.random.default_rng(seed)
+    q = np.c_[rng.uniform(-1.3, 1.3, (n, 2)), rng.uniform(-0.8, 0.8, n)]
     if e.kind == "tri":
         q[:, :2] = (q[:, :2] + 1.3) / 2.6 * 1.4 - 0.2
+    return q
+
+
+def _check_face(e, pts, q):
+    s = ac.Surface(pts, [np.arange(e.nodes_per_face)], e.name)
     ref = ac.reference.closest_points(q, s)
     xe = np.broadcast_to(pts, (len(q),) + pts.shape)
     xi, feat, loc, conv = _best_of_starts(np, e, q, xe, iterations=20, tol=1e-12)
-    x = shape_functions(e, xi) @ pts
-    d = np.linalg.norm(x - q, axis=1)
+    d = np.linalg.norm(shape_functions(e, xi) @ pts - q, axis=1)
     assert (xi @ e.constraints_a.T - e.constraints_b >= -1e-14).all()  # on the face
-    missed = d - ref.distance > 1e-10
     assert (d - ref.distance >= -1e-12).all()  # never closer than the reference
-    if noise <= 0.1 or e.linear:
-        assert conv.all() and not missed.any()
-    else:
-        assert missed.mean() <= 0.003 and conv.mean() >= 0.998
-    # The feature agrees wherever the reference's is unambiguous.
-    assert (feat == ref.feature).mean() > 0.99
+    return d - ref.distance > 1e-10, conv, feat == ref.feature
+
+
+@pytest.mark.parametrize("element", ["quad4", "tri6", "quad8", "quad9"])
+def test_curved_and_distorted_faces_equal_the_reference(element):
+    """Random faces: nodes moved by 0.1 and 0.3 element sizes, and mid-edge nodes lifted by
+    0.35 out of the plane (strongly curved), points within about an element size. Every face
+    that does not fold over itself: the detection's projection (multi-start Newton plus the
+    exact edges) equals the brute-force reference within 1e-10, on the face, converged."""
+    e = get_element(element)
+    rng = np.random.default_rng(11)
+    done = 0
+    for trial in range(40):
+        noise = (0.1, 0.3)[trial % 2]
+        pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + noise * rng.normal(
+            size=(e.nodes_per_face, 3))
+        pts[e.n_corners:, 2] += 0.35 * rng.choice([-1.0, 1.0], e.nodes_per_face - e.n_corners)
+        if _folded(e, pts) <= 0:
+            continue
+        missed, conv, same_feature = _check_face(e, pts, _points_near(e, 400, trial))
+        assert not missed.any() and conv.all()
+        assert same_feature.mean() > 0.99  # where the reference's feature is unambiguous
+        done += 1
+        if done == 4:
+            break
+    assert done == 4
+
+
+@pytest.mark.parametrize("element", ["tri6", "quad8", "quad9"])
+def test_folded_faces_miss_rarely(element):
+    """Known limit: on faces that fold over themselves (nodes moved by 0.3 element sizes until
+    the normal reverses) an interior minimum can lie in a basin no start reaches. Bounded:
+    at most 1 point in 1000 (measured: 2 in 72,000 over tri6, quad8 and quad9)."""
+    e = get_element(element)
+    rng = np.random.default_rng(3)
+    misses = total = 0
+    while total < 2000:
+        pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(
+            size=(e.nodes_per_face, 3))
+        if _folded(e, pts) > -0.3:
+            continue
+        missed, conv, _ = _check_face(e, pts, _points_near(e, 500, total))
+        misses += missed.sum()
+        total += len(missed)
+    assert misses <= 0.001 * total
 
 
 @pytest.mark.parametrize("method", ["active_set", "sqp"])

@@ -3,8 +3,9 @@ simulator can call them from its own kernels.
 
     closest_point_triangle(p, a, b, c) -> (xi, feature, local)          tri3, Voronoi regions
     closest_point_face(el, r, xe, xi0, iterations, tol) -> (xi, feature, local, converged)
-        any element (quad4, tri6, quad8, quad9; tri3 too) by the active-set Newton method of
+        any element (quad4, tri6, quad8, quad9; tri3 too) by the active-set method of
         seed 003 eq. (8), in the frame of xe (face nodes relative to a nearby origin).
+    closest_point_edge(el, r, xe, e) -> (t, squared distance)   exact, over the whole edge e
     face_point(el, xe, xi) -> x(xi)
 
 Element data travel in an `Element` struct (`element_data(name, device)` builds it); face nodes
@@ -227,27 +228,120 @@ def _cross2(a: wp.vec2, b: wp.vec2):
 
 
 @wp.func
-def _newton_step(el: Element, h: wp.mat22, gn: wp.mat22, g: wp.vec2, w1: int, w2: int):
-    """Newton step in the null space of the working set {w1, w2} (-1: empty slot); h is
-    positive definite or Gauss-Newton's, the tangent curvature falls back to Gauss-Newton's."""
+def _cubic(c3: float, c2: float, c1: float, c0: float, t: float):
+    return ((c3 * t + c2) * t + c1) * t + c0
+
+
+@wp.func
+def edge_xi(el: Element, e: int, t: float):
+    """Natural coordinates of parameter t on edge e (corner e to corner e + 1)."""
+    a = el.nodes[e]
+    return a + t * (el.nodes[(e + 1) % el.n_corners] - a)
+
+
+@wp.func
+def closest_point_edge(el: Element, r: wp.vec3, xe: FaceNodes, e: int):
+    """The closest point to r on the whole edge e: (t, squared distance). The twin of
+    arraycontact._geometry.closest_point_edge: the derivative of the squared distance along
+    the edge is a cubic; the roots of its derivative split [0, 1] into monotone pieces; a
+    piece where it rises through zero holds one minimum, found by Newton kept inside the
+    sign-change bracket; the smallest of those and the ends wins."""
+    x0 = face_point(el, xe, edge_xi(el, e, 0.0))
+    xm = face_point(el, xe, edge_xi(el, e, 0.5))
+    x1 = face_point(el, xe, edge_xi(el, e, 1.0))
+    p0 = x0 - r
+    p1 = 4.0 * xm - 3.0 * x0 - x1
+    p2 = 2.0 * (x0 + x1) - 4.0 * xm
+    c3 = 2.0 * wp.dot(p2, p2)
+    c2 = 3.0 * wp.dot(p1, p2)
+    c1 = wp.dot(p1, p1) + 2.0 * wp.dot(p0, p2)
+    c0 = wp.dot(p0, p1)
+    qa = 3.0 * c3
+    qb = 2.0 * c2
+    disc = qb * qb - 4.0 * qa * c1
+    s1 = float(0.0)
+    s2 = float(0.0)
+    if disc > 0.0:
+        sq = wp.sqrt(disc)
+        q = -0.5 * (qb + wp.where(qb >= 0.0, sq, -sq))
+        s1 = wp.clamp(_sdiv(q, qa), 0.0, 1.0)
+        s2 = wp.clamp(_sdiv(c1, q), 0.0, 1.0)
+    lo_s = wp.min(s1, s2)
+    hi_s = wp.max(s1, s2)
+    best_t = float(1.0)
+    best_d = wp.length_sq(p0 + p1 + p2)
+    for k in range(3):
+        a = float(0.0)
+        b = lo_s
+        if k == 1:
+            a = lo_s
+            b = hi_s
+        elif k == 2:
+            a = hi_s
+            b = 1.0
+        fa = _cubic(c3, c2, c1, c0, a)
+        fb = _cubic(c3, c2, c1, c0, b)
+        t = a
+        if fa <= 0.0 and fb >= 0.0:
+            lo = a
+            hi = b
+            if fb > fa:
+                t = a - fa * (b - a) / (fb - fa)
+            for i in range(12):
+                ft = _cubic(c3, c2, c1, c0, t)
+                if ft <= 0.0:
+                    lo = t
+                if ft >= 0.0:
+                    hi = t
+                dft = (3.0 * c3 * t + 2.0 * c2) * t + c1
+                tn = t - _sdiv(ft, dft)
+                if dft > 0.0 and tn >= lo and tn <= hi:
+                    t = tn
+                else:
+                    t = 0.5 * (lo + hi)
+            t = wp.clamp(t, a, b)
+        x = p0 + t * (p1 + t * p2)
+        d = wp.dot(x, x)
+        if d < best_d:
+            best_d = d
+            best_t = t
+    return best_t, best_d
+
+
+@wp.func
+def _step(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, h: wp.mat22, g: wp.vec2,
+          t0: wp.vec3, t1: wp.vec3, s00: wp.vec3, s01: wp.vec3, s11: wp.vec3, w1: int, w2: int):
+    """The step for the working set {w1, w2} (-1: empty slot). Empty: Newton (h positive
+    definite or Gauss-Newton's) with its second-order correction where that stays on the face
+    and is closer; one constraint: to the exact closest point of that edge; two: none."""
     if w1 < 0:
-        return -_solve2(h, g)
+        p = -_solve2(h, g)
+        for j in range(el.n_cons):
+            if wp.dot(el.cons_a[j], xi + p) < el.cons_b[j]:
+                return p
+        jp = p[0] * t0 + p[1] * t1
+        m0 = p[0] * s00 + p[1] * s01
+        m1 = p[0] * s01 + p[1] * s11
+        xpp = p[0] * m0 + p[1] * m1
+        c = wp.vec2(2.0 * wp.dot(m0, jp) + wp.dot(t0, xpp), 2.0 * wp.dot(m1, jp) + wp.dot(t1, xpp))
+        pc = p - _solve2(h, 0.5 * c)
+        if _objective(el, xe, r, xi + pc) < _objective(el, xe, r, xi + p):
+            return pc
+        return p
     if w2 < 0:
-        a1 = el.cons_a[w1]
-        t = wp.vec2(-a1[1], a1[0])
-        tht = wp.dot(t, h * t)
-        if tht <= 0.0:
-            tht = wp.dot(t, gn * t)
-        return -_sdiv(wp.dot(t, g), tht) * t
+        e = el.cons_edge[w1]
+        t, d = closest_point_edge(el, r, xe, e)
+        return edge_xi(el, e, t) - xi
     return wp.vec2(0.0)
 
 
 @wp.func
 def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, iterations: int,
                        tol: float):
-    """Active-set Newton on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8): exact
-    Hessian (Gauss-Newton where it is not positive definite); the working set holds at most two
-    constraints (w1, w2 = -1 when empty). Returns xi, feature, local, converged."""
+    """Active-set method on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8), the
+    twin of the NumPy "active_set" method: exact Hessian (Gauss-Newton where it is not
+    positive definite), steps from `_step`; the working set holds at most two constraints
+    (w1, w2 = -1 when empty). Returns xi, feature, local, converged."""
     xi = xi0
     w1 = int(-1)
     w2 = int(-1)
@@ -322,12 +416,12 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
                 v2 = -1
             else:
                 v2 = -1
-        p = _newton_step(el, h, gn, g, v1, v2)
+        p = _step(el, r, xe, xi, h, g, t0, t1, s00, s01, s11, v1, v2)
         if jmin >= 0 and wp.dot(el.cons_a[jmin], p) >= 0.0:
             w1 = v1
             w2 = v2
         else:
-            p = _newton_step(el, h, gn, g, w1, w2)
+            p = _step(el, r, xe, xi, h, g, t0, t1, s00, s01, s11, w1, w2)
         # ratio test
         amin = float(1.0e30)
         jb = int(-1)

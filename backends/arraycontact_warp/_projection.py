@@ -12,8 +12,9 @@ from typing import Any
 import warp as wp
 
 from ._closest_node import _cell_near, stencil_offset
-from ._geometry import (EDGE, VERTEX, Element, FaceNodes, Triangles, closest_point_face, closest_point_triangle,
-                        face_nodes, face_point, start_option_one)
+from ._geometry import (EDGE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
+                        closest_point_face, closest_point_triangle, edge_xi, face_nodes,
+                        face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -35,38 +36,49 @@ class Master:
 
 
 @wp.func
-def straight_edges(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, feature: int, local: int,
-                   conv: int):
-    """quad4: the closest point on each straight edge in closed form replaces Newton's answer
-    when at most as far (a degenerate face can stop Newton at a stationary corner)."""
+def exact_edges(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, feature: int, local: int,
+                conv: int):
+    """The exact closest point over the face's edges (closest_point_edge) replaces Newton's
+    answer when at most as far: no start can miss a minimum on an edge, and on a degenerate
+    quad4 Newton can stop at a stationary corner. The first edge wins a tie."""
     best = wp.length_sq(r - face_point(el, xe, xi))
-    k = el.n_corners
     e_d = float(3.0e38)
     e_xi = xi
     e_f = feature
     e_l = local
-    for e in range(k):
-        b = (e + 1) % k
-        xa = wp.vec3(xe.x[e, 0], xe.x[e, 1], xe.x[e, 2])
-        ab = wp.vec3(xe.x[b, 0], xe.x[b, 1], xe.x[b, 2]) - xa
-        ll = wp.dot(ab, ab)
-        t = float(0.0)
-        if ll > 0.0:
-            t = wp.clamp(wp.dot(r - xa, ab) / ll, 0.0, 1.0)
-        d = wp.length_sq(r - xa - t * ab)
+    for e in range(el.n_corners):
+        t, d = closest_point_edge(el, r, xe, e)
         if d < e_d:
             e_d = d
-            e_xi = el.nodes[e] + t * (el.nodes[b] - el.nodes[e])
+            e_xi = edge_xi(el, e, t)
             e_f = EDGE
             e_l = e
             if t <= 0.0:
                 e_f = VERTEX
             elif t >= 1.0:
                 e_f = VERTEX
-                e_l = b
+                e_l = (e + 1) % el.n_corners
     if e_d <= best:
         return e_xi, e_f, e_l, 1
     return xi, feature, local, conv
+
+
+@wp.func
+def lattice_start(el: Element, r: wp.vec3, xe: FaceNodes):
+    """The closest of a 5 x 5 lattice of interior points (15 on triangles), as in NumPy."""
+    best = el.centre
+    best_d = float(3.0e38)
+    for i in range(5):
+        for j in range(5):
+            xi = wp.vec2(-0.8 + 0.4 * float(i), -0.8 + 0.4 * float(j))
+            if el.n_corners == 3:
+                xi = wp.vec2(0.1 + 0.175 * float(i), 0.1 + 0.175 * float(j))
+            if el.n_corners != 3 or xi[0] + xi[1] <= 0.9 + 1.0e-6:
+                d = wp.length_sq(r - face_point(el, xe, xi))
+                if d < best_d:
+                    best_d = d
+                    best = xi
+    return best
 
 
 @wp.func
@@ -93,16 +105,18 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
     feature = int(0)
     local = int(-1)
     conv = int(1)
-    # Start I, then on curved faces the centre and each mid-edge node; the closest result
-    # wins, the first on a tie. One call site keeps the generated code small.
+    # Start I, then on curved faces the centre, each mid-edge node and the lattice start; the
+    # closest result wins, the first on a tie. One call site keeps the generated code small.
     n_starts = 1
     if el.nn > el.n_corners:
-        n_starts = el.n_corners + 2
+        n_starts = el.n_corners + 3
     best = float(3.0e38)
     for k in range(n_starts):
         start = el.centre
         if k == 0:
             start = start_option_one(el, r, xe)
+        elif k == el.n_corners + 2:
+            start = lattice_start(el, r, xe)
         elif k > 1:
             start = el.nodes[el.n_corners + k - 2]
         xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
@@ -113,8 +127,7 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
             feature = f2
             local = l2
             conv = c2
-    if el.nn == el.n_corners:
-        xi, feature, local, conv = straight_edges(el, r, xe, xi, feature, local, conv)
+    xi, feature, local, conv = exact_edges(el, r, xe, xi, feature, local, conv)
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
