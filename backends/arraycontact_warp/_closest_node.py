@@ -36,8 +36,7 @@ def stencil_offset(q: int):
 
 
 @wp.func
-def _scan(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
-          node_world: wp.array(dtype=int), d_max: float, limit: float):
+def _scan(s: wp.vec3, world: int, grid: Grid, d_max: float, limit: float):
     """Smallest distance within d_max, and the smallest node id at distance <= limit."""
     c0 = cell_of(s, grid.cell)
     dmin = float(3.0e38)
@@ -48,9 +47,10 @@ def _scan(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
         if _cell_near(s, c, grid.cell, wp.min(d_max, wp.max(dmin, limit))):
             key = cell_key(c, world, grid.table)
             for k in range(grid.begin[key], grid.end[key]):
-                j = grid.sorted_ids[k]
-                if node_world[j] == world:
-                    d = wp.length(nodes[j] - s)
+                ball = grid.balls[k]
+                if grid.worlds[k] == world:
+                    j = grid.sorted_ids[k]
+                    d = wp.length(wp.vec3(ball[0], ball[1], ball[2]) - s)
                     if d <= d_max:
                         dmin = wp.min(dmin, d)
                         if d <= limit and (best < 0 or j < best):
@@ -59,13 +59,12 @@ def _scan(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
 
 
 @wp.func
-def closest_node(s: wp.vec3, world: int, grid: Grid, nodes: wp.array(dtype=wp.vec3),
-                 node_world: wp.array(dtype=int), d_max: float, tie: float):
+def closest_node(s: wp.vec3, world: int, grid: Grid, d_max: float, tie: float):
     """(node id or -1, distance or 3e38)."""
-    dmin, unused = _scan(s, world, grid, nodes, node_world, d_max, -1.0)
+    dmin, unused = _scan(s, world, grid, d_max, -1.0)
     best = int(-1)
     if dmin <= d_max:
-        d2, best = _scan(s, world, grid, nodes, node_world, d_max, dmin + tie)
+        d2, best = _scan(s, world, grid, d_max, dmin + tie)
     return best, dmin
 
 

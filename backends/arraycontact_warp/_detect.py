@@ -54,7 +54,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     w = slave_world[i]
     if shared == 1:
         w = 0
-    node, dn = closest_node(s, w, node_grid, m.points, m.node_world, d_max, tie)
+    node, dn = closest_node(s, w, node_grid, d_max, tie)
     node_out[i] = node
     rho = wp.min(dn, d_max) + slack
     # Two scans: the smallest distance, then the smallest face id within `tie` of it (one call
@@ -130,6 +130,7 @@ class Plan:
     master_in: wp.array
     overflow: wp.array
     out: dict
+    zero_radii: wp.array  # the node grid's items are points
     master_ready: bool = False  # the master stages have run at least once
 
 
@@ -212,7 +213,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
                 slave_in=wp.zeros(len(x), dtype=wp.vec3, device=device),
                 master_in=wp.zeros(len(master.points), dtype=wp.vec3, device=device),
-                overflow=wp.zeros(1, dtype=int, device=device), out=out)
+                overflow=wp.zeros(1, dtype=int, device=device), out=out,
+                zero_radii=wp.zeros(len(master.points), dtype=float, device=device))
 
 
 def _kind(a):
@@ -257,8 +259,10 @@ def _master_stages(p: Plan, master_points):
     wp.launch(_prepare.node_normals_add, (p.master.n_faces, p.master.faces.shape[1]),
               inputs=[p.element, m.points, m.faces], outputs=[m.node_normals], device=dev)
     wp.launch(_prepare.normalise, len(p.master.points), inputs=[m.node_normals], device=dev)
-    _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
-    _grid.build(p.face_grid, m.centres, p.face_ids, m.face_world, p.master.n_faces, dev)
+    _grid.build(p.node_grid, m.points, p.zero_radii, p.node_ids, m.node_world,
+                len(p.master.nodes), dev)
+    _grid.build(p.face_grid, m.centres, m.radii, p.face_ids, m.face_world, p.master.n_faces,
+                dev)
     p.master_ready = True
 
 

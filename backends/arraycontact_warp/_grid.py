@@ -18,6 +18,10 @@ class Grid:
     keys: wp.array(dtype=int)
     begin: wp.array(dtype=int)  # [table]
     end: wp.array(dtype=int)
+    # Item data in key order, so the stencil scans read each cell's items contiguously
+    # instead of gathering them through sorted_ids.
+    balls: wp.array(dtype=wp.vec4)  # position and radius (0 for nodes)
+    worlds: wp.array(dtype=int)
 
 
 @wp.func
@@ -53,13 +57,24 @@ def _ranges(n: int, grid: Grid):
         grid.end[key] = k + 1
 
 
-def build(grid: Grid, x, ids, world, n: int, device):
-    """Fill `grid` with items ids[:n] at x[ids] (launches only: capturable)."""
+@wp.kernel
+def _gather(x: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
+            world: wp.array(dtype=int), grid: Grid):
+    k = wp.tid()
+    i = grid.sorted_ids[k]
+    p = x[i]
+    grid.balls[k] = wp.vec4(p[0], p[1], p[2], radii[i])
+    grid.worlds[k] = world[i]
+
+
+def build(grid: Grid, x, radii, ids, world, n: int, device):
+    """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable)."""
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n)
     grid.begin.zero_()
     grid.end.zero_()
     wp.launch(_ranges, n, inputs=[n, grid], device=device)
+    wp.launch(_gather, n, inputs=[x, radii, world, grid], device=device)
 
 
 def new_grid(n: int, cell: float, device) -> Grid:
@@ -70,4 +85,6 @@ def new_grid(n: int, cell: float, device) -> Grid:
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.begin = wp.zeros(table, dtype=int, device=device)
     g.end = wp.zeros(table, dtype=int, device=device)
+    g.balls = wp.zeros(max(n, 1), dtype=wp.vec4, device=device)
+    g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
     return g

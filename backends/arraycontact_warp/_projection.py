@@ -151,9 +151,10 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: wp.vec3, world: int, rho: floa
         if _cell_near(s, c, grid.cell, reach + r_max):
             key = cell_key(c, world, grid.table)
             for k in range(grid.begin[key], grid.end[key]):
-                f = grid.sorted_ids[k]
-                if m.face_world[f] == world:
-                    if wp.length(s - m.centres[f]) - m.radii[f] <= reach:
+                ball = grid.balls[k]
+                if grid.worlds[k] == world:
+                    if wp.length(s - wp.vec3(ball[0], ball[1], ball[2])) - ball[3] <= reach:
+                        f = grid.sorted_ids[k]
                         xi, feature, local, conv, diff = project(el, m, s, f, iterations, tol)
                         d = wp.length(diff)
                         dmin = wp.min(dmin, d)
