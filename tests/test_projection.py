@@ -5,7 +5,7 @@ import pytest
 
 import arraycontact as ac
 from arraycontact._elements import get_element, interpolate, shape_functions
-from arraycontact._geometry import (closest_point_face, closest_point_triangle,
+from arraycontact._geometry import (closest_point_edge, closest_point_face, closest_point_triangle,
                                     start_option_one, start_option_two)
 from arraycontact._projection import _best_of_starts
 
@@ -90,6 +90,28 @@ def test_folded_faces_miss_rarely(element):
         misses += missed.sum()
         total += len(missed)
     assert misses <= 0.001 * total
+
+
+@pytest.mark.parametrize("element", ["quad4", "tri6", "quad8", "quad9"])
+def test_closest_point_edge_is_the_global_minimum_on_the_edge(element):
+    """The cubic-root edge solver against dense sampling of each edge (no tolerance to tune:
+    the solver may only be closer than the sampled minimum, never farther)."""
+    e = get_element(element)
+    rng = np.random.default_rng(8)
+    for trial in range(10):
+        pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.5 * rng.normal(
+            size=(e.nodes_per_face, 3))
+        q = rng.normal(size=(400, 3))
+        xe = np.broadcast_to(pts, (len(q),) + pts.shape)
+        ts = np.linspace(0, 1, 20001)
+        for k in range(e.n_corners):
+            t, d = closest_point_edge(e, k, q, xe)
+            a, b = e.edge_nodes[k, :2]
+            x = shape_functions(e, e.nodes[a] + ts[:, None] * (e.nodes[b] - e.nodes[a])) @ pts
+            dense = ((q[:, None] - x[None]) ** 2).sum(-1).min(1)
+            assert (d <= dense + 1e-13).all() and (t >= 0).all() and (t <= 1).all()
+            xt = shape_functions(e, e.nodes[a] + t[:, None] * (e.nodes[b] - e.nodes[a])) @ pts
+            assert np.allclose(((xt - q) ** 2).sum(-1), d, rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.parametrize("method", ["active_set", "sqp"])

@@ -3,7 +3,8 @@
 
     plan(master, slave_points, *, slave_world, master_world, d_max, device) -> Plan
     detect(plan, slave_points, master_points) -> dict of arrays (launches only)
-    closest_point_triangle, closest_point_face, start_option_one, face_point: @wp.func
+    closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
+    face_point: @wp.func
 """
 
 AVAILABLE = True
@@ -14,6 +15,7 @@ from ._detect import plan as plan  # noqa: E402
 from ._detect import run_one_shot as run_one_shot  # noqa: E402
 from ._geometry import Element as Element  # noqa: E402
 from ._geometry import FaceNodes as FaceNodes  # noqa: E402
+from ._geometry import closest_point_edge as closest_point_edge  # noqa: E402
 from ._geometry import closest_point_face as closest_point_face  # noqa: E402
 from ._geometry import closest_point_triangle as closest_point_triangle  # noqa: E402
 from ._geometry import element_data as element_data  # noqa: E402
@@ -21,6 +23,6 @@ from ._geometry import face_nodes as face_nodes  # noqa: E402
 from ._geometry import face_point as face_point  # noqa: E402
 from ._geometry import start_option_one as start_option_one  # noqa: E402
 
-__all__ = ["AVAILABLE", "Element", "FaceNodes", "Plan", "closest_point_face",
+__all__ = ["AVAILABLE", "Element", "FaceNodes", "Plan", "closest_point_edge", "closest_point_face",
            "closest_point_triangle", "detect", "element_data", "face_nodes", "face_point",
            "plan", "run_one_shot", "start_option_one"]
