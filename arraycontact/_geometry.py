@@ -71,43 +71,30 @@ def _solve2(m, r, xp):
     return xp.stack([_safe_div(x0, det, xp), _safe_div(x1, det, xp)], -1)
 
 
-def _edge_polynomial(element, e, r, xe, xp):
-    """Edge e (corner e to corner e+1) as x(t) - r = p0 + p1 t + p2 t^2, t in [0, 1]: exact for
-    every element here (edges have degree <= 2), from the edge's values at t = 0, 1/2, 1."""
-    a, b = element.edge_nodes[e, :2]
+def closest_point_edge(element, r, xe, xp=np, steps=12):
+    """The closest point to r [..., 3] on each whole edge of faces xe [..., nn, 3]: t [..., E]
+    (edge e runs from corner e, t = 0, to corner e + 1, t = 1) and the squared distance.
+
+    Every edge here is a polynomial of degree <= 2, x(t) - r = p0 + p1 t + p2 t^2 (from its
+    values at t = 0, 1/2, 1), so the derivative of the squared distance, f(t) = c3 t^3 + ...
+    + c0, is a cubic. The roots of f' split [0, 1] into at most three pieces on which f is
+    monotone; a piece where f rises through zero holds exactly one local minimum, found by
+    Newton's method kept inside the shrinking sign-change bracket (bisection when Newton
+    leaves it). The global minimum is the smallest of those minima and the ends: no start can
+    miss it. All edges and pieces run as one batch (one traced loop on JAX)."""
+    nodes = element.nodes
+    a, b = element.edge_nodes[:, 0], element.edge_nodes[:, 1]
     ts = np.array([0.0, 0.5, 1.0])
-    n = xp.asarray(shape_functions(element, element.nodes[a] + ts[:, None] * (
-        element.nodes[b] - element.nodes[a])), dtype=xe.dtype)  # [3, nn]
-    x = xp.einsum("tn,...nk->...tk", n, xe)
+    samples = nodes[a][:, None] + ts[None, :, None] * (nodes[b] - nodes[a])[:, None]  # [E, 3, 2]
+    n = shape_functions(element, samples.reshape(-1, 2)).reshape(len(a), 3, -1)
+    x = xp.einsum("etn,...nk->...etk", xp.asarray(n, dtype=xe.dtype), xe)  # [..., E, 3, 3]
     x0, xm, x1 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
-    return x0 - r, 4 * xm - 3 * x0 - x1, 2 * (x0 + x1) - 4 * xm
-
-
-def closest_point_edge(element, e, r, xe, xp=np, steps=12):
-    """The closest point to r [..., 3] on edge e of faces xe [..., nn, 3], over the whole edge:
-    t in [0, 1] and the squared distance.
-
-    The squared distance along the edge is a quartic whose derivative f(t) = c3 t^3 + ... + c0
-    is a cubic. The roots of f' split [0, 1] into at most three pieces on which f is monotone;
-    a piece where f rises through zero holds exactly one local minimum, found by Newton's
-    method kept inside the shrinking sign-change bracket (bisection when Newton leaves it).
-    The global minimum is the smallest of those minima and the ends: no start can miss it."""
-    p0, p1, p2 = _edge_polynomial(element, e, r, xe, xp)
+    p0 = x0 - r[..., None, :]
+    p1, p2 = 4 * xm - 3 * x0 - x1, 2 * (x0 + x1) - 4 * xm
     c3 = 2 * _dot(p2, p2, xp)
     c2 = 3 * _dot(p1, p2, xp)
     c1 = _dot(p1, p1, xp) + 2 * _dot(p0, p2, xp)
     c0 = _dot(p0, p1, xp)
-
-    def f(t):
-        return ((c3 * t + c2) * t + c1) * t + c0
-
-    def df(t):
-        return (3 * c3 * t + 2 * c2) * t + c1
-
-    def phi(t):
-        x = p0 + t[..., None] * (p1 + t[..., None] * p2)
-        return _dot(x, x, xp)
-
     # Roots of f' = 3 c3 t^2 + 2 c2 t + c1 (the stable quadratic formula), clipped to [0, 1].
     qa, qb = 3 * c3, 2 * c2
     disc = qb * qb - 4 * qa * c1
@@ -117,48 +104,52 @@ def closest_point_edge(element, e, r, xe, xp=np, steps=12):
     s1 = xp.clip(xp.where(real, _safe_div(q, qa, xp), 0 * q), 0, 1)
     s2 = xp.clip(xp.where(real, _safe_div(c1, q, xp), 0 * q), 0, 1)
     s1, s2 = xp.minimum(s1, s2), xp.maximum(s1, s2)
-    zero = 0 * c0
-    best_t, best_d = zero + 1, phi(zero + 1)
-    for a, b in ((zero, s1), (s1, s2), (s2, zero + 1)):
-        lo, hi = a, b
-        flo, fhi = f(lo), f(hi)
-        rises = (flo <= 0) & (fhi >= 0)
-        # Start at the secant root; keep the bracket [lo, hi] with f(lo) <= 0 <= f(hi).
-        t = xp.where(fhi > flo, lo - flo * _safe_div(hi - lo, fhi - flo, xp), lo)
-        for _ in range(steps):
-            ft = f(t)
-            lo = xp.where(ft <= 0, t, lo)
-            hi = xp.where(ft >= 0, t, hi)
-            d = df(t)
-            tn = t - _safe_div(ft, d, xp)
-            # Inclusive: a converged Newton step lands on the bracket's end it just set.
-            t = xp.where((d > 0) & (tn >= lo) & (tn <= hi), tn, 0.5 * (lo + hi))
-        t = xp.where(rises, xp.clip(t, a, b), a)  # a piece without a minimum: its start
-        d = phi(t)
-        take = d < best_d
-        best_t, best_d = xp.where(take, t, best_t), xp.where(take, d, best_d)
-    return best_t, best_d
+    lo = xp.stack([0 * s1, s1, s2], -1)  # the three pieces [..., E, 3]
+    hi = xp.stack([s1, s2, 0 * s2 + 1], -1)
+    c3, c2, c1, c0 = c3[..., None], c2[..., None], c1[..., None], c0[..., None]
+
+    def f(t):
+        return ((c3 * t + c2) * t + c1) * t + c0
+
+    flo, fhi = f(lo), f(hi)
+    rises = (flo <= 0) & (fhi >= 0)
+    # Start at the secant root; keep the bracket [lo, hi] with f(lo) <= 0 <= f(hi).
+    t0 = xp.where(fhi > flo, lo - flo * _safe_div(hi - lo, fhi - flo, xp), lo)
+
+    def newton(i, state):
+        t, lo_, hi_ = state
+        ft = f(t)
+        lo_ = xp.where(ft <= 0, t, lo_)
+        hi_ = xp.where(ft >= 0, t, hi_)
+        d = (3 * c3 * t + 2 * c2) * t + c1
+        tn = t - _safe_div(ft, d, xp)
+        # Inclusive: a converged Newton step lands on the bracket's end it just set.
+        return xp.where((d > 0) & (tn >= lo_) & (tn <= hi_), tn, 0.5 * (lo_ + hi_)), lo_, hi_
+
+    t, _, _ = fori(xp, steps, newton, (t0, lo, hi))
+    t = xp.where(rises, xp.clip(t, lo, hi), lo)  # a piece without a minimum: its start
+    # Candidates: the end t = 1 first, then each piece's; the first smallest wins.
+    t = xp.concatenate([0 * t[..., :1] + 1, t], -1)
+    xt = p0[..., None, :] + t[..., None] * (p1[..., None, :] + t[..., None] * p2[..., None, :])
+    d = _dot(xt, xt, xp)
+    k = xp.argmin(d, -1)
+    return (xp.take_along_axis(t, k[..., None], -1)[..., 0],
+            xp.take_along_axis(d, k[..., None], -1)[..., 0])
 
 
 def closest_point_edges(element, r, xe, xp=np):
     """The closest point over all edges of each face: xi, feature (EDGE or VERTEX), local id
     and squared distance. The first edge wins a tie."""
+    t, d = closest_point_edge(element, r, xe, xp)
+    e = xp.argmin(d, -1)
+    t = xp.take_along_axis(t, e[..., None], -1)[..., 0]
+    d = xp.take_along_axis(d, e[..., None], -1)[..., 0]
     k = element.n_corners
-    out = None
-    for e in range(k):
-        t, d = closest_point_edge(element, e, r, xe, xp)
-        a, b = element.edge_nodes[e, :2]
-        xi = xp.asarray(element.nodes[a], xe.dtype) + t[..., None] * xp.asarray(
-            element.nodes[b] - element.nodes[a], xe.dtype)
-        f = xp.where((t <= 0) | (t >= 1), VERTEX, EDGE).astype(xp.int32)
-        loc = xp.where(t <= 0, a, xp.where(t >= 1, b, e)).astype(xp.int32)
-        if out is None:
-            out = [xi, f, loc, d]
-            continue
-        take = d < out[3]
-        out = [xp.where(take[..., None], xi, out[0]), xp.where(take, f, out[1]),
-               xp.where(take, loc, out[2]), xp.where(take, d, out[3])]
-    return tuple(out)
+    start = xp.asarray(element.corners, xe.dtype)[e]
+    xi = start + t[..., None] * (xp.asarray(element.corners, xe.dtype)[(e + 1) % k] - start)
+    f = xp.where((t <= 0) | (t >= 1), VERTEX, EDGE).astype(xp.int32)
+    loc = xp.where(t <= 0, e, xp.where(t >= 1, (e + 1) % k, e)).astype(xp.int32)
+    return xi, f, loc, d
 
 
 def start_option_one(element, r, xe, xp=np):
@@ -188,7 +179,8 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
       constraint with the most negative multiplier; with no working constraint it takes the
       Newton step (with its second-order correction where that is closer), with one it goes
       to the closest point of that edge (exact: closest_point_edge); it halves the step while
-      the distance grows and stops at the first constraint it meets (ratio test).
+      the distance grows, and a step that meets a constraint (ratio test) goes on to the
+      exact closest point of that edge.
     - "sqp": sequential quadratic programming. Each iteration takes the best feasible one of:
       the free Newton step of the quadratic model, its second-order correction, and the exact
       closest point on each edge (which holds the model's minimiser on each constraint line
@@ -269,13 +261,11 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         # The exact closest point on each edge, as a step from xi: [..., n_edges, 2]. A working
         # set of one constraint is an edge, and the closest point on it is known in closed
         # form (closest_point_edge), so one iteration lands on it however curved the edge.
-        out = []
-        for e in range(element.n_corners):
-            t, _ = closest_point_edge(element, e, r, xe, xp)
-            a, c = element.edge_nodes[e, :2]
-            out.append(xp.asarray(element.nodes[a], xe.dtype) + t[..., None] * xp.asarray(
-                element.nodes[c] - element.nodes[a], xe.dtype) - xi)
-        return xp.stack(out, -2)
+        t, _ = closest_point_edge(element, r, xe, xp)
+        k = element.n_corners
+        start = xp.asarray(element.corners, xe.dtype)
+        end = xp.asarray(element.corners[(np.arange(k) + 1) % k], xe.dtype)
+        return start + t[..., None] * (end - start) - xi[..., None, :]
 
     def step(xi, g, h, gn, w, p_edges):
         # Free: Newton with the exact curvature where it is positive definite, Gauss-Newton's
@@ -339,10 +329,13 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
             alpha = xp.where(grow, 0.5 * alpha, alpha)
         blocked = (xp.min(alpha_j, -1) <= alpha) & ~done
         new = xi + alpha[..., None] * p
-        # Put a point that hit a constraint exactly on it, and add that constraint to W.
-        aj, bj = A[jb], b[jb]
-        corr = _safe_div(bj - _dot(aj, new, xp), _dot(aj, aj, xp), xp)[..., None] * aj
-        new = xp.where(blocked[..., None], new + corr, new)
+        # A step that hit a constraint goes on to the exact closest point of that edge (the
+        # next working set's solution, known without new derivatives); W holds every
+        # constraint active there (both at a corner).
+        on_edge = xi + xp.take_along_axis(p_edges, xp.asarray(ce)[jb][..., None, None],
+                                          -2)[..., 0, :]
+        new = xp.where(blocked[..., None], on_edge, new)
+        w = w | (blocked[..., None] & (xp.abs(new @ A.T - b) <= feasible_tol))
         w = w | ((xp.arange(m) == jb[..., None]) & blocked[..., None])
         return xp.where(done[..., None], xi, new), w, done, iters
 

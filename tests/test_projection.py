@@ -104,8 +104,9 @@ def test_closest_point_edge_is_the_global_minimum_on_the_edge(element):
         q = rng.normal(size=(400, 3))
         xe = np.broadcast_to(pts, (len(q),) + pts.shape)
         ts = np.linspace(0, 1, 20001)
+        t_all, d_all = closest_point_edge(e, q, xe)
         for k in range(e.n_corners):
-            t, d = closest_point_edge(e, k, q, xe)
+            t, d = t_all[:, k], d_all[:, k]
             a, b = e.edge_nodes[k, :2]
             x = shape_functions(e, e.nodes[a] + ts[:, None] * (e.nodes[b] - e.nodes[a])) @ pts
             dense = ((q[:, None] - x[None]) ** 2).sum(-1).min(1)

@@ -441,12 +441,18 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
                 alpha = 0.5 * alpha
         new = xi + alpha * p
         if jb >= 0 and amin <= alpha:
-            ab = el.cons_a[jb]
-            new = new + _sdiv(el.cons_b[jb] - wp.dot(ab, new), wp.dot(ab, ab)) * ab
-            if w1 < 0:
-                w1 = jb
-            elif w2 < 0:
-                w2 = jb
+            # On to the exact closest point of the edge it hit (as NumPy); W gains every
+            # constraint active there (both at a corner).
+            e = el.cons_edge[jb]
+            t_e, d_e = closest_point_edge(el, r, xe, e)
+            new = edge_xi(el, e, t_e)
+            for j in range(el.n_cons):
+                if j != w1 and j != w2:
+                    if j == jb or wp.abs(wp.dot(el.cons_a[j], new) - el.cons_b[j]) <= 1.0e-6:
+                        if w1 < 0:
+                            w1 = j
+                        elif w2 < 0:
+                            w2 = j
         xi = new
     feature = FACE
     local = int(-1)
