@@ -64,13 +64,13 @@ def test_curved_and_distorted_faces_equal_the_reference(element):
         pts[e.n_corners:, 2] += 0.35 * rng.choice([-1.0, 1.0], e.nodes_per_face - e.n_corners)
         if _folded(e, pts) <= 0:
             continue
-        missed, conv, same_feature = _check_face(e, pts, _points_near(e, 400, trial))
+        missed, conv, same_feature = _check_face(e, pts, _points_near(e, 300, trial))
         assert not missed.any() and conv.all()
         assert same_feature.mean() > 0.99  # where the reference's feature is unambiguous
         done += 1
-        if done == 4:
+        if done == 3:
             break
-    assert done == 4
+    assert done == 3
 
 
 @pytest.mark.parametrize("element", ["tri6", "quad8", "quad9"])
@@ -81,7 +81,7 @@ def test_folded_faces_miss_rarely(element):
     e = get_element(element)
     rng = np.random.default_rng(3)
     misses = total = 0
-    while total < 2000:
+    while total < 1000:
         pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(
             size=(e.nodes_per_face, 3))
         if _folded(e, pts) > -0.3:
@@ -98,12 +98,12 @@ def test_closest_point_edge_is_the_global_minimum_on_the_edge(element):
     the solver may only be closer than the sampled minimum, never farther)."""
     e = get_element(element)
     rng = np.random.default_rng(8)
-    for trial in range(10):
+    for trial in range(4):
         pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.5 * rng.normal(
             size=(e.nodes_per_face, 3))
-        q = rng.normal(size=(400, 3))
+        q = rng.normal(size=(300, 3))
         xe = np.broadcast_to(pts, (len(q),) + pts.shape)
-        ts = np.linspace(0, 1, 20001)
+        ts = np.linspace(0, 1, 5001)
         t_all, d_all = closest_point_edge(e, q, xe)
         for k in range(e.n_corners):
             t, d = t_all[:, k], d_all[:, k]
