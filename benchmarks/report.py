@@ -155,53 +155,49 @@ def run_all():
     subprocess.run([sys.executable, str(HERE / "skips.py")], check=True)
 
 
+def skips(rec):
+    return ["| skip | with | without | saved |", "|---|---|---|---|"] + [
+        f"| {r['skip']} | {r['with_skip_s'] * 1e3:.1f} ms | {r['without_skip_s'] * 1e3:.1f} ms "
+        f"| {r['saved_fraction'] * 100:.0f} % |" for r in rec]
+
+
+# (records, heading, introduction, table) of each RESULTS.md section, in order.
+SECTIONS = [
+    ("pareto", "Run time against error — `python benchmarks/run.py pareto`",
+     "Every back end x dtype x mode x d_max factor (times the default d_max) on the rough "
+     "surfaces and the tyre on a rough road, 2^14 nodes each; errors against the reference on "
+     "256 random slaves. Plot: `results/pareto.png`.", pareto),
+    ("scaling", "Scaling — `python benchmarks/run.py scaling`",
+     "Rough surfaces, 2^12 .. 2^22 nodes each; peak bytes per node is the largest NumPy "
+     "allocation of one call (tracemalloc) over slave + master nodes. Plot: "
+     "`results/scaling.png`.", scaling),
+    ("skips", "What each skip saves — `python benchmarks/skips.py`",
+     "The same scene with and without each skip in one run on this CPU (NumPy float64; the "
+     "static master on Warp's CPU device, the only back end that keeps a grid between calls); "
+     "the scenes are in the script.", skips),
+    ("table1", "Seed 000 Table 1 at 2^20 nodes per surface — `python benchmarks/run.py table1`",
+     "quad4 faces, two rough surfaces of 2^20 nodes each: close (gap 1, RMS 0.5), convex "
+     "(curvature 2e-4), close but apart (convex, gap 4). Nodes in box = slaves + master nodes "
+     "inside the grown-box intersection. The paper's times are from its 2012 hardware and "
+     "code; ours from Warp's CPU device on this 2-core machine (NumPy's quad4 Newton path "
+     "takes minutes per call at this size here).", table1),
+    ("peers", "Peers on the same points — `python benchmarks/run.py peers`",
+     "Open3D, libigl and Warp's BVH answer the unsigned closest-point question (no feature, no "
+     "signed gap, no tie rule); they are built and queried on the same points in the same run.",
+     peers),
+]
+
+
 def main():
     import sys
 
     if "--run" in sys.argv[1:]:
         run_all()
     out = []
-    rec = load("pareto")
-    if rec:
-        out += ["### Run time against error — `python benchmarks/run.py pareto`", "",
-                "Every back end x dtype x mode x d_max factor (times the default d_max) on the "
-                "rough surfaces and the tyre on a rough road, 2^14 nodes each; errors against "
-                "the reference on 256 random slaves. Plot: `results/pareto.png`.", ""]
-        out += pareto(rec) + [""]
-    rec = load("scaling")
-    if rec:
-        out += ["### Scaling — `python benchmarks/run.py scaling`", "",
-                "Rough surfaces, 2^12 .. 2^22 nodes each; peak bytes per node is the largest "
-                "NumPy allocation of one call (tracemalloc) over slave + master nodes. Plot: "
-                "`results/scaling.png`.", ""]
-        out += scaling(rec) + [""]
-    rec = load("skips")
-    if rec:
-        out += ["### What each skip saves — `python benchmarks/skips.py`", "",
-                "The same scene with and without each skip in one run on this CPU (NumPy float64; "
-                "the static master on Warp's CPU device, the only back end that keeps a grid "
-                "between calls); the scenes are in the script.", "",
-                "| skip | with | without | saved |", "|---|---|---|---|"]
-        out += [f"| {r['skip']} | {r['with_skip_s'] * 1e3:.1f} ms | "
-                f"{r['without_skip_s'] * 1e3:.1f} ms | {r['saved_fraction'] * 100:.0f} % |"
-                for r in rec] + [""]
-    rec = load("table1")
-    if rec:
-        out += ["### Seed 000 Table 1 at 2^20 nodes per surface — `python benchmarks/run.py "
-                "table1`", "", "quad4 faces, two rough surfaces of 2^20 nodes each: close (gap "
-                "1, RMS 0.5), convex (curvature 2e-4), close but apart (convex, gap 4). Nodes "
-                "in box = slaves + master nodes inside the grown-box intersection. The paper's "
-                "times are from its 2012 hardware and code; ours from Warp's CPU device on this "
-                "2-core machine (NumPy's quad4 Newton path takes minutes per call at this "
-                "size here).", ""]
-        out += table1(rec) + [""]
-    rec = load("peers")
-    if rec:
-        out += ["### Peers on the same points — `python benchmarks/run.py peers`", "",
-                "Open3D, libigl and Warp's BVH answer the unsigned closest-point question "
-                "(no feature, no signed gap, no tie rule); they are built and queried on the "
-                "same points in the same run.", ""]
-        out += peers(rec) + [""]
+    for suite, heading, intro, render in SECTIONS:
+        rec = load(suite)
+        if rec:
+            out += [f"### {heading}", "", intro, ""] + render(rec) + [""]
     f = HERE / "RESULTS.md"
     text = f.read_text()
     block = BEGIN + "\n" + "\n".join(out) + "\n" + END
