@@ -50,6 +50,25 @@ def test_warp_equals_numpy_float32_and_the_reference(name):
         assert_matches_reference(c, s.slave, s.master, dtype=np.float32)
 
 
+@pytest.mark.parametrize("name", ["rough_tri3", "patch_quad8"])
+def test_warp_float64_equals_numpy_float64_and_the_reference(name):
+    """The float64 twin of the kernels (the same source, `_real`) matches NumPy in float64."""
+    s = SCENES[name]()
+    p = acw.plan(s.master, s.slave, device=DEVICE, dtype="float64")
+    o = acw.detect(p, s.slave, s.master.points)
+    assert o["gap"].dtype == np.float64 and o["xi"].dtype == np.float64
+    r = ac.detect(s.slave, s.master, dtype=np.float64)
+    assert np.array_equal(o["active"].astype(bool), r.active)
+    for k in ("face", "feature", "master_node", "status"):
+        assert np.array_equal(o[k], getattr(r, k)), k
+    a, L = r.active, s.master.longest_edge
+    assert np.abs(o["gap"][a] - r.gap[a]).max() <= 1e-12 * L
+    # Points to the float64 KKT tolerance (1e-10 in natural coordinates) times the size.
+    assert np.abs(o["point"][a] - r.point[a]).max() <= 1e-9 * L
+    c = ac.detect(s.slave, s.master, backend="warp", dtype="float64")
+    assert_matches_reference(c, s.slave, s.master, dtype=np.float64)
+
+
 def test_warp_far_from_the_origin():
     s = scenes.rough_surfaces(2**10, seed=2)
     shift = np.array([1e6, -2e6, 3e6]) * s.master.longest_edge
@@ -100,8 +119,11 @@ def test_bad_worlds_and_inputs():
         acw.detect(p, s.slave[:-1], s.master.points)
     with pytest.raises(ValueError, match="not finite"):
         acw.detect(p, np.full_like(s.slave, np.nan), s.master.points)
-    with pytest.raises(ValueError, match="float32"):
-        ac.detect(s.slave, s.master, backend="warp", dtype=np.float64)
+    with pytest.raises(ValueError, match="float32 or float64"):
+        acw.plan(s.master, s.slave, dtype=np.float16)
+    p64 = acw.plan(s.master, s.slave, device=DEVICE, dtype="float64")
+    with pytest.raises(ValueError, match="vec3d"):
+        acw.detect(p64, wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE))
 
 
 def test_overflow_flag_when_faces_outgrow_the_plan():
@@ -176,47 +198,61 @@ def test_exported_geometry_in_a_user_kernel():
     assert np.array_equal(feat.numpy(), ref.feature)
 
 
-@wp.kernel
-def _edges_kernel(el: acw.Element, pts: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
-                  t_out: wp.array2d(dtype=float), d_out: wp.array2d(dtype=float)):
-    i = wp.tid()
-    xe = acw.FaceNodes()
-    for k in range(pts.shape[0]):
-        xe.x[k, 0] = pts[k][0]
-        xe.x[k, 1] = pts[k][1]
-        xe.x[k, 2] = pts[k][2]
-    for e in range(el.n_corners):
-        t, d = acw.closest_point_edge(el, q[i], xe, e)
-        t_out[i, e] = t
-        d_out[i, e] = d
+def _edges_kernel(g, real, vec3):
+    """A user kernel calling the exported edge solver of geometry module g."""
+
+    @wp.kernel(module="unique")
+    def edges(el: g.Element, pts: wp.array(dtype=vec3), q: wp.array(dtype=vec3),
+              t_out: wp.array2d(dtype=real), d_out: wp.array2d(dtype=real)):
+        i = wp.tid()
+        xe = g.FaceNodes()
+        for k in range(pts.shape[0]):
+            xe.x[k, 0] = pts[k][0]
+            xe.x[k, 1] = pts[k][1]
+            xe.x[k, 2] = pts[k][2]
+        for e in range(el.n_corners):
+            t, d = g.closest_point_edge(el, q[i], xe, e)
+            t_out[i, e] = t
+            d_out[i, e] = d
+
+    return edges
 
 
-@pytest.mark.parametrize("element", ["quad4", "tri6", "quad8", "quad9"])
-def test_exported_closest_point_edge(element):
+@pytest.mark.parametrize("element,dtype", [("quad4", "float32"), ("tri6", "float32"),
+                                           ("quad8", "float32"), ("quad9", "float32"),
+                                           ("quad8", "float64")])
+def test_exported_closest_point_edge(element, dtype):
     """The exact edge solver as a @wp.func: the same minimum as dense sampling of each edge."""
     from arraycontact._elements import get_element, shape_functions
+
+    g = acw.geometry(dtype)
+    real, vec3 = (wp.float32, wp.vec3) if dtype == "float32" else (wp.float64, wp.vec3d)
 
     e = get_element(element)
     rng = np.random.default_rng(4)
     pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(
         size=(e.nodes_per_face, 3))
     q = rng.normal(size=(300, 3))
-    t = wp.zeros((300, e.n_corners), dtype=float, device=DEVICE)
-    d = wp.zeros((300, e.n_corners), dtype=float, device=DEVICE)
-    def arr(a):
-        return wp.array(a.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    t = wp.zeros((300, e.n_corners), dtype=real, device=DEVICE)
+    d = wp.zeros((300, e.n_corners), dtype=real, device=DEVICE)
 
-    wp.launch(_edges_kernel, 300, inputs=[acw.element_data(element, DEVICE), arr(pts), arr(q)],
-              outputs=[t, d], device=DEVICE)
+    def arr(a):
+        return wp.array(a.astype(dtype), dtype=vec3, device=DEVICE)
+
+    wp.launch(_edges_kernel(g, real, vec3), 300,
+              inputs=[g.element_data(element, DEVICE), arr(pts), arr(q)], outputs=[t, d],
+              device=DEVICE)
     ts = np.linspace(0, 1, 4001)
     for k in range(e.n_corners):
         a, b = e.edge_nodes[k, :2]
         x = shape_functions(e, e.nodes[a] + ts[:, None] * (e.nodes[b] - e.nodes[a])) @ pts
         dense = ((q[:, None] - x[None]) ** 2).sum(-1).min(1)
-        # float32 solve against a float64 sampling 2.5e-4 apart along the edge
+        # Against a float64 sampling 2.5e-4 apart along the edge (its own error ~1e-7 here).
         assert np.abs(d.numpy()[:, k] - dense).max() <= 1e-4 * (1 + dense.max())
+        assert (d.numpy()[:, k] <= dense + (1e-5 if dtype == "float32" else 1e-12)).all()
         xt = shape_functions(e, e.nodes[a] + t.numpy()[:, k, None] * (e.nodes[b] - e.nodes[a]))
-        assert np.allclose(((xt @ pts - q) ** 2).sum(-1), d.numpy()[:, k], rtol=1e-4, atol=1e-5)
+        tol = 1e-5 if dtype == "float32" else 1e-12
+        assert np.allclose(((xt @ pts - q) ** 2).sum(-1), d.numpy()[:, k], rtol=tol, atol=tol)
 
 
 def test_jax_arrays_in_and_out():

@@ -1,10 +1,10 @@
 """Warp back end of arraycontact: graph-capturable detection kernels and the geometry as
 `@wp.func`s for simulators' own kernels.
 
-    plan(master, slave_points, *, slave_world, master_world, d_max, device) -> Plan
+    plan(master, slave_points, *, slave_world, master_world, d_max, device, dtype) -> Plan
     detect(plan, slave_points, master_points) -> dict of arrays (launches only)
     closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
-    face_point: @wp.func
+    face_point: @wp.func (float32; `geometry("float64")` holds their float64 twins)
 """
 
 AVAILABLE = True
@@ -22,7 +22,17 @@ from ._geometry import element_data as element_data  # noqa: E402
 from ._geometry import face_nodes as face_nodes  # noqa: E402
 from ._geometry import face_point as face_point  # noqa: E402
 from ._geometry import start_option_one as start_option_one  # noqa: E402
+from ._real import precision as _precision  # noqa: E402
+
+
+def geometry(dtype="float32"):
+    """The module of exported @wp.funcs and structs (closest_point_face, Element, ...) that
+    compute in dtype: this package's own for float32, their twins for float64."""
+    import importlib
+
+    return importlib.import_module(_precision(dtype).__package__ + "._geometry")
+
 
 __all__ = ["AVAILABLE", "Element", "FaceNodes", "Plan", "closest_point_edge", "closest_point_face",
            "closest_point_triangle", "detect", "element_data", "face_nodes", "face_point",
-           "plan", "run_one_shot", "start_option_one"]
+           "geometry", "plan", "run_one_shot", "start_option_one"]

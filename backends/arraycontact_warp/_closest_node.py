@@ -6,6 +6,7 @@ from __future__ import annotations
 import warp as wp
 
 from ._grid import Grid, cell_key, cell_of
+from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
@@ -13,11 +14,11 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
 @wp.func
-def _cell_near(s: wp.vec3, c: wp.vec3i, cell: float, reach: float):
-    lo = wp.vec3(float(c[0]), float(c[1]), float(c[2])) * cell
-    g = wp.vec3(0.0)
+def _cell_near(s: vec3, c: wp.vec3i, cell: real, reach: real):
+    lo = vec3(real(c[0]), real(c[1]), real(c[2])) * cell
+    g = vec3(0.0)
     for k in range(3):
-        g[k] = wp.max(wp.max(lo[k] - s[k], s[k] - (lo[k] + cell)), 0.0)
+        g[k] = wp.max(wp.max(lo[k] - s[k], s[k] - (lo[k] + cell)), real(0.0))
     return wp.length_sq(g) <= reach * reach
 
 
@@ -36,10 +37,10 @@ def stencil_offset(q: int):
 
 
 @wp.func
-def _scan(s: wp.vec3, world: int, grid: Grid, d_max: float, limit: float):
+def _scan(s: vec3, world: int, grid: Grid, d_max: real, limit: real):
     """Smallest distance within d_max, and the smallest node id at distance <= limit."""
     c0 = cell_of(s, grid.cell)
-    dmin = float(3.0e38)
+    dmin = real(3.0e38)
     best = int(-1)
     for q in range(27):
         c = c0 + stencil_offset(q)
@@ -50,7 +51,7 @@ def _scan(s: wp.vec3, world: int, grid: Grid, d_max: float, limit: float):
                 ball = grid.balls[k]
                 if grid.worlds[k] == world:
                     j = grid.sorted_ids[k]
-                    d = wp.length(wp.vec3(ball[0], ball[1], ball[2]) - s)
+                    d = wp.length(vec3(ball[0], ball[1], ball[2]) - s)
                     if d <= d_max:
                         dmin = wp.min(dmin, d)
                         if d <= limit and (best < 0 or j < best):
@@ -59,9 +60,9 @@ def _scan(s: wp.vec3, world: int, grid: Grid, d_max: float, limit: float):
 
 
 @wp.func
-def closest_node(s: wp.vec3, world: int, grid: Grid, d_max: float, tie: float):
+def closest_node(s: vec3, world: int, grid: Grid, d_max: real, tie: real):
     """(node id or -1, distance or 3e38)."""
-    dmin, unused = _scan(s, world, grid, d_max, -1.0)
+    dmin, unused = _scan(s, world, grid, d_max, real(-1.0))
     best = int(-1)
     if dmin <= d_max:
         d2, best = _scan(s, world, grid, d_max, dmin + tie)

@@ -10,7 +10,8 @@ radius the face grid's cells were sized for, reported in the device flag `plan.o
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;
 results per world equal running each world alone. A master without world ids is shared by all
-worlds. Computation is float32 in a local frame at the plan's box corner.
+worlds. Computation is in float32 or float64 (the plan's dtype; `_real` says how one source
+serves both) in a local frame at the plan's box corner.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from arraycontact._surface import Surface, validate_points
 from . import _grid, _prepare
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
+from ._real import NP_REAL, real, precision, vec2, vec3
 from ._projection import Master, scan_faces
 from ._select import classify
 
@@ -41,13 +43,13 @@ GROWTH = 1.25
 
 @wp.kernel
 def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.Grid,
-                   slaves: wp.array(dtype=wp.vec3), slave_world: wp.array(dtype=int),
-                   shared: int, origin: wp.vec3, d_max: float, tie: float, slack: float,
-                   r_cap: float, iterations: int, tol: float,
+                   slaves: wp.array(dtype=vec3), slave_world: wp.array(dtype=int),
+                   shared: int, origin: vec3, d_max: real, tie: real, slack: real,
+                   r_cap: real, iterations: int, tol: real,
                    active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
-                   xi_out: wp.array(dtype=wp.vec2), point_out: wp.array(dtype=wp.vec3),
-                   gap_out: wp.array(dtype=float), dist_out: wp.array(dtype=float),
-                   normal_out: wp.array(dtype=wp.vec3), feature_out: wp.array(dtype=int),
+                   xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
+                   gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
+                   normal_out: wp.array(dtype=vec3), feature_out: wp.array(dtype=int),
                    node_out: wp.array(dtype=int), status_out: wp.array(dtype=int)):
     i = wp.tid()
     s = slaves[i] - origin
@@ -59,14 +61,14 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     rho = wp.min(dn, d_max) + slack
     # Two scans: the smallest distance, then the smallest face id within `tie` of it (one call
     # site in a loop keeps the generated code small).
-    limit = float(-1.0)
-    dmin = float(3.0e38)
+    limit = real(-1.0)
+    dmin = real(3.0e38)
     f = int(-1)
-    xi = wp.vec2(0.0)
+    xi = vec2(0.0)
     feature = int(-1)
     local = int(-1)
     conv = int(0)
-    diff = wp.vec3(0.0)
+    diff = vec3(0.0)
     for scan in range(2):
         if scan == 0 or dmin <= d_max:
             d, f, xi, feature, local, conv, diff = scan_faces(el, m, face_grid, s, w, rho,
@@ -76,7 +78,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
                 dmin = d
                 limit = dmin + tie
                 rho = wp.min(rho, limit + slack)  # the second scan needs only faces this near
-    nan = wp.nan
+    nan = real(wp.nan)
     if dmin <= d_max:
         gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
         active_out[i] = 1
@@ -93,17 +95,17 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     else:
         active_out[i] = 0
         face_out[i] = -1
-        xi_out[i] = wp.vec2(nan, nan)
-        point_out[i] = wp.vec3(nan, nan, nan)
+        xi_out[i] = vec2(nan, nan)
+        point_out[i] = vec3(nan, nan, nan)
         gap_out[i] = nan
         dist_out[i] = nan
-        normal_out[i] = wp.vec3(nan, nan, nan)
+        normal_out[i] = vec3(nan, nan, nan)
         feature_out[i] = -1
         status_out[i] = 1
 
 
-OUTPUTS = (("active", wp.int32), ("face", int), ("xi", wp.vec2), ("point", wp.vec3),
-           ("gap", float), ("distance", float), ("normal", wp.vec3), ("feature", int),
+OUTPUTS = (("active", wp.int32), ("face", int), ("xi", vec2), ("point", vec3),
+           ("gap", real), ("distance", real), ("normal", vec3), ("feature", int),
            ("master_node", int), ("status", int))
 
 
@@ -131,6 +133,7 @@ class Plan:
     overflow: wp.array
     out: dict
     zero_radii: wp.array  # the node grid's items are points
+    dtype: np.dtype  # what the kernels compute in
     master_ready: bool = False  # the master stages have run at least once
 
 
@@ -147,12 +150,18 @@ def _worlds(world, n, what):
 
 
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
-         device=None, growth=GROWTH) -> Plan:
-    """Allocate a detection of slaves [n, 3] against `master` (exact mode, float32).
+         device=None, growth=GROWTH, dtype="float32") -> Plan:
+    """Allocate a detection of slaves [n, 3] against `master` (exact mode) computing in dtype
+    (float32 or float64).
 
     slave_world [n] and master_world [n_points]: world ids (non-negative ints). Without
     master_world the master is shared by all worlds. d_max: default the longest master edge.
     growth: how much larger than now the master's faces may become before `overflow`."""
+    here = precision(dtype)
+    if here.real is not real:
+        return here.plan(master, slave_points, slave_world=slave_world,
+                         master_world=master_world, d_max=d_max, device=device, growth=growth,
+                         dtype=dtype)
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if master.n_faces == 0:
@@ -182,24 +191,24 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     lo = np.minimum(x.min(0), pts.min(0)) - d_max
     hi = np.maximum(x.max(0), pts.max(0)) + d_max
     extent = 2 * float((hi - lo).max())
-    eps = float(np.finfo(np.float32).eps)
-    tie = TIE_RTOL[np.dtype(np.float32)] * master.longest_edge
+    eps = float(np.finfo(NP_REAL).eps)
+    tie = TIE_RTOL[NP_REAL] * master.longest_edge
     consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_cap),
-                  r_cap=r_cap, tol=KKT_TOL[np.dtype(np.float32)],
+                  r_cap=r_cap, tol=KKT_TOL[NP_REAL],
                   iterations=ITERATIONS.get(e.name, 0), lebesgue=float(e.lebesgue))
 
     def arr(a, dtype):
         return wp.array(a, dtype=dtype, device=device)
 
     m = Master()
-    m.points = wp.zeros(len(master.points), dtype=wp.vec3, device=device)
+    m.points = wp.zeros(len(master.points), dtype=vec3, device=device)
     m.faces = arr(master.faces.astype(np.int32), int)
     m.face_world, m.node_world = arr(fw, int), arr(nw if not shared else 0 * nw, int)
     if shared:
         m.face_world = arr(0 * fw, int)
-    m.centres = wp.zeros(master.n_faces, dtype=wp.vec3, device=device)
-    m.radii = wp.zeros(master.n_faces, dtype=float, device=device)
-    m.node_normals = wp.zeros(len(master.points), dtype=wp.vec3, device=device)
+    m.centres = wp.zeros(master.n_faces, dtype=vec3, device=device)
+    m.radii = wp.zeros(master.n_faces, dtype=real, device=device)
+    m.node_normals = wp.zeros(len(master.points), dtype=vec3, device=device)
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
@@ -211,10 +220,11 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 node_ids=arr(master.nodes.astype(np.int32), int),
                 face_ids=arr(np.arange(master.n_faces, dtype=np.int32), int),
                 slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
-                slave_in=wp.zeros(len(x), dtype=wp.vec3, device=device),
-                master_in=wp.zeros(len(master.points), dtype=wp.vec3, device=device),
+                slave_in=wp.zeros(len(x), dtype=vec3, device=device),
+                master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
                 overflow=wp.zeros(1, dtype=int, device=device), out=out,
-                zero_radii=wp.zeros(len(master.points), dtype=float, device=device))
+                zero_radii=wp.zeros(len(master.points), dtype=real, device=device),
+                dtype=NP_REAL)
 
 
 def _kind(a):
@@ -229,19 +239,20 @@ def _input(p: Plan, a, staging, what, n):
     """A vec3 device array holding `a` and the origin the kernels must subtract from it."""
     kind = _kind(a)
     if kind == "numpy":
-        # float64 host data: subtract the origin in float64 before the float32 cast.
+        # float64 host data: subtract the origin in float64 before a float32 cast.
         x = validate_points(a, what)
         if len(x) != n:
             raise ValueError(f"{what} must have {n} rows (the plan's), got {len(x)}")
-        staging.assign((x - p.origin).astype(np.float32))
-        return staging, wp.vec3(0.0, 0.0, 0.0)
+        staging.assign((x - p.origin).astype(NP_REAL))
+        return staging, vec3(0.0, 0.0, 0.0)
     if kind == "jax":
-        a = wp.from_jax(a, dtype=wp.vec3)  # DLPack: no copy on the same device
-    if a.dtype != wp.vec3 or a.shape != (n,):
-        raise ValueError(f"{what} must be a wp.array of {n} wp.vec3, got {a.dtype} {a.shape}")
+        a = wp.from_jax(a, dtype=vec3)  # DLPack: no copy on the same device
+    if a.dtype != vec3 or a.shape != (n,):
+        raise ValueError(f"{what} must be a wp.array of {n} {vec3.__name__} (the plan's dtype), "
+                         f"got {a.dtype} {a.shape}")
     if a.device != p.device:
         raise ValueError(f"{what} is on {a.device}, the plan on {p.device}")
-    return a, wp.vec3(*[float(v) for v in p.origin])
+    return a, vec3(*[float(v) for v in p.origin])
 
 
 def _master_stages(p: Plan, master_points):
@@ -273,6 +284,11 @@ def detect(p: Plan, slave_points, master_points=None):
     active, face, xi, point, gap, distance, normal, feature, master_node, status.
     master_points=None reuses the master's geometry and grids of the previous call (a master
     that does not move: only the slave kernel runs)."""
+    if not isinstance(p, Plan):
+        # A plan of the other precision: its own module's detect.
+        if not hasattr(p, "dtype"):
+            raise ValueError(f"p must be a Plan from arraycontact_warp.plan, got {type(p)}")
+        return precision(p.dtype).detect(p, slave_points, master_points)
     c = p.constants
     dev = p.device
     xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
@@ -285,8 +301,8 @@ def detect(p: Plan, slave_points, master_points=None):
     o = p.out
     wp.launch(_detect_kernel, p.n_slaves,
               inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
-                      s_origin, c["d_max"], c["tie"], c["slack"], c["r_cap"], c["iterations"],
-                      c["tol"]],
+                      s_origin, real(c["d_max"]), real(c["tie"]), real(c["slack"]),
+                      real(c["r_cap"]), c["iterations"], real(c["tol"])],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
     kind = _kind(slave_points)
     if kind == "warp":
@@ -305,10 +321,8 @@ def run_one_shot(slave_x, master, prep, st, dtype):
     """`arraycontact.detect(backend="warp")`: plan, detect, host arrays out."""
     if st.mode != "exact":
         raise ValueError("the warp back end implements mode='exact' only")
-    if np.dtype(dtype) != np.float32:
-        raise ValueError("the warp back end computes in float32: pass dtype='float32'")
     x = slave_x[prep.slave_rows]
-    p = plan(master, x, d_max=prep.d_max)
+    p = plan(master, x, d_max=prep.d_max, dtype=dtype)
     out = detect(p, x, master.points)
     out["active"] = out["active"].astype(bool)
     out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back

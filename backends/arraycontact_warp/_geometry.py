@@ -21,6 +21,8 @@ import warp as wp
 
 from arraycontact._elements import get_element
 
+from ._real import ACTIVE_TOL, EPS, NP_REAL, mat22, real, vec2, vec3
+
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
@@ -36,14 +38,14 @@ class Element:
     n_corners: int
     n_mono: int
     n_cons: int
-    coef: wp.array2d(dtype=float)  # N_i = sum_j coef[i, j] xi^px[j] eta^py[j]
+    coef: wp.array2d(dtype=real)  # N_i = sum_j coef[i, j] xi^px[j] eta^py[j]
     px: wp.array(dtype=int)
     py: wp.array(dtype=int)
-    cons_a: wp.array(dtype=wp.vec2)  # domain: a_j . xi >= b_j
-    cons_b: wp.array(dtype=float)
+    cons_a: wp.array(dtype=vec2)  # domain: a_j . xi >= b_j
+    cons_b: wp.array(dtype=real)
     cons_edge: wp.array(dtype=int)  # local edge of constraint j
-    nodes: wp.array(dtype=wp.vec2)  # natural coordinates of the nodes
-    centre: wp.vec2
+    nodes: wp.array(dtype=vec2)  # natural coordinates of the nodes
+    centre: vec2
 
 
 @wp.struct
@@ -51,18 +53,18 @@ class Triangles:
     """tri3 only: the kernels specialise on this type (no curved-face solver in the way)."""
 
     n_corners: int
-    nodes: wp.array(dtype=wp.vec2)
+    nodes: wp.array(dtype=vec2)
 
 
 @wp.struct
 class FaceNodes:
-    x: wp.types.matrix(shape=(9, 3), dtype=float)  # node coordinates, row per node
+    x: wp.types.matrix(shape=(9, 3), dtype=real)  # node coordinates, row per node
 
 
 def triangle_data(device=None) -> Triangles:
     t = Triangles()
     t.n_corners = 3
-    t.nodes = wp.array(np.array([[0, 0], [1, 0], [0, 1]], np.float32), dtype=wp.vec2,
+    t.nodes = wp.array(np.array([[0, 0], [1, 0], [0, 1]], NP_REAL), dtype=vec2,
                        device=device)
     return t
 
@@ -72,51 +74,51 @@ def element_data(name, device=None) -> Element:
     el = Element()
     el.nn, el.n_corners = e.nodes_per_face, e.n_corners
     el.n_mono, el.n_cons = len(e.monomials), len(e.constraints_b)
-    el.coef = wp.array(e.coefficients.astype(np.float32), dtype=float, device=device)
+    el.coef = wp.array(e.coefficients.astype(NP_REAL), dtype=real, device=device)
     el.px = wp.array([p for p, _ in e.monomials], dtype=int, device=device)
     el.py = wp.array([q for _, q in e.monomials], dtype=int, device=device)
-    el.cons_a = wp.array(e.constraints_a.astype(np.float32), dtype=wp.vec2, device=device)
-    el.cons_b = wp.array(e.constraints_b.astype(np.float32), dtype=float, device=device)
+    el.cons_a = wp.array(e.constraints_a.astype(NP_REAL), dtype=vec2, device=device)
+    el.cons_b = wp.array(e.constraints_b.astype(NP_REAL), dtype=real, device=device)
     el.cons_edge = wp.array(e.constraint_edge, dtype=int, device=device)
-    el.nodes = wp.array(e.nodes.astype(np.float32), dtype=wp.vec2, device=device)
-    el.centre = wp.vec2(*[float(v) for v in e.centre])
+    el.nodes = wp.array(e.nodes.astype(NP_REAL), dtype=vec2, device=device)
+    el.centre = vec2(*[float(v) for v in e.centre])
     return el
 
 
 @wp.func
-def _pw(x: float, p: int):
+def _pw(x: real, p: int):
     if p == 0:
-        return 1.0
+        return real(1.0)
     if p == 1:
         return x
     return x * x
 
 
 @wp.func
-def _dpw(x: float, p: int):
+def _dpw(x: real, p: int):
     if p == 0:
-        return 0.0
+        return real(0.0)
     if p == 1:
-        return 1.0
-    return 2.0 * x
+        return real(1.0)
+    return real(2.0) * x
 
 
 @wp.func
 def _ddpw(p: int):
     if p == 2:
-        return 2.0
-    return 0.0
+        return real(2.0)
+    return real(0.0)
 
 
 @wp.func
-def shape(el: Element, xi: wp.vec2, i: int):
+def shape(el: Element, xi: vec2, i: int):
     """N_i, dN_i/dxi, dN_i/deta, and the three second derivatives (xixi, xieta, etaeta)."""
-    n = float(0.0)
-    d0 = float(0.0)
-    d1 = float(0.0)
-    h00 = float(0.0)
-    h01 = float(0.0)
-    h11 = float(0.0)
+    n = real(0.0)
+    d0 = real(0.0)
+    d1 = real(0.0)
+    h00 = real(0.0)
+    h01 = real(0.0)
+    h11 = real(0.0)
     for j in range(el.n_mono):
         c = el.coef[i, j]
         p = el.px[j]
@@ -132,12 +134,12 @@ def shape(el: Element, xi: wp.vec2, i: int):
 
 @wp.func
 def _row(xe: FaceNodes, i: int):
-    return wp.vec3(xe.x[i, 0], xe.x[i, 1], xe.x[i, 2])
+    return vec3(xe.x[i, 0], xe.x[i, 1], xe.x[i, 2])
 
 
 @wp.func
-def face_point(el: Element, xe: FaceNodes, xi: wp.vec2):
-    x = wp.vec3(0.0)
+def face_point(el: Element, xe: FaceNodes, xi: vec2):
+    x = vec3(0.0)
     for i in range(el.nn):
         n, d0, d1, h00, h01, h11 = shape(el, xi, i)
         x += n * _row(xe, i)
@@ -145,9 +147,9 @@ def face_point(el: Element, xe: FaceNodes, xi: wp.vec2):
 
 
 @wp.func
-def face_tangents(el: Element, xe: FaceNodes, xi: wp.vec2):
-    t0 = wp.vec3(0.0)
-    t1 = wp.vec3(0.0)
+def face_tangents(el: Element, xe: FaceNodes, xi: vec2):
+    t0 = vec3(0.0)
+    t1 = vec3(0.0)
     for i in range(el.nn):
         n, d0, d1, h00, h01, h11 = shape(el, xi, i)
         t0 += d0 * _row(xe, i)
@@ -156,8 +158,8 @@ def face_tangents(el: Element, xe: FaceNodes, xi: wp.vec2):
 
 
 @wp.func
-def face_nodes(points: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int), f: int,
-               origin: wp.vec3):
+def face_nodes(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int,
+               origin: vec3):
     """The nodes of face f relative to `origin` (nearby values subtract exactly)."""
     xe = FaceNodes()
     for i in range(faces.shape[1]):
@@ -169,14 +171,14 @@ def face_nodes(points: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int), f:
 
 
 @wp.func
-def _sdiv(a: float, b: float):
+def _sdiv(a: real, b: real):
     if b != 0.0:
         return a / b
-    return 0.0
+    return real(0.0)
 
 
 @wp.func
-def closest_point_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+def closest_point_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
     """Closest point on triangle (a, b, c) to p by Voronoi regions: xi = (v, w) with
     x = a + v (b - a) + w (c - a), feature, local (same regions and order as the NumPy twin)."""
     ab = b - a
@@ -185,100 +187,100 @@ def closest_point_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     d1 = wp.dot(ab, ap)
     d2 = wp.dot(ac, ap)
     if d1 <= 0.0 and d2 <= 0.0:
-        return wp.vec2(0.0, 0.0), VERTEX, 0
+        return vec2(0.0, 0.0), VERTEX, 0
     bp = p - b
     d3 = wp.dot(ab, bp)
     d4 = wp.dot(ac, bp)
     if d3 >= 0.0 and d4 <= d3:
-        return wp.vec2(1.0, 0.0), VERTEX, 1
+        return vec2(1.0, 0.0), VERTEX, 1
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        return wp.vec2(_sdiv(d1, d1 - d3), 0.0), EDGE, 0
+        return vec2(_sdiv(d1, d1 - d3), real(0.0)), EDGE, 0
     cp = p - c
     d5 = wp.dot(ab, cp)
     d6 = wp.dot(ac, cp)
     if d6 >= 0.0 and d5 <= d6:
-        return wp.vec2(0.0, 1.0), VERTEX, 2
+        return vec2(0.0, 1.0), VERTEX, 2
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        return wp.vec2(0.0, _sdiv(d2, d2 - d6)), EDGE, 2
+        return vec2(real(0.0), _sdiv(d2, d2 - d6)), EDGE, 2
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         w = _sdiv(d4 - d3, (d4 - d3) + (d5 - d6))
-        return wp.vec2(1.0 - w, w), EDGE, 1
+        return vec2(real(1.0) - w, w), EDGE, 1
     den = va + vb + vc
-    return wp.vec2(_sdiv(vb, den), _sdiv(vc, den)), FACE, -1
+    return vec2(_sdiv(vb, den), _sdiv(vc, den)), FACE, -1
 
 
 @wp.func
-def _objective(el: Element, xe: FaceNodes, r: wp.vec3, xi: wp.vec2):
+def _objective(el: Element, xe: FaceNodes, r: vec3, xi: vec2):
     return wp.length_sq(r - face_point(el, xe, xi))
 
 
 @wp.func
-def _solve2(m: wp.mat22, v: wp.vec2):
+def _solve2(m: mat22, v: vec2):
     det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    return wp.vec2(_sdiv(v[0] * m[1, 1] - m[0, 1] * v[1], det),
+    return vec2(_sdiv(v[0] * m[1, 1] - m[0, 1] * v[1], det),
                    _sdiv(m[0, 0] * v[1] - m[1, 0] * v[0], det))
 
 
 @wp.func
-def _cross2(a: wp.vec2, b: wp.vec2):
+def _cross2(a: vec2, b: vec2):
     return a[0] * b[1] - a[1] * b[0]
 
 
 @wp.func
-def _cubic(c3: float, c2: float, c1: float, c0: float, t: float):
+def _cubic(c3: real, c2: real, c1: real, c0: real, t: real):
     return ((c3 * t + c2) * t + c1) * t + c0
 
 
 @wp.func
-def edge_xi(el: Element, e: int, t: float):
+def edge_xi(el: Element, e: int, t: real):
     """Natural coordinates of parameter t on edge e (corner e to corner e + 1)."""
     a = el.nodes[e]
     return a + t * (el.nodes[(e + 1) % el.n_corners] - a)
 
 
 @wp.func
-def closest_point_edge(el: Element, r: wp.vec3, xe: FaceNodes, e: int):
+def closest_point_edge(el: Element, r: vec3, xe: FaceNodes, e: int):
     """The closest point to r on the whole edge e: (t, squared distance). The twin of
     arraycontact._geometry.closest_point_edge: the derivative of the squared distance along
     the edge is a cubic; the roots of its derivative split [0, 1] into monotone pieces; a
     piece where it rises through zero holds one minimum, found by Newton kept inside the
     sign-change bracket; the smallest of those and the ends wins."""
-    x0 = face_point(el, xe, edge_xi(el, e, 0.0))
-    xm = face_point(el, xe, edge_xi(el, e, 0.5))
-    x1 = face_point(el, xe, edge_xi(el, e, 1.0))
+    x0 = face_point(el, xe, edge_xi(el, e, real(0.0)))
+    xm = face_point(el, xe, edge_xi(el, e, real(0.5)))
+    x1 = face_point(el, xe, edge_xi(el, e, real(1.0)))
     p0 = x0 - r
-    p1 = 4.0 * xm - 3.0 * x0 - x1
-    p2 = 2.0 * (x0 + x1) - 4.0 * xm
-    c3 = 2.0 * wp.dot(p2, p2)
-    c2 = 3.0 * wp.dot(p1, p2)
-    c1 = wp.dot(p1, p1) + 2.0 * wp.dot(p0, p2)
+    p1 = real(4.0) * xm - real(3.0) * x0 - x1
+    p2 = real(2.0) * (x0 + x1) - real(4.0) * xm
+    c3 = real(2.0) * wp.dot(p2, p2)
+    c2 = real(3.0) * wp.dot(p1, p2)
+    c1 = wp.dot(p1, p1) + real(2.0) * wp.dot(p0, p2)
     c0 = wp.dot(p0, p1)
-    qa = 3.0 * c3
-    qb = 2.0 * c2
-    disc = qb * qb - 4.0 * qa * c1
-    s1 = float(0.0)
-    s2 = float(0.0)
+    qa = real(3.0) * c3
+    qb = real(2.0) * c2
+    disc = qb * qb - real(4.0) * qa * c1
+    s1 = real(0.0)
+    s2 = real(0.0)
     if disc > 0.0:
         sq = wp.sqrt(disc)
-        q = -0.5 * (qb + wp.where(qb >= 0.0, sq, -sq))
-        s1 = wp.clamp(_sdiv(q, qa), 0.0, 1.0)
-        s2 = wp.clamp(_sdiv(c1, q), 0.0, 1.0)
+        q = -real(0.5) * (qb + wp.where(qb >= 0.0, sq, -sq))
+        s1 = wp.clamp(_sdiv(q, qa), real(0.0), real(1.0))
+        s2 = wp.clamp(_sdiv(c1, q), real(0.0), real(1.0))
     lo_s = wp.min(s1, s2)
     hi_s = wp.max(s1, s2)
-    best_t = float(1.0)
+    best_t = real(1.0)
     best_d = wp.length_sq(p0 + p1 + p2)
     for k in range(3):
-        a = float(0.0)
+        a = real(0.0)
         b = lo_s
         if k == 1:
             a = lo_s
             b = hi_s
         elif k == 2:
             a = hi_s
-            b = 1.0
+            b = real(1.0)
         fa = _cubic(c3, c2, c1, c0, a)
         fb = _cubic(c3, c2, c1, c0, b)
         t = a
@@ -293,12 +295,12 @@ def closest_point_edge(el: Element, r: wp.vec3, xe: FaceNodes, e: int):
                     lo = t
                 if ft >= 0.0:
                     hi = t
-                dft = (3.0 * c3 * t + 2.0 * c2) * t + c1
+                dft = (real(3.0) * c3 * t + real(2.0) * c2) * t + c1
                 tn = t - _sdiv(ft, dft)
                 if dft > 0.0 and tn >= lo and tn <= hi:
                     t = tn
                 else:
-                    t = 0.5 * (lo + hi)
+                    t = real(0.5) * (lo + hi)
             t = wp.clamp(t, a, b)
         x = p0 + t * (p1 + t * p2)
         d = wp.dot(x, x)
@@ -309,8 +311,8 @@ def closest_point_edge(el: Element, r: wp.vec3, xe: FaceNodes, e: int):
 
 
 @wp.func
-def _step(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, h: wp.mat22, g: wp.vec2,
-          t0: wp.vec3, t1: wp.vec3, s00: wp.vec3, s01: wp.vec3, s11: wp.vec3, w1: int, w2: int):
+def _step(el: Element, r: vec3, xe: FaceNodes, xi: vec2, h: mat22, g: vec2,
+          t0: vec3, t1: vec3, s00: vec3, s01: vec3, s11: vec3, w1: int, w2: int):
     """The step for the working set {w1, w2} (-1: empty slot). Empty: Newton (h positive
     definite or Gauss-Newton's) with its second-order correction where that stays on the face
     and is closer; one constraint: to the exact closest point of that edge; two: none."""
@@ -323,8 +325,8 @@ def _step(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, h: wp.mat22, g: w
         m0 = p[0] * s00 + p[1] * s01
         m1 = p[0] * s01 + p[1] * s11
         xpp = p[0] * m0 + p[1] * m1
-        c = wp.vec2(2.0 * wp.dot(m0, jp) + wp.dot(t0, xpp), 2.0 * wp.dot(m1, jp) + wp.dot(t1, xpp))
-        pc = p - _solve2(h, 0.5 * c)
+        c = vec2(real(2.0) * wp.dot(m0, jp) + wp.dot(t0, xpp), real(2.0) * wp.dot(m1, jp) + wp.dot(t1, xpp))
+        pc = p - _solve2(h, real(0.5) * c)
         if _objective(el, xe, r, xi + pc) < _objective(el, xe, r, xi + p):
             return pc
         return p
@@ -332,12 +334,12 @@ def _step(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, h: wp.mat22, g: w
         e = el.cons_edge[w1]
         t, d = closest_point_edge(el, r, xe, e)
         return edge_xi(el, e, t) - xi
-    return wp.vec2(0.0)
+    return vec2(0.0)
 
 
 @wp.func
-def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, iterations: int,
-                       tol: float):
+def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iterations: int,
+                       tol: real):
     """Active-set method on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8), the
     twin of the NumPy "active_set" method: exact Hessian (Gauss-Newton where it is not
     positive definite), steps from `_step`; the working set holds at most two constraints
@@ -346,7 +348,7 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
     w1 = int(-1)
     w2 = int(-1)
     for j in range(el.n_cons):
-        if wp.abs(wp.dot(el.cons_a[j], xi) - el.cons_b[j]) <= 1.0e-6:
+        if wp.abs(wp.dot(el.cons_a[j], xi) - el.cons_b[j]) <= ACTIVE_TOL:
             if w1 < 0:
                 w1 = j
             elif w2 < 0:
@@ -354,12 +356,12 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
     converged = int(0)
     for it in range(iterations + 1):
         # derivatives
-        x = wp.vec3(0.0)
-        t0 = wp.vec3(0.0)
-        t1 = wp.vec3(0.0)
-        s00 = wp.vec3(0.0)
-        s01 = wp.vec3(0.0)
-        s11 = wp.vec3(0.0)
+        x = vec3(0.0)
+        t0 = vec3(0.0)
+        t1 = vec3(0.0)
+        s00 = vec3(0.0)
+        s01 = vec3(0.0)
+        s11 = vec3(0.0)
         for i in range(el.nn):
             n, d0, d1, h00, h01, h11 = shape(el, xi, i)
             xr = _row(xe, i)
@@ -370,16 +372,16 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
             s01 += h01 * xr
             s11 += h11 * xr
         d = r - x
-        g = wp.vec2(-wp.dot(t0, d), -wp.dot(t1, d))
-        gn = wp.mat22(wp.dot(t0, t0), wp.dot(t0, t1), wp.dot(t0, t1), wp.dot(t1, t1))
-        h = gn - wp.mat22(wp.dot(s00, d), wp.dot(s01, d), wp.dot(s01, d), wp.dot(s11, d))
-        scale = wp.max(gn[0, 0] + gn[1, 1], 1.0e-30)
+        g = vec2(-wp.dot(t0, d), -wp.dot(t1, d))
+        gn = mat22(wp.dot(t0, t0), wp.dot(t0, t1), wp.dot(t0, t1), wp.dot(t1, t1))
+        h = gn - mat22(wp.dot(s00, d), wp.dot(s01, d), wp.dot(s01, d), wp.dot(s11, d))
+        scale = wp.max(gn[0, 0] + gn[1, 1], real(1.0e-30))
         # multipliers of the working set and the KKT residual
-        lam1 = float(0.0)
-        lam2 = float(0.0)
+        lam1 = real(0.0)
+        lam2 = real(0.0)
         proj = g
         if w1 >= 0 and w2 >= 0:
-            lam = _solve2(wp.mat22(el.cons_a[w1][0], el.cons_a[w2][0],
+            lam = _solve2(mat22(el.cons_a[w1][0], el.cons_a[w2][0],
                                    el.cons_a[w1][1], el.cons_a[w2][1]), g)
             lam1 = lam[0]
             lam2 = lam[1]
@@ -389,7 +391,7 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
             lam1 = _sdiv(wp.dot(a1, g), wp.dot(a1, a1))
             proj = g - lam1 * a1
         kkt = wp.length(proj) / scale
-        neg = float(0.0)
+        neg = real(0.0)
         jmin = int(-1)
         if w1 >= 0 and lam1 < neg:
             neg = lam1
@@ -423,22 +425,22 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
         else:
             p = _step(el, r, xe, xi, h, g, t0, t1, s00, s01, s11, w1, w2)
         # ratio test
-        amin = float(1.0e30)
+        amin = real(1.0e30)
         jb = int(-1)
         for j in range(el.n_cons):
             if j != w1 and j != w2:
                 ap = wp.dot(el.cons_a[j], p)
                 if ap < 0.0:
-                    step_j = wp.max(-(wp.dot(el.cons_a[j], xi) - el.cons_b[j]) / ap, 0.0)
+                    step_j = wp.max(-(wp.dot(el.cons_a[j], xi) - el.cons_b[j]) / ap, real(0.0))
                     if step_j < amin:
                         amin = step_j
                         jb = j
-        alpha = wp.min(amin, 1.0)
+        alpha = wp.min(amin, real(1.0))
         f0 = _objective(el, xe, r, xi)
-        ftol = 16.0 * 1.2e-7 * (f0 + scale)
+        ftol = real(16.0) * EPS * (f0 + scale)
         for k in range(4):
             if _objective(el, xe, r, xi + alpha * p) > f0 + ftol:
-                alpha = 0.5 * alpha
+                alpha = real(0.5) * alpha
         new = xi + alpha * p
         if jb >= 0 and amin <= alpha:
             # On to the exact closest point of the edge it hit (as NumPy); W gains every
@@ -448,7 +450,7 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
             new = edge_xi(el, e, t_e)
             for j in range(el.n_cons):
                 if j != w1 and j != w2:
-                    if j == jb or wp.abs(wp.dot(el.cons_a[j], new) - el.cons_b[j]) <= 1.0e-6:
+                    if j == jb or wp.abs(wp.dot(el.cons_a[j], new) - el.cons_b[j]) <= ACTIVE_TOL:
                         if w1 < 0:
                             w1 = j
                         elif w2 < 0:
@@ -470,7 +472,7 @@ def closest_point_face(el: Element, r: wp.vec3, xe: FaceNodes, xi0: wp.vec2, ite
 
 
 @wp.func
-def start_option_one(el: Element, r: wp.vec3, xe: FaceNodes):
+def start_option_one(el: Element, r: vec3, xe: FaceNodes):
     """Seed 003 start (I): the closest of the corners and the centre."""
     best = el.nodes[0]
     best_d = _objective(el, xe, r, best)

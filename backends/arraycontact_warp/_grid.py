@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ._real import real, vec3, vec4
+
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
@@ -12,7 +14,7 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 @wp.struct
 class Grid:
-    cell: float
+    cell: real
     table: int  # slots, a power of two
     sorted_ids: wp.array(dtype=int)  # item ids in key order (first n of 2n: radix scratch)
     keys: wp.array(dtype=int)
@@ -20,12 +22,12 @@ class Grid:
     end: wp.array(dtype=int)
     # Item data in key order, so the stencil scans read each cell's items contiguously
     # instead of gathering them through sorted_ids.
-    balls: wp.array(dtype=wp.vec4)  # position and radius (0 for nodes)
+    balls: wp.array(dtype=vec4)  # position and radius (0 for nodes)
     worlds: wp.array(dtype=int)
 
 
 @wp.func
-def cell_of(x: wp.vec3, cell: float):
+def cell_of(x: vec3, cell: real):
     return wp.vec3i(int(wp.floor(x[0] / cell)), int(wp.floor(x[1] / cell)),
                     int(wp.floor(x[2] / cell)))
 
@@ -39,7 +41,7 @@ def cell_key(c: wp.vec3i, world: int, table: int):
 
 
 @wp.kernel
-def _keys(x: wp.array(dtype=wp.vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int),
+def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int),
           grid: Grid):
     k = wp.tid()
     i = ids[k]
@@ -58,12 +60,12 @@ def _ranges(n: int, grid: Grid):
 
 
 @wp.kernel
-def _gather(x: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
+def _gather(x: wp.array(dtype=vec3), radii: wp.array(dtype=real),
             world: wp.array(dtype=int), grid: Grid):
     k = wp.tid()
     i = grid.sorted_ids[k]
     p = x[i]
-    grid.balls[k] = wp.vec4(p[0], p[1], p[2], radii[i])
+    grid.balls[k] = vec4(p[0], p[1], p[2], radii[i])
     grid.worlds[k] = world[i]
 
 
@@ -77,14 +79,14 @@ def build(grid: Grid, x, radii, ids, world, n: int, device):
     wp.launch(_gather, n, inputs=[x, radii, world, grid], device=device)
 
 
-def new_grid(n: int, cell: float, device) -> Grid:
+def new_grid(n: int, cell: real, device) -> Grid:
     table = max(64, 1 << int(max(2 * n, 1) - 1).bit_length())
     g = Grid()
-    g.cell, g.table = float(cell), table
+    g.cell, g.table = real(cell), table
     g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.begin = wp.zeros(table, dtype=int, device=device)
     g.end = wp.zeros(table, dtype=int, device=device)
-    g.balls = wp.zeros(max(n, 1), dtype=wp.vec4, device=device)
+    g.balls = wp.zeros(max(n, 1), dtype=vec4, device=device)
     g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
     return g

@@ -7,6 +7,7 @@ from __future__ import annotations
 import warp as wp
 
 from ._geometry import Element, face_tangents, shape
+from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
@@ -14,23 +15,23 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
 @wp.kernel
-def localise(x: wp.array(dtype=wp.vec3), origin: wp.vec3, out: wp.array(dtype=wp.vec3)):
+def localise(x: wp.array(dtype=vec3), origin: vec3, out: wp.array(dtype=vec3)):
     i = wp.tid()
     out[i] = x[i] - origin
 
 
 @wp.kernel
-def face_bounds(points: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
-                lebesgue: float, r_cap: float,
-                centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
+def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int),
+                lebesgue: real, r_cap: real,
+                centres: wp.array(dtype=vec3), radii: wp.array(dtype=real),
                 overflow: wp.array(dtype=int)):
     f = wp.tid()
     nn = faces.shape[1]
-    c = wp.vec3(0.0)
+    c = vec3(0.0)
     for i in range(nn):
         c += points[faces[f, i]]
-    c = c / float(nn)
-    r = float(0.0)
+    c = c / real(nn)
+    r = real(0.0)
     for i in range(nn):
         r = wp.max(r, wp.length(points[faces[f, i]] - c))
     r = lebesgue * r
@@ -41,12 +42,12 @@ def face_bounds(points: wp.array(dtype=wp.vec3), faces: wp.array2d(dtype=int),
 
 
 @wp.kernel
-def node_normals_add(el: Element, points: wp.array(dtype=wp.vec3),
-                     faces: wp.array2d(dtype=int), acc: wp.array(dtype=wp.vec3)):
+def node_normals_add(el: Element, points: wp.array(dtype=vec3),
+                     faces: wp.array2d(dtype=int), acc: wp.array(dtype=vec3)):
     f, i = wp.tid()
     xi = el.nodes[i]
-    t0 = wp.vec3(0.0)
-    t1 = wp.vec3(0.0)
+    t0 = vec3(0.0)
+    t1 = vec3(0.0)
     for j in range(el.nn):
         n, d0, d1, h00, h01, h11 = shape(el, xi, j)
         p = points[faces[f, j]]
@@ -56,7 +57,7 @@ def node_normals_add(el: Element, points: wp.array(dtype=wp.vec3),
     ln = wp.length(nrm)
     if ln > 0.0:
         nrm = nrm / ln
-    w = float(1.0)
+    w = real(1.0)
     k = el.n_corners
     if i < k:
         # Interior angle at the corner, along the natural directions of its two edges.
@@ -69,7 +70,7 @@ def node_normals_add(el: Element, points: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def normalise(acc: wp.array(dtype=wp.vec3)):
+def normalise(acc: wp.array(dtype=vec3)):
     i = wp.tid()
     ln = wp.length(acc[i])
     if ln > 0.0:

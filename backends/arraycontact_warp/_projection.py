@@ -16,6 +16,7 @@ from ._geometry import (EDGE, VERTEX, Element, FaceNodes, Triangles, closest_poi
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
+from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
@@ -24,25 +25,25 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 @wp.struct
 class Master:
-    points: wp.array(dtype=wp.vec3)  # local frame
+    points: wp.array(dtype=vec3)  # local frame
     faces: wp.array2d(dtype=int)
     face_world: wp.array(dtype=int)
     node_world: wp.array(dtype=int)
-    centres: wp.array(dtype=wp.vec3)
-    radii: wp.array(dtype=float)
-    node_normals: wp.array(dtype=wp.vec3)
+    centres: wp.array(dtype=vec3)
+    radii: wp.array(dtype=real)
+    node_normals: wp.array(dtype=vec3)
     face_edges: wp.array2d(dtype=int)
     edge_faces: wp.array2d(dtype=int)
 
 
 @wp.func
-def exact_edges(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, feature: int, local: int,
+def exact_edges(el: Element, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int,
                 conv: int):
     """The exact closest point over the face's edges (closest_point_edge) replaces Newton's
     answer when at most as far: no start can miss a minimum on an edge, and on a degenerate
     quad4 Newton can stop at a stationary corner. The first edge wins a tie."""
     best = wp.length_sq(r - face_point(el, xe, xi))
-    e_d = float(3.0e38)
+    e_d = real(3.0e38)
     e_xi = xi
     e_f = feature
     e_l = local
@@ -64,16 +65,16 @@ def exact_edges(el: Element, r: wp.vec3, xe: FaceNodes, xi: wp.vec2, feature: in
 
 
 @wp.func
-def lattice_start(el: Element, r: wp.vec3, xe: FaceNodes):
+def lattice_start(el: Element, r: vec3, xe: FaceNodes):
     """The closest of a 5 x 5 lattice of interior points (15 on triangles), as in NumPy."""
     best = el.centre
-    best_d = float(3.0e38)
+    best_d = real(3.0e38)
     for i in range(5):
         for j in range(5):
-            xi = wp.vec2(-0.8 + 0.4 * float(i), -0.8 + 0.4 * float(j))
+            xi = vec2(-real(0.8) + real(0.4) * real(i), -real(0.8) + real(0.4) * real(j))
             if el.n_corners == 3:
-                xi = wp.vec2(0.1 + 0.175 * float(i), 0.1 + 0.175 * float(j))
-            if el.n_corners != 3 or xi[0] + xi[1] <= 0.9 + 1.0e-6:
+                xi = vec2(real(0.1) + real(0.175) * real(i), real(0.1) + real(0.175) * real(j))
+            if el.n_corners != 3 or i + j <= 4:
                 d = wp.length_sq(r - face_point(el, xe, xi))
                 if d < best_d:
                     best_d = d
@@ -82,26 +83,26 @@ def lattice_start(el: Element, r: wp.vec3, xe: FaceNodes):
 
 
 @wp.func
-def project(el: Triangles, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):
+def project(el: Triangles, m: Master, s: vec3, f: int, iterations: int, tol: real):
     """tri3: Voronoi regions, the nodes straight from the node array (a per-face node block
     would live in slow local memory)."""
     x0 = m.points[m.faces[f, 0]]
     r = s - x0
     b = m.points[m.faces[f, 1]] - x0
     c = m.points[m.faces[f, 2]] - x0
-    xi, feature, local = closest_point_triangle(r, wp.vec3(0.0), b, c)
+    xi, feature, local = closest_point_triangle(r, vec3(0.0), b, c)
     return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
 
 
 # A Warp overload of the tri3 `project` above, chosen by the element struct's type.
 @wp.func
-def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: float):  # noqa: F811
+def project(el: Element, m: Master, s: vec3, f: int, iterations: int, tol: real):  # noqa: F811
     """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
     converged, s - point."""
     x0 = m.points[m.faces[f, 0]]
     r = s - x0
     xe = face_nodes(m.points, m.faces, f, x0)
-    xi = wp.vec2(0.0)
+    xi = vec2(0.0)
     feature = int(0)
     local = int(-1)
     conv = int(1)
@@ -110,7 +111,7 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
     n_starts = 1
     if el.nn > el.n_corners:
         n_starts = el.n_corners + 3
-    best = float(3.0e38)
+    best = real(3.0e38)
     for k in range(n_starts):
         start = el.centre
         if k == 0:
@@ -132,19 +133,19 @@ def project(el: Element, m: Master, s: wp.vec3, f: int, iterations: int, tol: fl
 
 
 @wp.func
-def scan_faces(el: Any, m: Master, grid: Grid, s: wp.vec3, world: int, rho: float,
-               r_max: float, limit: float, slack: float, iterations: int, tol: float):
+def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real,
+               r_max: real, limit: real, slack: real, iterations: int, tol: real):
     """Over the faces whose ball is within rho of s: the smallest distance, and the smallest
     face id at distance <= limit with its projection. The reach shrinks to the running minimum
     (plus rounding slack) as closer faces are found: no farther face can hold the answer."""
     c0 = cell_of(s, grid.cell)
-    dmin = float(3.0e38)
+    dmin = real(3.0e38)
     best = int(-1)
-    b_xi = wp.vec2(0.0)
+    b_xi = vec2(0.0)
     b_feature = int(-1)
     b_local = int(-1)
     b_conv = int(0)
-    b_diff = wp.vec3(0.0)
+    b_diff = vec3(0.0)
     reach = rho
     for q in range(27):
         c = c0 + stencil_offset(q)
@@ -153,7 +154,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: wp.vec3, world: int, rho: floa
             for k in range(grid.begin[key], grid.end[key]):
                 ball = grid.balls[k]
                 if grid.worlds[k] == world:
-                    if wp.length(s - wp.vec3(ball[0], ball[1], ball[2])) - ball[3] <= reach:
+                    if wp.length(s - vec3(ball[0], ball[1], ball[2])) - ball[3] <= reach:
                         f = grid.sorted_ids[k]
                         xi, feature, local, conv, diff = project(el, m, s, f, iterations, tol)
                         d = wp.length(diff)

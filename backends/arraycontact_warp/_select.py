@@ -10,6 +10,7 @@ import warp as wp
 
 from ._geometry import EDGE, FACE, Element, Triangles, face_nodes, face_tangents
 from ._projection import Master
+from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
@@ -17,7 +18,7 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
 @wp.func
-def _unit(v: wp.vec3):
+def _unit(v: vec3):
     n = wp.length(v)
     if n > 0.0:
         return v / n
@@ -25,7 +26,7 @@ def _unit(v: wp.vec3):
 
 
 @wp.func
-def face_normal(el: Element, m: Master, f: int, xi: wp.vec2):
+def face_normal(el: Element, m: Master, f: int, xi: vec2):
     xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
     t0, t1 = face_tangents(el, xe, xi)
     return _unit(wp.cross(t0, t1))
@@ -33,13 +34,13 @@ def face_normal(el: Element, m: Master, f: int, xi: wp.vec2):
 
 # A Warp overload: tri3 normals in closed form.
 @wp.func
-def face_normal(el: Triangles, m: Master, f: int, xi: wp.vec2):  # noqa: F811
+def face_normal(el: Triangles, m: Master, f: int, xi: vec2):  # noqa: F811
     a = m.points[m.faces[f, 0]]
     return _unit(wp.cross(m.points[m.faces[f, 1]] - a, m.points[m.faces[f, 2]] - a))
 
 
 @wp.func
-def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: wp.vec2):
+def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: vec2):
     if feature == FACE:
         return face_normal(el, m, f, xi)
     k = el.n_corners
@@ -52,7 +53,7 @@ def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: wp.v
         na = m.faces[f, ca]
         nb = m.faces[f, cb]
         e = m.face_edges[f, local]
-        n = wp.vec3(0.0)
+        n = vec3(0.0)
         for side in range(2):
             g = m.edge_faces[e, side]
             if g >= 0:
@@ -70,14 +71,14 @@ def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: wp.v
 
 
 @wp.func
-def classify(el: Any, m: Master, f: int, feature: int, local: int, xi: wp.vec2,
-             diff: wp.vec3, on_surface: float):
+def classify(el: Any, m: Master, f: int, feature: int, local: int, xi: vec2,
+             diff: vec3, on_surface: real):
     """gap, distance, normal (gap < 0: penetration)."""
     npse = pseudo_normal(el, m, f, feature, local, xi)
     dist = wp.length(diff)
-    s = float(1.0)
+    s = real(1.0)
     if wp.dot(diff, npse) < 0.0:
-        s = -1.0
+        s = real(-1.0)
     normal = npse
     if dist > on_surface and feature != FACE:
         normal = s * diff / dist
