@@ -54,13 +54,14 @@ def bench_jax(scene, repeats, mode="exact"):
                    capacity=dict(c.counts.capacity))
 
 
-def bench_warp(scene, repeats, device="cuda"):
+def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
+    """quick: the steady-state time only (variants beside the main record)."""
     import warp as wp
 
     import arraycontact_warp as acw
 
     t0 = time.perf_counter()
-    p = acw.plan(scene.master, scene.slave, device=device)
+    p = acw.plan(scene.master, scene.slave, device=device, sort_slaves=sort_slaves)
     plan_s = time.perf_counter() - t0
     # Device arrays in the plan's frame, as a simulator holds them.
     xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
@@ -74,6 +75,8 @@ def bench_warp(scene, repeats, device="cuda"):
     from peers_warp import timed
 
     first, steady = timed(run, repeats, device)
+    if quick:
+        return steady
     graph_s = None
     kernels = None
     if wp.get_device(device).is_cuda:
@@ -139,6 +142,15 @@ def main():
                 c, rec = bench_jax(scene, a.repeats)
             else:
                 c, rec = bench_warp(scene, a.repeats, a.device)
+                # The same detection without the Morton sort of the slaves, and both on the
+                # slaves in a random order (a mesh numbered without spatial order).
+                perm = np.random.default_rng(0).permutation(len(scene.slave))
+                shuffled = type(scene)(scene.name, scene.master, scene.slave[perm],
+                                       scene.slave_surface, scene.params)
+                rec["variants_steady_s"] = {
+                    "unsorted": bench_warp(scene, a.repeats, a.device, False, True),
+                    "shuffled_sorted": bench_warp(shuffled, a.repeats, a.device, True, True),
+                    "shuffled_unsorted": bench_warp(shuffled, a.repeats, a.device, False, True)}
             ok = c.active & (mesh["face"] >= 0)
             rec.update(
                 suite="gpu", scene="rough_close", log2_nodes=k, n_slaves=len(scene.slave),
@@ -165,6 +177,9 @@ def main():
                   f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
                   f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
                   f"{rec['overflow']}", flush=True)
+            if rec.get("variants_steady_s"):
+                print("   variants ms: " + ", ".join(
+                    f"{n} {t * 1e3:.3f}" for n, t in rec["variants_steady_s"].items()))
             if rec.get("kernels_s"):
                 print("   per kernel ms: " + ", ".join(
                     f"{n[:40]} {t * 1e3:.3f}" for n, t in sorted(rec["kernels_s"].items(),

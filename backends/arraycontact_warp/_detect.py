@@ -43,7 +43,8 @@ GROWTH = 1.25
 
 @wp.kernel
 def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.Grid,
-                   slaves: wp.array(dtype=vec3), slave_world: wp.array(dtype=int),
+                   slaves: wp.array(dtype=vec3), order: wp.array(dtype=int),
+                   slave_world: wp.array(dtype=int),
                    shared: int, origin: vec3, d_max: real, tie: real, slack: real,
                    r_cap: real, iterations: int, tol: real,
                    active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
@@ -51,7 +52,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
                    gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
                    normal_out: wp.array(dtype=vec3), feature_out: wp.array(dtype=int),
                    node_out: wp.array(dtype=int), status_out: wp.array(dtype=int)):
-    i = wp.tid()
+    i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
     if shared == 1:
@@ -134,6 +135,8 @@ class Plan:
     out: dict
     zero_radii: wp.array  # the node grid's items are points
     dtype: np.dtype  # what the kernels compute in
+    order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
+    order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
     master_ready: bool = False  # the master stages have run at least once
 
 
@@ -150,18 +153,21 @@ def _worlds(world, n, what):
 
 
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
-         device=None, growth=GROWTH, dtype="float32") -> Plan:
+         device=None, growth=GROWTH, dtype="float32", sort_slaves=True) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` (exact mode) computing in dtype
     (float32 or float64).
 
     slave_world [n] and master_world [n_points]: world ids (non-negative ints). Without
     master_world the master is shared by all worlds. d_max: default the longest master edge.
-    growth: how much larger than now the master's faces may become before `overflow`."""
+    growth: how much larger than now the master's faces may become before `overflow`.
+    sort_slaves: each detect first sorts the slaves in Morton order, so that the threads of a
+    GPU warp take neighbouring slaves and scan the same cells (faster unless the slaves are
+    already numbered in a spatial order; results are the same either way)."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(master, slave_points, slave_world=slave_world,
                          master_world=master_world, d_max=d_max, device=device, growth=growth,
-                         dtype=dtype)
+                         dtype=dtype, sort_slaves=sort_slaves)
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if master.n_faces == 0:
@@ -195,7 +201,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     tie = TIE_RTOL[NP_REAL] * master.longest_edge
     consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_cap),
                   r_cap=r_cap, tol=KKT_TOL[NP_REAL],
-                  iterations=ITERATIONS.get(e.name, 0), lebesgue=float(e.lebesgue))
+                  iterations=ITERATIONS.get(e.name, 0), lebesgue=float(e.lebesgue),
+                  quantum=float((hi - lo).max()) / 1024)
 
     def arr(a, dtype):
         return wp.array(a, dtype=dtype, device=device)
@@ -224,7 +231,10 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
                 overflow=wp.zeros(1, dtype=int, device=device), out=out,
                 zero_radii=wp.zeros(len(master.points), dtype=real, device=device),
-                dtype=NP_REAL)
+                dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
+                    np.int32), int),
+                order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
+                else None)
 
 
 def _kind(a):
@@ -298,9 +308,13 @@ def detect(p: Plan, slave_points, master_points=None):
             raise ValueError("master_points=None needs a previous detect with the master")
     else:
         _master_stages(p, master_points)
+    if p.order_keys is not None:
+        _grid.spatial_order(xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves,
+                            dev)
     o = p.out
     wp.launch(_detect_kernel, p.n_slaves,
-              inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.slave_world, p.shared,
+              inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.order, p.slave_world,
+                      p.shared,
                       s_origin, real(c["d_max"]), real(c["tie"]), real(c["slack"]),
                       real(c["r_cap"]), c["iterations"], real(c["tol"])],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)

@@ -69,6 +69,34 @@ def _gather(x: wp.array(dtype=vec3), radii: wp.array(dtype=real),
     grid.worlds[k] = world[i]
 
 
+@wp.func
+def _spread(v: int):
+    """The low 10 bits of v moved to every third bit (a Morton code's interleaving)."""
+    x = wp.uint32(wp.clamp(v, 0, 1023))
+    x = (x | (x << wp.uint32(16))) & wp.uint32(0x030000FF)
+    x = (x | (x << wp.uint32(8))) & wp.uint32(0x0300F00F)
+    x = (x | (x << wp.uint32(4))) & wp.uint32(0x030C30C3)
+    x = (x | (x << wp.uint32(2))) & wp.uint32(0x09249249)
+    return x
+
+
+@wp.kernel
+def _morton(x: wp.array(dtype=vec3), origin: vec3, quantum: real, keys: wp.array(dtype=int),
+            order: wp.array(dtype=int)):
+    i = wp.tid()
+    c = cell_of(x[i] - origin, quantum)
+    keys[i] = int(_spread(c[0]) | (_spread(c[1]) << wp.uint32(1)) | (_spread(c[2]) << wp.uint32(2)))
+    order[i] = i
+
+
+def spatial_order(x, origin, quantum, keys, order, n: int, device):
+    """order[:n]: the rows of x in Morton order of cells of size `quantum` (1024 per axis over
+    the plan's box), so that the threads of a GPU warp work on neighbouring slaves and scan the
+    same grid cells (launches only: capturable; keys and order hold 2n for the radix sort)."""
+    wp.launch(_morton, n, inputs=[x, origin, quantum, keys, order], device=device)
+    wp.utils.radix_sort_pairs(keys, order, n)
+
+
 def build(grid: Grid, x, radii, ids, world, n: int, device):
     """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable)."""
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
