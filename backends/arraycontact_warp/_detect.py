@@ -223,7 +223,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     return Plan(device=device, master=master, n_slaves=len(x), element=element,
                 kernel_element=triangle_data(device) if e.name == "tri3" else element,
                 m=m, node_grid=_grid.new_grid(len(master.nodes), CELL_MARGIN * d_max, device),
-                face_grid=_grid.new_grid(master.n_faces, CELL_MARGIN * (d_max + r_cap), device),
+                face_grid=_grid.new_grid(master.n_faces, CELL_MARGIN * (d_max + r_cap), device,
+                                         corners=e.name == "tri3"),
                 node_ids=arr(master.nodes.astype(np.int32), int),
                 face_ids=arr(np.arange(master.n_faces, dtype=np.int32), int),
                 slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
@@ -282,8 +283,9 @@ def _master_stages(p: Plan, master_points):
     wp.launch(_prepare.normalise, len(p.master.points), inputs=[m.node_normals], device=dev)
     _grid.build(p.node_grid, m.points, p.zero_radii, p.node_ids, m.node_world,
                 len(p.master.nodes), dev)
+    tri3 = p.master.element.name == "tri3"
     _grid.build(p.face_grid, m.centres, m.radii, p.face_ids, m.face_world, p.master.n_faces,
-                dev)
+                dev, m.points if tri3 else None, m.faces if tri3 else None)
     p.master_ready = True
 
 

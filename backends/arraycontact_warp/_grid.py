@@ -24,6 +24,9 @@ class Grid:
     # instead of gathering them through sorted_ids.
     balls: wp.array(dtype=vec4)  # position and radius (0 for nodes)
     worlds: wp.array(dtype=int)
+    # tri3 face grids: the three corners of each face in key order (the projection's only
+    # data, read contiguously); [1, 3] otherwise.
+    corners: wp.array2d(dtype=vec3)
 
 
 @wp.func
@@ -97,17 +100,26 @@ def spatial_order(x, origin, quantum, keys, order, n: int, device):
     wp.utils.radix_sort_pairs(keys, order, n)
 
 
-def build(grid: Grid, x, radii, ids, world, n: int, device):
-    """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable)."""
+@wp.kernel
+def _gather_corners(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), grid: Grid):
+    k, j = wp.tid()
+    grid.corners[k, j] = points[faces[grid.sorted_ids[k], j]]
+
+
+def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=None):
+    """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable);
+    with points and faces (tri3), also the corners of the faces in key order."""
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n)
     grid.begin.zero_()
     grid.end.zero_()
     wp.launch(_ranges, n, inputs=[n, grid], device=device)
     wp.launch(_gather, n, inputs=[x, radii, world, grid], device=device)
+    if faces is not None:
+        wp.launch(_gather_corners, (n, 3), inputs=[points, faces, grid], device=device)
 
 
-def new_grid(n: int, cell: real, device) -> Grid:
+def new_grid(n: int, cell: float, device, corners=False) -> Grid:
     table = max(64, 1 << int(max(2 * n, 1) - 1).bit_length())
     g = Grid()
     g.cell, g.table = real(cell), table
@@ -117,4 +129,5 @@ def new_grid(n: int, cell: real, device) -> Grid:
     g.end = wp.zeros(table, dtype=int, device=device)
     g.balls = wp.zeros(max(n, 1), dtype=vec4, device=device)
     g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
+    g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
     return g

@@ -83,22 +83,24 @@ def lattice_start(el: Element, r: vec3, xe: FaceNodes):
 
 
 @wp.func
-def project(el: Triangles, m: Master, s: vec3, f: int, iterations: int, tol: real):
-    """tri3: Voronoi regions, the nodes straight from the node array (a per-face node block
-    would live in slow local memory)."""
-    x0 = m.points[m.faces[f, 0]]
+def project(el: Triangles, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int,
+            tol: real):
+    """tri3: Voronoi regions on the corners the face grid holds in key order (item k), read
+    contiguously; a per-face node block would live in slow local memory."""
+    x0 = grid.corners[k, 0]
     r = s - x0
-    b = m.points[m.faces[f, 1]] - x0
-    c = m.points[m.faces[f, 2]] - x0
+    b = grid.corners[k, 1] - x0
+    c = grid.corners[k, 2] - x0
     xi, feature, local = closest_point_triangle(r, vec3(0.0), b, c)
     return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
 
 
 # A Warp overload of the tri3 `project` above, chosen by the element struct's type.
 @wp.func
-def project(el: Element, m: Master, s: vec3, f: int, iterations: int, tol: real):  # noqa: F811
+def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa: F811
+            iterations: int, tol: real):
     """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
-    converged, s - point."""
+    converged, s - point. (grid and k: the tri3 overload's data.)"""
     x0 = m.points[m.faces[f, 0]]
     r = s - x0
     xe = face_nodes(m.points, m.faces, f, x0)
@@ -153,20 +155,25 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real,
             key = cell_key(c, world, grid.table)
             for k in range(grid.begin[key], grid.end[key]):
                 ball = grid.balls[k]
-                if grid.worlds[k] == world:
-                    if wp.length(s - vec3(ball[0], ball[1], ball[2])) - ball[3] <= reach:
-                        f = grid.sorted_ids[k]
-                        xi, feature, local, conv, diff = project(el, m, s, f, iterations, tol)
-                        d = wp.length(diff)
-                        dmin = wp.min(dmin, d)
-                        reach = wp.min(reach, wp.max(dmin, limit) + slack)
-                        if d <= limit and (best < 0 or f < best):
-                            best = f
-                            b_xi = xi
-                            b_feature = feature
-                            b_local = local
-                            b_conv = conv
-                            b_diff = diff
+                f = grid.sorted_ids[k]
+                # The ball test in squares (no root). The tie scan (limit >= 0) looks only for
+                # the smallest face id within the limit: a larger id than its best cannot win.
+                rb = reach + ball[3]
+                near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
+                if near and grid.worlds[k] == world and (limit < real(0.0) or best < 0
+                                                         or f < best):
+                    xi, feature, local, conv, diff = project(el, m, grid, k, s, f, iterations,
+                                                             tol)
+                    d = wp.length(diff)
+                    dmin = wp.min(dmin, d)
+                    reach = wp.min(reach, wp.max(dmin, limit) + slack)
+                    if d <= limit and (best < 0 or f < best):
+                        best = f
+                        b_xi = xi
+                        b_feature = feature
+                        b_local = local
+                        b_conv = conv
+                        b_diff = diff
     return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff
 
 
