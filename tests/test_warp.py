@@ -80,6 +80,40 @@ def test_slave_order_does_not_change_the_result():
         assert np.array_equal(outs[0][k], outs[1][k], equal_nan=True), k
 
 
+@pytest.mark.parametrize("n_fan", [5, 12])
+def test_tie_rule_at_a_vertex_of_many_faces(n_fan):
+    """Slaves above the centre of a fan of triangles (ids shuffled) are equidistant from every
+    face: the smallest id wins. 12 faces overflow the first scan's band of 8, so the second
+    scan decides; 5 fit in it."""
+    ang = np.linspace(0, 2 * np.pi, n_fan, endpoint=False)
+    pts = np.r_[[[0.0, 0.0, 0.0]], np.c_[np.cos(ang), np.sin(ang), 0 * ang]]
+    faces = np.array([[0, 1 + i, 1 + (i + 1) % n_fan] for i in range(n_fan)])
+    faces = faces[np.random.default_rng(n_fan).permutation(n_fan)]
+    master = ac.Surface(pts, faces, "tri3")
+    rng = np.random.default_rng(3)
+    slaves = np.c_[rng.normal(scale=1e-9, size=(50, 2)), rng.uniform(-0.5, 0.5, 50)]
+    p = acw.plan(master, slaves, device=DEVICE, d_max=2.0)
+    o = acw.detect(p, slaves, master.points)
+    r = ac.reference.closest_points(slaves, master)
+    assert (r.face == 0).all()  # every face within the tie tolerance: the smallest id
+    assert np.array_equal(o["face"], r.face)
+
+
+def test_tie_rule_when_the_chosen_face_leaves_the_band():
+    """Three parallel faces under a slave, met in id order (one cell), at distances x + 0.9 tie,
+    x and x - 0.2 tie: the third pushes the first out of the tie band while the second stays,
+    so the first scan cannot apply the tie rule alone; the answer is the second (id 1), as
+    NumPy's global selection says."""
+    tri = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [-0.5, 0.5, 0.0]]) + [0.2, 0.2, 0]
+    x, tie = 0.5, 1e-5 * np.sqrt(2)  # float32 tie: 1e-5 of the longest edge
+    pts = np.concatenate([tri + [0, 0, -z] for z in (x + 0.9 * tie, x, x - 0.2 * tie)])
+    master = ac.Surface(pts, np.arange(9).reshape(3, 3), "tri3")
+    slave = np.zeros((1, 3))
+    o = acw.detect(acw.plan(master, slave, device=DEVICE, d_max=2.0), slave, master.points)
+    r = ac.detect(slave, master, dtype=np.float32, d_max=2.0)
+    assert r.face[0] == 1 and o["face"][0] == 1
+
+
 def test_warp_far_from_the_origin():
     s = scenes.rough_surfaces(2**10, seed=2)
     shift = np.array([1e6, -2e6, 3e6]) * s.master.longest_edge

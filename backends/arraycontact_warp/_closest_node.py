@@ -37,15 +37,18 @@ def stencil_offset(q: int):
 
 
 @wp.func
-def _scan(s: vec3, world: int, grid: Grid, d_max: real, limit: real):
-    """Smallest distance within d_max, and the smallest node id at distance <= limit."""
+def _scan(s: vec3, world: int, grid: Grid, d_max: real, tie: real, limit: real):
+    """Within d_max: the smallest distance, the second smallest (of another node) and the
+    smallest node id at distance <= limit (limit < 0: the id at the smallest distance)."""
     c0 = cell_of(s, grid.cell)
     dmin = real(3.0e38)
+    second = real(3.0e38)
     best = int(-1)
     for q in range(27):
         c = c0 + stencil_offset(q)
-        # Cells beyond the running minimum (or the tie limit) cannot change the answer.
-        if _cell_near(s, c, grid.cell, wp.min(d_max, wp.max(dmin, limit))):
+        # Cells beyond the running minimum plus the tie band (or the tie limit) cannot change
+        # the answer.
+        if _cell_near(s, c, grid.cell, wp.min(d_max, wp.max(dmin + tie, limit))):
             key = cell_key(c, world, grid.table)
             for k in range(grid.begin[key], grid.end[key]):
                 ball = grid.balls[k]
@@ -53,19 +56,25 @@ def _scan(s: vec3, world: int, grid: Grid, d_max: real, limit: real):
                     j = grid.sorted_ids[k]
                     d = wp.length(vec3(ball[0], ball[1], ball[2]) - s)
                     if d <= d_max:
-                        dmin = wp.min(dmin, d)
+                        if d < dmin:
+                            second = dmin
+                            dmin = d
+                            if limit < real(0.0):
+                                best = j
+                        else:
+                            second = wp.min(second, d)
                         if d <= limit and (best < 0 or j < best):
                             best = j
-    return dmin, best
+    return dmin, second, best
 
 
 @wp.func
 def closest_node(s: vec3, world: int, grid: Grid, d_max: real, tie: real):
-    """(node id or -1, distance or 3e38)."""
-    dmin, unused = _scan(s, world, grid, d_max, real(-1.0))
-    best = int(-1)
-    if dmin <= d_max:
-        d2, best = _scan(s, world, grid, d_max, dmin + tie)
+    """(node id or -1, distance or 3e38). One scan; the tie rule needs a second only when
+    another node is within `tie` of the closest (a slave equidistant from two nodes)."""
+    dmin, second, best = _scan(s, world, grid, d_max, tie, real(-1.0))
+    if dmin <= d_max and second <= dmin + tie:
+        d2, s2, best = _scan(s, world, grid, d_max, tie, dmin + tie)
     return best, dmin
 
 

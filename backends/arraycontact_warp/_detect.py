@@ -60,9 +60,11 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     node, dn = closest_node(s, w, node_grid, d_max, tie)
     node_out[i] = node
     rho = wp.min(dn, d_max) + slack
-    # Two scans: the smallest distance, then the smallest face id within `tie` of it (one call
-    # site in a loop keeps the generated code small).
+    # The first scan finds the smallest distance and applies the tie rule as it goes; a second
+    # (the smallest face id within `tie` of the smallest distance) runs only when the first was
+    # unsure. One call site in a loop keeps the generated code small.
     limit = real(-1.0)
+    unsure = int(0)
     dmin = real(3.0e38)
     f = int(-1)
     xi = vec2(0.0)
@@ -71,10 +73,9 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     conv = int(0)
     diff = vec3(0.0)
     for scan in range(2):
-        if scan == 0 or dmin <= d_max:
-            d, f, xi, feature, local, conv, diff = scan_faces(el, m, face_grid, s, w, rho,
-                                                              r_cap, limit, slack, iterations,
-                                                              tol)
+        if scan == 0 or (dmin <= d_max and unsure == 1):
+            d, f, xi, feature, local, conv, diff, unsure = scan_faces(
+                el, m, face_grid, s, w, rho, r_cap, tie, limit, slack, iterations, tol)
             if scan == 0:
                 dmin = d
                 limit = dmin + tie

@@ -134,20 +134,37 @@ def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
+BAND = 8  # faces within the tie band that the first scan remembers
+_band_ids = wp.types.vector(length=BAND, dtype=int)
+_band_d = wp.types.vector(length=BAND, dtype=real)
+
+
 @wp.func
-def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real,
-               r_max: real, limit: real, slack: real, iterations: int, tol: real):
-    """Over the faces whose ball is within rho of s: the smallest distance, and the smallest
-    face id at distance <= limit with its projection. The reach shrinks to the running minimum
-    (plus rounding slack) as closer faces are found: no farther face can hold the answer."""
+def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r_max: real,
+               tie: real, limit: real, slack: real, iterations: int, tol: real):
+    """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
+    tie rule (smallest id within `tie` of it) with its projection. The reach shrinks to the
+    running minimum (plus rounding slack) as closer faces are found: no farther face can hold
+    the answer.
+
+    limit < 0, the first scan: the faces within `tie` of the running minimum are remembered
+    (ids and distances, BAND of them) and the tie rule applied as they come; `unsure` = 1 when
+    that cannot be done from what one scan keeps (band full, or the chosen face left the band
+    while an earlier one stayed: rare). limit >= 0, the second scan: the smallest face id at
+    distance <= limit, skipping larger ids than the best so far."""
     c0 = cell_of(s, grid.cell)
     dmin = real(3.0e38)
     best = int(-1)
+    b_d = real(3.0e38)
     b_xi = vec2(0.0)
     b_feature = int(-1)
     b_local = int(-1)
     b_conv = int(0)
     b_diff = vec3(0.0)
+    band_f = _band_ids(0)
+    band_d = _band_d(0.0)
+    nb = int(0)
+    unsure = int(0)
     reach = rho
     for q in range(27):
         c = c0 + stencil_offset(q)
@@ -156,9 +173,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real,
             for k in range(grid.begin[key], grid.end[key]):
                 ball = grid.balls[k]
                 f = grid.sorted_ids[k]
-                # The ball test in squares (no root). The tie scan (limit >= 0) looks only for
-                # the smallest face id within the limit: a larger id than its best cannot win.
-                rb = reach + ball[3]
+                rb = reach + ball[3]  # the ball test in squares (no root)
                 near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
                 if near and grid.worlds[k] == world and (limit < real(0.0) or best < 0
                                                          or f < best):
@@ -166,15 +181,42 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real,
                                                              tol)
                     d = wp.length(diff)
                     dmin = wp.min(dmin, d)
+                    top = limit
+                    if limit < real(0.0):
+                        top = dmin + tie
+                        if d <= top:
+                            # into a free slot or one whose face has left the band
+                            slot = int(-1)
+                            for j in range(BAND):
+                                if slot < 0 and (j >= nb or band_d[j] > top):
+                                    slot = j
+                            if slot < 0:
+                                unsure = 1
+                            else:
+                                band_f[slot] = f
+                                band_d[slot] = d
+                                nb = wp.max(nb, slot + 1)
+                        if best >= 0 and b_d > top:
+                            # The chosen face left the band (d is the new minimum): the
+                            # smallest id still in it must be this face, whose projection
+                            # is at hand, or the second scan decides.
+                            low = f
+                            for j in range(nb):
+                                if band_d[j] <= top and band_f[j] < low:
+                                    low = band_f[j]
+                            if low != f:
+                                unsure = 1
+                            best = int(-1)
                     reach = wp.min(reach, wp.max(dmin, limit) + slack)
-                    if d <= limit and (best < 0 or f < best):
+                    if d <= top and (best < 0 or f < best):
                         best = f
+                        b_d = d
                         b_xi = xi
                         b_feature = feature
                         b_local = local
                         b_conv = conv
                         b_diff = diff
-    return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff
+    return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff, unsure
 
 
 __all__ = ["Master", "project", "scan_faces"]
