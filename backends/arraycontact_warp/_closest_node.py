@@ -23,18 +23,17 @@ def _cell_near(s: vec3, c: wp.vec3i, cell: real, reach: real):
 
 
 @wp.func
-def stencil_offset(q: int, half: int):
-    """The q-th cell of the (2 half + 1)^3 stencil, the slave's own cell first: searching it
-    first makes the running minimum small early, which prunes the other cells and
-    candidates."""
-    w = 2 * half + 1
-    centre = (w * w * w) // 2
+def stencil_offset(q: int):
+    """The q-th of the 27 stencil cells, the slave's own cell first: searching it first makes
+    the running minimum small early, which prunes the other cells and candidates."""
     j = q - 1
     if q == 0:
-        j = centre
-    elif q > centre:
+        j = 13
+    elif q <= 13:
+        j = q - 1
+    else:
         j = q
-    return wp.vec3i(j % w - half, (j // w) % w - half, j // (w * w) - half)
+    return wp.vec3i(j % 3 - 1, (j // 3) % 3 - 1, j // 9 - 1)
 
 
 @wp.func
@@ -46,7 +45,7 @@ def _scan(s: vec3, world: int, grid: Grid, d_max: real, tie: real, limit: real):
     second = real(3.0e38)
     best = int(-1)
     for q in range(27):
-        c = c0 + stencil_offset(q, 1)
+        c = c0 + stencil_offset(q)
         # Cells beyond the running minimum plus the tie band (or the tie limit) cannot change
         # the answer.
         if _cell_near(s, c, grid.cell, wp.min(d_max, wp.max(dmin + tie, limit))):

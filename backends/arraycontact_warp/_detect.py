@@ -4,9 +4,8 @@ kernels (no allocation, no host synchronisation), so a CUDA graph can capture an
 Stages, one module each (the names of the other back ends): _prepare (master geometry from
 the current coordinates), _grid (hashed keys with the world id, radix sort, slot ranges),
 _closest_node, _projection (candidates and projections), _select (gap, normal). Each slave is
-one thread (slaves taken in Morton order) that scans the grid cells around it, once for the
-closest node and once for the closest face, applying the tie rule as it goes (a second scan
-only when that was unsure), so there is no pair buffer to overflow; the one planned quantity that motion can outgrow is the largest face
+one thread that scans its 27 cells twice (smallest distance, then the tie rule), so there is no
+pair buffer to overflow; the one planned quantity that motion can outgrow is the largest face
 radius the face grid's cells were sized for, reported in the device flag `plan.overflow`.
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;
@@ -32,7 +31,7 @@ from . import _grid, _prepare
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
 from ._real import NP_REAL, real, precision, vec2, vec3
-from ._projection import FACE_STENCIL, Master, scan_faces
+from ._projection import Master, scan_faces
 from ._select import classify
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -225,8 +224,7 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     return Plan(device=device, master=master, n_slaves=len(x), element=element,
                 kernel_element=triangle_data(device) if e.name == "tri3" else element,
                 m=m, node_grid=_grid.new_grid(len(master.nodes), CELL_MARGIN * d_max, device),
-                face_grid=_grid.new_grid(master.n_faces,
-                                         CELL_MARGIN * (d_max + r_cap) / FACE_STENCIL, device,
+                face_grid=_grid.new_grid(master.n_faces, CELL_MARGIN * (d_max + r_cap), device,
                                          corners=e.name == "tri3"),
                 node_ids=arr(master.nodes.astype(np.int32), int),
                 face_ids=arr(np.arange(master.n_faces, dtype=np.int32), int),

@@ -1,10 +1,9 @@
 """Stage 4 in Warp: candidate faces by their balls within min(closest-node distance, d_max)
-through the 5x5x5 stencil of the face grid, and the closest point on each (tri3 in closed form,
+through the 3x3x3 stencil of the face grid, and the closest point on each (tri3 in closed form,
 other elements by the active-set method from start I and, on curved faces, also from the
-centre, the mid-edge nodes and a lattice start, then the exact edges: as the NumPy back end).
-Each slave scans its candidates once, keeping the smallest distance and applying the tie rule
-(smallest face id within `tie` of it) as it goes, and a second time only when unsure, so no
-pair buffer exists and nothing can overflow."""
+centre, the mid-edge nodes and a lattice start, then the exact edges: as the NumPy back end). Each slave scans its
+candidates twice: the smallest distance first, then the tie rule (smallest face id within
+`tie` of it), so no pair buffer exists and nothing can overflow."""
 
 from __future__ import annotations
 
@@ -136,11 +135,6 @@ def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa
 
 
 BAND = 8  # faces within the tie band that the first scan remembers
-# The face grid's cells are 1 / FACE_STENCIL of the search reach, so a slave scans a stencil
-# of (2 FACE_STENCIL + 1)^3 cells, most of them pruned by distance: smaller cells hold fewer
-# faces that the ball test must reject.
-FACE_STENCIL = wp.constant(2)
-FACE_STENCIL_CELLS = wp.constant(125)
 _band_ids = wp.types.vector(length=BAND, dtype=int)
 _band_d = wp.types.vector(length=BAND, dtype=real)
 
@@ -172,8 +166,8 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
     nb = int(0)
     unsure = int(0)
     reach = rho
-    for q in range(FACE_STENCIL_CELLS):
-        c = c0 + stencil_offset(q, FACE_STENCIL)
+    for q in range(27):
+        c = c0 + stencil_offset(q)
         if _cell_near(s, c, grid.cell, reach + r_max):
             key = cell_key(c, world, grid.table)
             for k in range(grid.begin[key], grid.end[key]):
