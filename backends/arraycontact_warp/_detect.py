@@ -4,8 +4,9 @@ kernels (no allocation, no host synchronisation), so a CUDA graph can capture an
 Stages, one module each (the names of the other back ends): _prepare (master geometry from
 the current coordinates), _grid (hashed keys with the world id, radix sort, slot ranges),
 _closest_node, _projection (candidates and projections), _select (gap, normal). Each slave is
-one thread that scans its 27 cells twice (smallest distance, then the tie rule), so there is no
-pair buffer to overflow; the one planned quantity that motion can outgrow is the largest face
+one thread (slaves taken in Morton order) that scans the 27 grid cells around it, once for the
+closest node and once for the closest face, applying the tie rule as it goes (a second scan
+only when that was unsure), so there is no pair buffer to overflow; the one planned quantity that motion can outgrow is the largest face
 radius the face grid's cells were sized for, reported in the device flag `plan.overflow`.
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;

@@ -1,9 +1,10 @@
 """Stage 4 in Warp: candidate faces by their balls within min(closest-node distance, d_max)
 through the 3x3x3 stencil of the face grid, and the closest point on each (tri3 in closed form,
 other elements by the active-set method from start I and, on curved faces, also from the
-centre, the mid-edge nodes and a lattice start, then the exact edges: as the NumPy back end). Each slave scans its
-candidates twice: the smallest distance first, then the tie rule (smallest face id within
-`tie` of it), so no pair buffer exists and nothing can overflow."""
+centre, the mid-edge nodes and a lattice start, then the exact edges: as the NumPy back end).
+Each slave scans its candidates once, keeping the smallest distance and applying the tie rule
+(smallest face id within `tie` of it) as it goes, and a second time only when unsure, so no
+pair buffer exists and nothing can overflow."""
 
 from __future__ import annotations
 
