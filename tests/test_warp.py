@@ -34,6 +34,11 @@ def _same_as_numpy(o, r, L):
         assert np.abs(o[k][a] - getattr(r, k)[a]).max() <= 2e-5 * L, k
     # Points agree to the float32 KKT tolerance (1e-4 in natural coordinates) times the size.
     assert np.abs(o["point"][a] - r.point[a]).max() <= 2e-4 * L
+    # Normals: the pseudo-normal of the feature (computed per vertex slave in Warp) on the
+    # surface, else the direction to the slave, whose float32 rounding grows as 1 / distance.
+    d = r.distance[a]
+    tol = 1e-3 + np.where(d <= 1e-5 * L, 0.0, 2e-6 * L / np.maximum(d, 1e-30))
+    assert (np.abs(o["normal"][a] - r.normal[a]).max(1) <= tol).all()
     assert np.isnan(o["gap"][~a]).all() and (o["face"][~a] == -1).all()
 
 
@@ -112,6 +117,18 @@ def test_tie_rule_when_the_chosen_face_leaves_the_band():
     o = acw.detect(acw.plan(master, slave, device=DEVICE, d_max=2.0), slave, master.points)
     r = ac.detect(slave, master, dtype=np.float32, d_max=2.0)
     assert r.face[0] == 1 and o["face"][0] == 1
+
+
+@pytest.mark.parametrize("name", ["rough_tri3", "patch_quad8"])
+def test_slaves_on_master_corners_get_the_node_pseudo_normal(name):
+    """On a vertex the normal is the node's angle-weighted pseudo-normal, which Warp computes
+    per slave from the faces around the node: equal to the Surface's."""
+    m = SCENES[name]().master
+    corners = np.unique(m.faces[:, :m.element.n_corners])
+    x = m.points[corners]
+    o = acw.detect(acw.plan(m, x, device=DEVICE), x, m.points)
+    assert (o["feature"] == 2).all() and (o["distance"] <= 1e-5 * m.longest_edge).all()
+    assert np.abs(o["normal"] - m.node_normals[corners]).max() <= 1e-5
 
 
 def test_warp_far_from_the_origin():

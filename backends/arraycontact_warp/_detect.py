@@ -217,7 +217,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
         m.face_world = arr(0 * fw, int)
     m.centres = wp.zeros(master.n_faces, dtype=vec3, device=device)
     m.radii = wp.zeros(master.n_faces, dtype=real, device=device)
-    m.node_normals = wp.zeros(len(master.points), dtype=vec3, device=device)
+    offsets, ids = master.node_faces
+    m.nf_offsets, m.nf_ids = arr(offsets.astype(np.int32), int), arr(ids.astype(np.int32), int)
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
@@ -279,10 +280,6 @@ def _master_stages(p: Plan, master_points):
     wp.launch(_prepare.face_bounds, p.master.n_faces,
               inputs=[m.points, m.faces, c["lebesgue"], c["r_cap"]],
               outputs=[m.centres, m.radii, p.overflow], device=dev)
-    m.node_normals.zero_()
-    wp.launch(_prepare.node_normals_add, (p.master.n_faces, p.master.faces.shape[1]),
-              inputs=[p.element, m.points, m.faces], outputs=[m.node_normals], device=dev)
-    wp.launch(_prepare.normalise, len(p.master.points), inputs=[m.node_normals], device=dev)
     _grid.build(p.node_grid, m.points, p.zero_radii, p.node_ids, m.node_world,
                 len(p.master.nodes), dev)
     tri3 = p.master.element.name == "tri3"

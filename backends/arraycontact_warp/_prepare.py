@@ -1,12 +1,12 @@
 """Stage 1 in Warp: the master's geometry from its current coordinates (local frame), every
-step: face balls (centre, Lebesgue radius), angle-weighted node pseudo-normals, and the largest
-face radius against the one the face grid was planned for (a device-side overflow flag)."""
+step: face balls (centre, Lebesgue radius) and the largest face radius against the one the face
+grid was planned for (a device-side overflow flag). Node pseudo-normals are computed where a
+slave ends on a vertex (_select.node_normal), not for every node."""
 
 from __future__ import annotations
 
 import warp as wp
 
-from ._geometry import Element, face_tangents, shape
 from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -41,40 +41,4 @@ def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int),
         wp.atomic_max(overflow, 0, 1)
 
 
-@wp.kernel
-def node_normals_add(el: Element, points: wp.array(dtype=vec3),
-                     faces: wp.array2d(dtype=int), acc: wp.array(dtype=vec3)):
-    f, i = wp.tid()
-    xi = el.nodes[i]
-    t0 = vec3(0.0)
-    t1 = vec3(0.0)
-    for j in range(el.nn):
-        n, d0, d1, h00, h01, h11 = shape(el, xi, j)
-        p = points[faces[f, j]]
-        t0 += d0 * p
-        t1 += d1 * p
-    nrm = wp.cross(t0, t1)
-    ln = wp.length(nrm)
-    if ln > 0.0:
-        nrm = nrm / ln
-    w = real(1.0)
-    k = el.n_corners
-    if i < k:
-        # Interior angle at the corner, along the natural directions of its two edges.
-        e1 = el.nodes[(i + 1) % k] - xi
-        e2 = el.nodes[(i + k - 1) % k] - xi
-        a = t0 * e1[0] + t1 * e1[1]
-        b = t0 * e2[0] + t1 * e2[1]
-        w = wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b))
-    wp.atomic_add(acc, faces[f, i], w * nrm)
-
-
-@wp.kernel
-def normalise(acc: wp.array(dtype=vec3)):
-    i = wp.tid()
-    ln = wp.length(acc[i])
-    if ln > 0.0:
-        acc[i] = acc[i] / ln
-
-
-__all__ = ["localise", "face_bounds", "node_normals_add", "normalise", "face_tangents"]
+__all__ = ["localise", "face_bounds"]

@@ -32,7 +32,8 @@ class Master:
     node_world: wp.array(dtype=int)
     centres: wp.array(dtype=vec3)
     radii: wp.array(dtype=real)
-    node_normals: wp.array(dtype=vec3)
+    nf_offsets: wp.array(dtype=int)  # node -> faces (CSR): the vertex pseudo-normals
+    nf_ids: wp.array(dtype=int)
     face_edges: wp.array2d(dtype=int)
     edge_faces: wp.array2d(dtype=int)
 

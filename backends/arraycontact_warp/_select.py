@@ -32,6 +32,43 @@ def face_normal(el: Element, m: Master, f: int, xi: vec2):
     return _unit(wp.cross(t0, t1))
 
 
+@wp.func
+def _tangents(el: Element, m: Master, f: int, xi: vec2):
+    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
+    return face_tangents(el, xe, xi)
+
+
+@wp.func
+def _tangents(el: Triangles, m: Master, f: int, xi: vec2):  # noqa: F811
+    a = m.points[m.faces[f, 0]]
+    return m.points[m.faces[f, 1]] - a, m.points[m.faces[f, 2]] - a
+
+
+@wp.func
+def node_normal(el: Any, m: Master, node: int):
+    """The angle-weighted pseudo-normal of a corner node (arraycontact._surface.node_normals)
+    from the faces around it, computed only for the slaves that end on a vertex: cheaper than
+    accumulating every node's normal over every face each step."""
+    k = el.n_corners
+    n = vec3(0.0)
+    for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
+        g = m.nf_ids[j]
+        i = int(-1)
+        for c in range(k):
+            if m.faces[g, c] == node:
+                i = c
+        if i >= 0:
+            xi = el.nodes[i]
+            t0, t1 = _tangents(el, m, g, xi)
+            # weight: the interior angle at the corner, along its two edges' directions
+            e1 = el.nodes[(i + 1) % k] - xi
+            e2 = el.nodes[(i + k - 1) % k] - xi
+            a = t0 * e1[0] + t1 * e1[1]
+            b = t0 * e2[0] + t1 * e2[1]
+            n += wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b)) * _unit(wp.cross(t0, t1))
+    return _unit(n)
+
+
 # A Warp overload: tri3 normals in closed form.
 @wp.func
 def face_normal(el: Triangles, m: Master, f: int, xi: vec2):  # noqa: F811
@@ -67,7 +104,7 @@ def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: vec2
                 xg = el.nodes[ia] + t * (el.nodes[ib] - el.nodes[ia])
                 n += face_normal(el, m, g, xg)
         return _unit(n)
-    return m.node_normals[m.faces[f, local]]
+    return node_normal(el, m, m.faces[f, local])
 
 
 @wp.func
