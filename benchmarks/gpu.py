@@ -10,8 +10,6 @@ a random subset, and the peers: `wp.Mesh` build + `mesh_query_point_no_sign`, re
 `wp.HashGrid` build + closest-node query. One JSON record per size goes to DIR/gpu.jsonl.
 """
 
-from __future__ import annotations
-
 import argparse
 import json
 import statistics
@@ -54,6 +52,22 @@ def bench_jax(scene, repeats, mode="exact"):
                    capacity=dict(c.counts.capacity))
 
 
+def _node_stage_kernel():
+    import warp as wp
+
+    from arraycontact_warp._closest_node import closest_node
+    from arraycontact_warp._grid import Grid
+
+    @wp.kernel(module="unique")
+    def node_stage(grid: Grid, slaves: wp.array(dtype=wp.vec3), order: wp.array(dtype=int),
+                   d_max: float, tie: float, node_out: wp.array(dtype=int)):
+        i = order[wp.tid()]
+        node, dn = closest_node(slaves[i], 0, grid, d_max, tie)
+        node_out[i] = node
+
+    return node_stage
+
+
 def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
     """quick: the steady-state time only (variants beside the main record)."""
     import warp as wp
@@ -87,6 +101,14 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
         kernels = {}
         for r in timer.timing_results:
             kernels[r.name] = kernels.get(r.name, 0.0) + r.elapsed / 1e3
+
+        # The closest-node stage alone (same grid, same slave order): its share of the kernel.
+        rec_node = timed(lambda: wp.launch(
+            _node_stage_kernel(), p.n_slaves,
+            inputs=[p.node_grid, xs, p.order, float(p.constants["d_max"]),
+                    float(p.constants["tie"]), p.out["master_node"]], device=device),
+            repeats, device)[1]
+        kernels["closest_node_stage_alone"] = rec_node
 
         with wp.ScopedCapture(device=device) as cap:
             run()
