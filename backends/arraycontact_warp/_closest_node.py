@@ -78,22 +78,4 @@ def closest_node(s: vec3, world: int, grid: Grid, d_max: real, tie: real):
     return best, dmin
 
 
-@wp.func
-def offer_node(j: int, d: real, d_max: real, nearest: int, dn: real, second: real):
-    """Node j at distance d met on the way (a corner of a face the tri3 face scan projects):
-    the running closest node within d_max, its distance and the second smallest distance of
-    another node (a node met again changes nothing)."""
-    n2 = nearest
-    d2 = dn
-    s2 = second
-    if d <= d_max and j != nearest:
-        if d < dn:
-            s2 = dn
-            d2 = d
-            n2 = j
-        else:
-            s2 = wp.min(second, d)
-    return n2, d2, s2
-
-
-__all__ = ["closest_node", "offer_node"]
+__all__ = ["closest_node"]

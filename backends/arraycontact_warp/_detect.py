@@ -47,7 +47,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
                    slaves: wp.array(dtype=vec3), order: wp.array(dtype=int),
                    slave_world: wp.array(dtype=int),
                    shared: int, origin: vec3, d_max: real, tie: real, slack: real,
-                   r_cap: real, iterations: int, tol: real, fused: int,
+                   r_cap: real, iterations: int, tol: real,
                    active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
                    xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
                    gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
@@ -58,10 +58,8 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     w = slave_world[i]
     if shared == 1:
         w = 0
-    node = int(-1)
-    dn = real(3.0e38)
-    if fused == 0:
-        node, dn = closest_node(s, w, node_grid, d_max, tie)
+    node, dn = closest_node(s, w, node_grid, d_max, tie)
+    node_out[i] = node
     rho = wp.min(dn, d_max) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
@@ -77,19 +75,12 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     diff = vec3(0.0)
     for scan in range(2):
         if scan == 0 or (dmin <= d_max and unsure == 1):
-            d, f, xi, feature, local, conv, diff, unsure, nearest, d_node, second = scan_faces(
-                el, m, face_grid, s, w, rho, r_cap, tie, limit, slack, iterations, tol, fused,
-                d_max)
+            d, f, xi, feature, local, conv, diff, unsure = scan_faces(
+                el, m, face_grid, s, w, rho, r_cap, tie, limit, slack, iterations, tol)
             if scan == 0:
                 dmin = d
                 limit = dmin + tie
                 rho = wp.min(rho, limit + slack)  # the second scan needs only faces this near
-                if fused == 1:
-                    node = nearest
-                    if d_node <= d_max and second <= d_node + tie:
-                        # another node within the tie tolerance: the node grid decides
-                        node, d_node = closest_node(s, w, node_grid, d_max, tie)
-    node_out[i] = node
     nan = real(wp.nan)
     if dmin <= d_max:
         gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
@@ -148,9 +139,6 @@ class Plan:
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
-    # 1 (tri3): the closest node is found among the corners the face scan meets, and the node
-    # grid is scanned only to break a tie between nodes; 0: a node-grid scan first.
-    fused: int = 0
     master_ready: bool = False  # the master stages have run at least once
 
 
@@ -250,7 +238,7 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
                     np.int32), int),
                 order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
-                else None, fused=int(e.name == "tri3"))
+                else None)
 
 
 def _kind(a):
@@ -329,7 +317,7 @@ def detect(p: Plan, slave_points, master_points=None):
               inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.order, p.slave_world,
                       p.shared,
                       s_origin, real(c["d_max"]), real(c["tie"]), real(c["slack"]),
-                      real(c["r_cap"]), c["iterations"], real(c["tol"]), p.fused],
+                      real(c["r_cap"]), c["iterations"], real(c["tol"])],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
     kind = _kind(slave_points)
     if kind == "warp":

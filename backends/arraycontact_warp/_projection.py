@@ -12,7 +12,7 @@ from typing import Any
 
 import warp as wp
 
-from ._closest_node import _cell_near, offer_node, stencil_offset
+from ._closest_node import _cell_near, stencil_offset
 from ._geometry import (EDGE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
@@ -143,8 +143,7 @@ _band_d = wp.types.vector(length=BAND, dtype=real)
 
 @wp.func
 def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r_max: real,
-               tie: real, limit: real, slack: real, iterations: int, tol: real, fused: int,
-               d_max: real):
+               tie: real, limit: real, slack: real, iterations: int, tol: real):
     """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its projection. The reach shrinks to the
     running minimum (plus rounding slack) as closer faces are found: no farther face can hold
@@ -154,12 +153,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
     (ids and distances, BAND of them) and the tie rule applied as they come; `unsure` = 1 when
     that cannot be done from what one scan keeps (band full, or the chosen face left the band
     while an earlier one stayed: rare). limit >= 0, the second scan: the smallest face id at
-    distance <= limit, skipping larger ids than the best so far.
-
-    fused = 1 (tri3, first scan): the closest node is found on the way, among the corners of the
-    projected faces (offer_node): the reach then shrinks only to the running closest-node
-    distance, within which lie every face holding a node that near and the closest point.
-    Returns also that node, its distance and the second smallest node distance."""
+    distance <= limit, skipping larger ids than the best so far."""
     c0 = cell_of(s, grid.cell)
     dmin = real(3.0e38)
     best = int(-1)
@@ -173,9 +167,6 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
     band_d = _band_d(0.0)
     nb = int(0)
     unsure = int(0)
-    nearest = int(-1)
-    dn = real(3.0e38)
-    second = real(3.0e38)
     reach = rho
     for q in range(27):
         c = c0 + stencil_offset(q)
@@ -218,14 +209,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
                             if low != f:
                                 unsure = 1
                             best = int(-1)
-                    shrink = wp.max(dmin, limit)
-                    if fused == 1 and limit < real(0.0):
-                        for corner in range(3):
-                            nearest, dn, second = offer_node(
-                                m.faces[f, corner], wp.length(grid.corners[k, corner] - s),
-                                d_max, nearest, dn, second)
-                        shrink = wp.max(shrink, dn)
-                    reach = wp.min(reach, shrink + slack)
+                    reach = wp.min(reach, wp.max(dmin, limit) + slack)
                     if d <= top and (best < 0 or f < best):
                         best = f
                         b_d = d
@@ -234,7 +218,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
                         b_local = local
                         b_conv = conv
                         b_diff = diff
-    return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff, unsure, nearest, dn, second
+    return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff, unsure
 
 
 __all__ = ["Master", "project", "scan_faces"]
