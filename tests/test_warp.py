@@ -131,6 +131,33 @@ def test_slaves_on_master_corners_get_the_node_pseudo_normal(name):
     assert np.abs(o["normal"] - m.node_normals[corners]).max() <= 1e-5
 
 
+def test_closest_node_tie_rule():
+    """A slave equidistant from two nodes (above the middle of an edge) goes to the smaller id,
+    as in NumPy."""
+    n = 6
+    gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    pts = np.c_[gx.ravel(), gy.ravel(), np.zeros(n * n)]
+    ids = np.arange(n * n).reshape(n, n)
+    quads = np.c_[ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(),
+                  ids[:-1, 1:].ravel()]
+    faces = np.r_[quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]
+    # node ids shuffled, so that the smaller id is not always met first
+    perm = np.random.default_rng(2).permutation(n * n)
+    master = ac.Surface(pts[np.argsort(perm)], perm[faces], "tri3")
+    rng = np.random.default_rng(5)
+    # the first edge of each first-half triangle: along a grid line (the diagonals' midpoints
+    # would be equidistant from four nodes)
+    a, b = master.faces[:len(quads), 0], master.faces[:len(quads), 1]
+    mid = 0.5 * (master.points[a] + master.points[b])
+    slaves = mid + np.c_[np.zeros((len(mid), 2)), rng.uniform(0.1, 0.6, len(mid))]
+    da = np.linalg.norm(slaves - master.points[a], axis=1)
+    assert np.array_equal(da, np.linalg.norm(slaves - master.points[b], axis=1))  # exact ties
+    o = acw.detect(acw.plan(master, slaves, device=DEVICE), slaves, master.points)
+    r = ac.detect(slaves, master, dtype=np.float32)
+    assert np.array_equal(o["master_node"], r.master_node)
+    assert np.array_equal(o["master_node"], np.minimum(a, b))
+
+
 def test_warp_far_from_the_origin():
     s = scenes.rough_surfaces(2**10, seed=2)
     shift = np.array([1e6, -2e6, 3e6]) * s.master.longest_edge
