@@ -25,14 +25,14 @@ sys.path.insert(0, str(Path(__file__).parent))
 from run import errors, make_scene  # noqa: E402
 
 
-def bench_jax(scene, repeats, mode="exact"):
+def bench_jax(scene, repeats, mode="exact", search="jax"):
     import jax
     import jax.numpy as jnp
 
     import arraycontact_jax as acj
 
     t0 = time.perf_counter()
-    p = acj.plan(scene.master, scene.slave, mode=mode, dtype=np.float32)
+    p = acj.plan(scene.master, scene.slave, mode=mode, dtype=np.float32, search=search)
     plan_s = time.perf_counter() - t0
     s = jax.device_put(jnp.asarray(scene.slave, jnp.float32))
     m = jax.device_put(jnp.asarray(scene.master.points, jnp.float32))
@@ -134,7 +134,9 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
 def main():
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("what", choices=["jax", "warp", "all"])
+    ap.add_argument("what", choices=["jax", "jax-warp", "warp", "all"],
+                    help="jax-warp: the JAX back end with search='warp' (Warp kernels through "
+                         "Warp's JAX FFI)")
     ap.add_argument("--sizes", type=int, nargs="*", default=[16, 20])
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--check", type=int, default=256)
@@ -149,7 +151,7 @@ def main():
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    backends = ["jax", "warp"] if a.what == "all" else [a.what]
+    backends = ["jax", "jax-warp", "warp"] if a.what == "all" else [a.what]
     for k in a.sizes:
         scene = make_scene("rough_close", k)
         d_max = scene.master.longest_edge
@@ -160,8 +162,9 @@ def main():
             warp_mesh_refit_query=dict(zip(("first_s", "steady_s"), mesh["refit_query"])),
             warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"), grid["build_query"])))
         for backend in backends:
-            if backend == "jax":
-                c, rec = bench_jax(scene, a.repeats)
+            if backend.startswith("jax"):
+                c, rec = bench_jax(scene, a.repeats,
+                                   search="warp" if backend == "jax-warp" else "jax")
             else:
                 c, rec = bench_warp(scene, a.repeats, a.device)
                 # The same detection without the Morton sort of the slaves, and both on the

@@ -15,6 +15,12 @@ Two entry points share the stages:
 Besides the buffer counts, the plan fixes the face grid's cell size for faces up to the radius
 seen at plan time times the growth factor; a master deformed beyond that reports the count
 "face_radius" above its capacity, like any other overflow.
+
+`plan(..., search="warp")` (exact mode) runs the discrete search (stages 1-5 without
+gradients) as the Warp back end's kernels inside the jitted `detect`, through Warp's JAX FFI
+(`wp.jax_callable`, on the device of the JAX arrays, without copies); the differentiable
+outputs are computed from its answer by the same `smooth` as the JAX search's. It has no pair
+buffers: its only capacity is the face radius.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from arraycontact._elements import get_element
 from arraycontact._detect import (ITERATIONS, Static, build_grids, check_options, master_arrays,
                                   master_geometry, master_topology, run_stages, scalars)
 from arraycontact._prepare import CELL_MARGIN, Prepared
-from arraycontact._surface import Surface, validate_points
+from arraycontact._surface import Surface, face_bounds, validate_points
 
 from ._gradients import smooth
 
@@ -116,6 +122,7 @@ class Plan:
     dtype: str = "float32"
     n_slaves: int = 0
     growth: float = GROWTH
+    search: object = None  # None: the stages in JAX; else the Warp search (_WarpSearch)
 
     @property
     def d_max(self) -> float:
@@ -125,19 +132,21 @@ class Plan:
 jax.tree_util.register_pytree_node(
     Plan,
     lambda p: ((p.topology,), (p.master, p.static, p.capacity, p.constants, p.origin, p.dtype,
-                               p.n_slaves, p.growth)),
+                               p.n_slaves, p.growth, p.search)),
     lambda aux, ch: Plan(ch[0], *aux))
 
 
 def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, dtype=None,
-         growth=GROWTH, minimum=None) -> Plan:
+         growth=GROWTH, minimum=None, search="jax") -> Plan:
     """Size every buffer of `detect` from the current coordinates (eager, on the host).
 
     master: a Surface (its connectivity is fixed for the plan's life; its coordinates are only
     the plan-time configuration). slave_points: [n, 3]. d_max: fixed for the plan (default:
     the seed's rule on the plan-time master). dtype: float32 or float64 (float64 needs
     `jax_enable_x64`); default: JAX's default float. Capacities are the counts found now times
-    `growth` (and at least `minimum`, a dict of counts, used when re-planning)."""
+    `growth` (and at least `minimum`, a dict of counts, used when re-planning).
+    search: "jax" (the stages in jax.numpy) or "warp" (exact mode: the Warp kernels through
+    Warp's JAX FFI on the JAX device, for speed; the same contacts and gradients)."""
     if dtype is None:
         dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
@@ -146,6 +155,10 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
                          "jax.enable_x64())")
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
+    if search not in ("jax", "warp"):
+        raise ValueError(f"search must be 'jax' or 'warp', got {search!r}")
+    if search == "warp" and mode != "exact":
+        raise ValueError("search='warp' implements mode='exact' only")
     slave_x = validate_points(slave_points, "slave_points")
     if master.n_faces == 0:
         raise ValueError("master has no faces")
@@ -169,6 +182,14 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
                 passing_by=mode == "node" and not master.closed)
     m = master_arrays(master, prep, dtype)
     sc = scalars(prep, master, dtype)
+    if search == "warp":
+        engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin)
+        cap = {"face_radius": r_cap}
+        sc.pop("r_max")
+        topo = {k: jnp.asarray(v) for k, v in master_topology(master, prep).items()}
+        return Plan(topo, master, st, tuple(sorted(cap.items())), tuple(sorted(sc.items())),
+                    tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
+                    engine)
     cap = _grown(_estimate((slave_x - origin).astype(dtype), m, sc, st), growth)
     for k, v in (minimum or {}).items():
         if k in cap:
@@ -203,12 +224,18 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     s = (slave_points - origin).astype(dtype)  # subtract in the input's precision, then cast
     xm = (master_points - origin).astype(dtype)
     st, topo, sc = p.static, p.topology, dict(p.constants)
-    m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
-    sc["r_max"] = jnp.max(m["radii"][topo["face_ids"]])
-    grids = build_grids(jnp, st, sc, m)
     cap = dict(p.capacity)
-    out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap)
-    counts["face_radius"] = sc["r_max"]
+    if p.search is not None:
+        out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
+        _, radii = face_bounds(get_element(st.element), jax.lax.stop_gradient(xm)[topo["faces"]],
+                               jnp)
+        counts = {"face_radius": jnp.max(radii)}
+    else:
+        m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
+        sc["r_max"] = jnp.max(m["radii"][topo["face_ids"]])
+        grids = build_grids(jnp, st, sc, m)
+        out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap)
+        counts["face_radius"] = sc["r_max"]
     keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
     face = jnp.where(keep, out["face"], -1)
     feature = jnp.where(keep, out["feature"], int(Feature.NONE))
@@ -229,6 +256,62 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
                       master_faces_in_box=p.master.n_faces, count=counts, capacity=cap))
 
 
+class _WarpSearch:
+    """The Warp back end's detection as a JAX primitive (wp.jax_callable): called in `detect`
+    with the slave and master coordinates in the plan's frame, returns the search's answer
+    (active, face, feature, local, xi, gap, master_node, status) as JAX arrays."""
+
+    def __init__(self, master, slave_x, d_max, dtype, growth, origin):
+        import warp as wp
+
+        import arraycontact_warp as acw
+
+        device = wp.device_from_jax(jax.devices()[0])
+        self.plan = acw.plan(master, slave_x, d_max=d_max, device=device, dtype=dtype,
+                             growth=growth)
+        # The inputs come in the JAX plan's frame: the kernels subtract the difference.
+        self.plan.origin = self.plan.origin - np.asarray(origin)
+        g = acw.geometry(dtype)
+        real, vec2, vec3 = g.real, g.vec2, g.vec3
+        self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
+        kinds = dict(active=wp.int32, face=int, feature=int, local=int, xi=vec2, gap=real,
+                     master_node=int, status=int)
+        plan = self.plan
+
+        def search(slaves, master_points, *outs):
+            o = acw.detect(plan, slaves, master_points)
+            for name, a in zip(self.names, outs):
+                wp.copy(a, o[name])
+
+        # jax_callable reads the Warp types from the annotations.
+        search.__annotations__ = {"slaves": wp.array(dtype=vec3),
+                                  "master_points": wp.array(dtype=vec3),
+                                  **{f"o_{k}": wp.array(dtype=kinds[k]) for k in self.names}}
+        search.__signature__ = _signature(["slaves", "master_points",
+                                           *[f"o_{k}" for k in self.names]])
+        # vmap over scenes calls the search once per scene (its plan holds one scene's buffers).
+        self.call = wp.jax_callable(search, num_outputs=len(self.names),
+                                    vmap_method="sequential")
+
+    def __call__(self, s, xm):
+        n = s.shape[0]
+        outs = self.call(s, xm, output_dims={f"o_{k}": n for k in self.names})
+        out = dict(zip(self.names, outs))
+        out["active"] = out["active"].astype(bool)
+        ok = out["active"]
+        # Inactive rows hold NaN: keep them out of the smooth formulas' arithmetic.
+        out["xi"] = jnp.where(ok[:, None], out["xi"], 0)
+        out["gap"] = jnp.where(ok, out["gap"], 0)
+        return out
+
+
+def _signature(names):
+    import inspect
+
+    return inspect.Signature([inspect.Parameter(n, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+                              for n in names])
+
+
 def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Plan:
     """`p` itself when `contacts` did not overflow, else a plan sized for the current
     coordinates and at least the counts `contacts` reports (outside `jit`)."""
@@ -238,7 +321,8 @@ def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Pla
     master = p.master.with_points(np.asarray(master_points, np.float64))
     return plan(master, np.asarray(slave_points, np.float64), mode=p.static.mode,
                 d_max=p.d_max, dtype=p.dtype, growth=p.growth,
-                minimum={k: v for k, v in count.items() if k != "face_radius"})
+                minimum={k: v for k, v in count.items() if k != "face_radius"},
+                search="jax" if p.search is None else "warp")
 
 
 def _flatten_contacts(c):

@@ -52,7 +52,8 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
                    xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
                    gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
                    normal_out: wp.array(dtype=vec3), feature_out: wp.array(dtype=int),
-                   node_out: wp.array(dtype=int), status_out: wp.array(dtype=int)):
+                   node_out: wp.array(dtype=int), status_out: wp.array(dtype=int),
+                   local_out: wp.array(dtype=int)):
     i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
@@ -92,6 +93,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
         dist_out[i] = dist
         normal_out[i] = normal
         feature_out[i] = feature
+        local_out[i] = local
         status_out[i] = 0
         if conv == 0:
             status_out[i] = 4
@@ -104,12 +106,13 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
         dist_out[i] = nan
         normal_out[i] = vec3(nan, nan, nan)
         feature_out[i] = -1
+        local_out[i] = -1
         status_out[i] = 1
 
 
 OUTPUTS = (("active", wp.int32), ("face", int), ("xi", vec2), ("point", vec3),
            ("gap", real), ("distance", real), ("normal", vec3), ("feature", int),
-           ("master_node", int), ("status", int))
+           ("master_node", int), ("status", int), ("local", int))
 
 
 @dataclass(eq=False)
@@ -292,7 +295,8 @@ def detect(p: Plan, slave_points, master_points=None):
     """Launch the detection. Inputs: wp.array of wp.vec3 on the plan's device (used in place:
     capturable), JAX arrays (DLPack) or NumPy [n, 3]. Returns a dict of output arrays of the
     slaves' kind (the plan's own buffers for wp.array input, overwritten by the next call):
-    active, face, xi, point, gap, distance, normal, feature, master_node, status.
+    active, face, xi, point, gap, distance, normal, feature, master_node, status, local (the
+    edge or corner of an edge or vertex feature, else -1).
     master_points=None reuses the master's geometry and grids of the previous call (a master
     that does not move: only the slave kernel runs)."""
     if not isinstance(p, Plan):
