@@ -290,7 +290,9 @@ class _WarpSearch:
         search.__signature__ = _signature(["slaves", "master_points",
                                            *[f"o_{k}" for k in self.names]])
         # vmap over scenes calls the search once per scene (its plan holds one scene's buffers).
+        # No graph capture by JAX: the radix sort's temporary storage cannot be a child graph.
         self.call = wp.jax_callable(search, num_outputs=len(self.names),
+                                    graph_mode=wp.JaxCallableGraphMode.NONE,
                                     vmap_method="sequential")
 
     def __call__(self, s, xm):
