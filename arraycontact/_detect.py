@@ -269,13 +269,13 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
     mode: "exact" (the exact closest point over faces, edges and vertices within d_max) or
     "node" (seed 000: closest node, projections on its faces, blind spots, passing-by nodes).
     d_max: search radius; default: the longest master edge, raised to 2 max|displacement|.
-    dtype: float64 (default; float32 on "warp", which computes in float32 only) or float32 for
-    the computation (inputs are always read in float64 and moved to a local frame first)."""
+    dtype: float64 (default; float32 on "warp", a GPU's fast precision) or float32 for the
+    computation (inputs are always read in float64 and moved to a local frame first)."""
     t0 = time.perf_counter()
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "warp" and dtype is None:
-        dtype = np.float32  # the Warp kernels compute in float32
+        dtype = np.float32  # the Warp kernels' default (float64 when asked)
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
     slave_x, ids = _slaves(slave)
     n = len(slave_x)

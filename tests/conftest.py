@@ -1,3 +1,5 @@
+import hashlib
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,21 @@ def backend(request):
     return request.param
 
 
+_REFERENCES = {}
+
+
+def reference(slave, master):
+    """The brute-force reference of (slave, master), computed once per session: the back-end
+    parametrisations of a test share it (on curved faces it takes most of a test's time)."""
+    slave = np.ascontiguousarray(slave, float)
+    key = hashlib.sha1(b"".join([slave.tobytes(), master.points.tobytes(),
+                                 np.ascontiguousarray(master.faces).tobytes(),
+                                 master.element.name.encode()])).hexdigest()
+    if key not in _REFERENCES:
+        _REFERENCES[key] = ac.reference.closest_points(slave, master)
+    return _REFERENCES[key]
+
+
 def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
     """`c` (a Contacts) equals the brute-force reference on (slave, master).
 
@@ -20,7 +37,7 @@ def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
     reference finds at the minimal distance; in float64 the very face the reference's tie rule
     picks (smallest id among equidistant faces)."""
     slave = np.asarray(slave, float)
-    ref = ref if ref is not None else ac.reference.closest_points(slave, master)
+    ref = ref if ref is not None else reference(slave, master)
     L = master.longest_edge
     tol = 1e-12 * max(L, 1) if dtype == np.float64 else 1e-5 * L
     border = np.abs(ref.distance - c.d_max) <= tol

@@ -31,7 +31,6 @@ MASTER, SLAVE = random_scene(0, n=4)
 @pytest.mark.parametrize("kwargs, match", [
     (dict(mode="fast"), "mode must be one of"),
     (dict(backend="torch"), "backend must be one of"),
-    (dict(backend="warp", mode="node"), "mode='exact' only"),
     (dict(d_max=0.0), "d_max must be a positive"),
     (dict(d_max=np.nan), "d_max must be a positive"),
     (dict(dtype=np.float16), "dtype must be float32 or float64"),

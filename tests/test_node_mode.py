@@ -105,13 +105,23 @@ CASES = {"convex_square": flat_square, "convex_square_tri": lambda: flat_square(
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_node_mode_matches_the_paper_rules(backend, case):
+    _check_paper_rules(case, backend=backend)
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_warp_node_mode_matches_the_paper_rules(case):
+    """The Warp kernels' node mode, in float64 (the direct rules' tie tolerance)."""
+    _check_paper_rules(case, backend="warp", dtype="float64")
+
+
+def _check_paper_rules(case, **options):
     surface = CASES[case]()
     rng = np.random.default_rng(0)
     lo, hi = surface.points.min(0) - 1.0, surface.points.max(0) + 1.0
     slave = rng.uniform(lo, hi, (300, 3))
     d_max = 1.0
     want = node_mode_direct(slave, surface, d_max)
-    c = ac.detect(slave, surface, backend=backend, mode="node", d_max=d_max)
+    c = ac.detect(slave, surface, mode="node", d_max=d_max, **options)
     status = np.array([w[0] for w in want])
     assert np.array_equal(c.status, status)
     active = np.isin(status, [S.OK, S.BLIND_SPOT])
@@ -146,12 +156,13 @@ def test_concave_corner_uses_or():
     assert c.master_node[0] == 2 and c.status[0] == S.PASSING_BY and not c.active[0]
 
 
-def test_closed_master_has_no_passing_by():
+@pytest.mark.parametrize("backend", ["numpy", "warp"])
+def test_closed_master_has_no_passing_by(backend):
     from test_surface import cube
 
     rng = np.random.default_rng(1)
     slave = rng.uniform(-0.5, 1.5, (200, 3))
-    c = ac.detect(slave, cube(), mode="node", d_max=1.0)
+    c = ac.detect(slave, cube(), mode="node", d_max=1.0, backend=backend, dtype="float64")
     assert not (c.status == S.PASSING_BY).any()
     want = node_mode_direct(slave, cube(), 1.0)
     assert np.array_equal(c.status, [w[0] for w in want])

@@ -8,6 +8,7 @@ import pytest
 
 import arraycontact as ac
 from arraycontact import scenes
+from conftest import reference
 
 RUNS = [("numpy", "float64"), ("numpy", "float32"), ("jax", "float64"), ("jax", "float32"),
         ("warp", "float32")]
@@ -24,7 +25,7 @@ def _tol(dtype, L, offset=0.0):
 def _check(c, slave, master, dtype, offset=0.0, ref=None):
     """Active set, distance and gap against the reference; the chosen face holds a point at
     the minimal distance."""
-    ref = ref if ref is not None else ac.reference.closest_points(slave, master)
+    ref = ref if ref is not None else reference(slave, master)
     L = master.longest_edge
     tol = _tol(dtype, L, offset)
     want = ref.distance <= c.d_max

@@ -24,12 +24,15 @@ SCENES = {
 }
 
 
-def _same_as_numpy(o, r, L):
+def _same_as_numpy(o, r, L, rows=None):
+    """Warp outputs `o` equal NumPy's contacts `r` on `rows` (default: the active ones)."""
     act = o["active"].astype(bool)
     assert np.array_equal(act, r.active)
-    for k in ("face", "feature", "master_node", "status"):
+    a = r.active if rows is None else rows
+    for k in ("face", "feature"):
+        assert np.array_equal(o[k][a], getattr(r, k)[a]), k
+    for k in ("master_node", "status"):
         assert np.array_equal(o[k], getattr(r, k)), k
-    a = r.active
     for k in ("gap", "distance"):
         assert np.abs(o[k][a] - getattr(r, k)[a]).max() <= 2e-5 * L, k
     # Points agree to the float32 KKT tolerance (1e-4 in natural coordinates) times the size.
@@ -40,6 +43,7 @@ def _same_as_numpy(o, r, L):
     tol = 1e-3 + np.where(d <= 1e-5 * L, 0.0, 2e-6 * L / np.maximum(d, 1e-30))
     assert (np.abs(o["normal"][a] - r.normal[a]).max(1) <= tol).all()
     assert np.isnan(o["gap"][~a]).all() and (o["face"][~a] == -1).all()
+    assert (o["face"][a] >= 0).all()
 
 
 @pytest.mark.parametrize("name", sorted(SCENES))
@@ -156,6 +160,24 @@ def test_closest_node_tie_rule():
     r = ac.detect(slaves, master, dtype=np.float32)
     assert np.array_equal(o["master_node"], r.master_node)
     assert np.array_equal(o["master_node"], np.minimum(a, b))
+
+
+@pytest.mark.parametrize("name", ["rough_tri3", "patch_quad8", "sphere_quad4"])
+def test_warp_node_mode_equals_numpy(name):
+    """mode="node" (closest node, its attached faces, blind spots, passing-by nodes) in the
+    Warp kernels equals NumPy's, passing-by rows included."""
+    s = SCENES[name]()
+    p = acw.plan(s.master, s.slave, device=DEVICE, mode="node")
+    o = acw.detect(p, s.slave, s.master.points)
+    r = ac.detect(s.slave, s.master, dtype=np.float32, mode="node", d_max=p.constants["d_max"])
+    assert np.array_equal(o["status"], r.status)
+    seen = set(r.status.tolist())
+    assert int(ac.Status.OK) in seen
+    if name == "rough_tri3":  # an open master: blind spots and passing-by nodes at its rim
+        S = ac.Status
+        assert {int(S.OUT_OF_RANGE), int(S.BLIND_SPOT), int(S.PASSING_BY)} <= seen
+    keep = r.active | (r.status == int(ac.Status.PASSING_BY))
+    _same_as_numpy(o, r, s.master.longest_edge, rows=keep)
 
 
 def test_warp_far_from_the_origin():

@@ -180,16 +180,16 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
     st = Static(element=master.element.name, mode=mode, node_table=prep.node_table,
                 face_table=prep.face_table, iterations=ITERATIONS.get(master.element.name, 0),
                 passing_by=mode == "node" and not master.closed)
-    m = master_arrays(master, prep, dtype)
     sc = scalars(prep, master, dtype)
     if search == "warp":
+        # No pair counts to size: only the topology that the smooth outputs read.
         engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin)
-        cap = {"face_radius": r_cap}
         sc.pop("r_max")
         topo = {k: jnp.asarray(v) for k, v in master_topology(master, prep).items()}
-        return Plan(topo, master, st, tuple(sorted(cap.items())), tuple(sorted(sc.items())),
+        return Plan(topo, master, st, (("face_radius", r_cap),), tuple(sorted(sc.items())),
                     tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
                     engine)
+    m = master_arrays(master, prep, dtype)
     cap = _grown(_estimate((slave_x - origin).astype(dtype), m, sc, st), growth)
     for k, v in (minimum or {}).items():
         if k in cap:

@@ -1,7 +1,8 @@
 """Warp back end of arraycontact: graph-capturable detection kernels and the geometry as
 `@wp.func`s for simulators' own kernels.
 
-    plan(master, slave_points, *, slave_world, master_world, d_max, device, dtype) -> Plan
+    plan(master, slave_points, *, slave_world, master_world, d_max, device, dtype, mode)
+        -> Plan
     detect(plan, slave_points, master_points) -> dict of arrays (launches only)
     closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
     face_point: @wp.func (float32; `geometry("float64")` holds their float64 twins)

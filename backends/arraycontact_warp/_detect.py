@@ -6,8 +6,10 @@ the current coordinates), _grid (hashed keys with the world id, radix sort, slot
 _closest_node, _projection (candidates and projections), _select (gap, normal). Each slave is
 one thread (slaves taken in Morton order) that scans the 27 grid cells around it, once for the
 closest node and once for the closest face, applying the tie rule as it goes (a second scan
-only when that was unsure), so there is no pair buffer to overflow; the one planned quantity that motion can outgrow is the largest face
-radius the face grid's cells were sized for, reported in the device flag `plan.overflow`.
+only when that was unsure); in node mode it projects on the faces attached to the closest
+node instead. There is no pair buffer to overflow; the one planned quantity that motion can
+outgrow is the largest face radius the face grid's cells were sized for, reported in the
+device flag `plan.overflow`.
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;
 results per world equal running each world alone. A master without world ids is shared by all
@@ -24,16 +26,17 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from arraycontact._detect import ITERATIONS, KKT_TOL, TIE_RTOL
+from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, TIE_RTOL
 from arraycontact._prepare import CELL_MARGIN
+from arraycontact._select import boundary_topology
 from arraycontact._surface import Surface, validate_points
 
 from . import _grid, _prepare
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
 from ._real import NP_REAL, real, precision, vec2, vec3
-from ._projection import Master, scan_faces
-from ._select import classify
+from ._projection import Master, scan_attached, scan_faces
+from ._select import classify, proximal
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
@@ -47,7 +50,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
                    slaves: wp.array(dtype=vec3), order: wp.array(dtype=int),
                    slave_world: wp.array(dtype=int),
                    shared: int, origin: vec3, d_max: real, tie: real, slack: real,
-                   r_cap: real, iterations: int, tol: real,
+                   r_cap: real, iterations: int, tol: real, mode: int, passing_by: int,
                    active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
                    xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
                    gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
@@ -74,18 +77,46 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     local = int(-1)
     conv = int(0)
     diff = vec3(0.0)
-    for scan in range(2):
-        if scan == 0 or (dmin <= d_max and unsure == 1):
-            d, f, xi, feature, local, conv, diff, unsure = scan_faces(
-                el, m, face_grid, s, w, rho, r_cap, tie, limit, slack, iterations, tol)
+    active = int(0)
+    status = int(1)  # out of range
+    if mode == 0:
+        for scan in range(2):
+            if scan == 0 or (dmin <= d_max and unsure == 1):
+                d, f, xi, feature, local, conv, diff, unsure = scan_faces(
+                    el, m, face_grid, s, w, rho, r_cap, tie, limit, slack, iterations, tol)
+                if scan == 0:
+                    dmin = d
+                    limit = dmin + tie
+                    rho = wp.min(rho, limit + slack)  # the second scan needs only this near
+        if dmin <= d_max:
+            active = 1
+            status = 0
+    elif node >= 0:
+        # Node mode: the faces attached to the closest node; the closest projection landing
+        # inside a face, else (a blind spot) the closest of all, each by the tie rule (a second
+        # pass picks the smallest face id within `tie`). A blind spot at a boundary node outside
+        # its proximal volume is passing by: reported, not active.
+        only_face = int(0)
+        for scan in range(2):
+            d_face, d_any, f, xi, feature, local, conv, diff = scan_attached(
+                el, m, face_grid, s, node, only_face, limit, iterations, tol)
             if scan == 0:
-                dmin = d
-                limit = dmin + tie
-                rho = wp.min(rho, limit + slack)  # the second scan needs only faces this near
+                limit = d_any + tie
+                if d_face < real(3.0e38):
+                    only_face = 1
+                    limit = d_face + tie
+        active = 1
+        status = 0
+        if only_face == 0:
+            status = 2  # blind spot
+            if passing_by == 1 and (m.prev_face[node] >= 0 or m.next_face[node] >= 0):
+                if not proximal(el, m, s, node):
+                    active = 0
+                    status = 3  # passing by
     nan = real(wp.nan)
-    if dmin <= d_max:
+    if active == 1 or status == 3:
         gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
-        active_out[i] = 1
+        active_out[i] = active
         face_out[i] = f
         xi_out[i] = xi
         point_out[i] = s - diff + origin
@@ -94,8 +125,8 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
         normal_out[i] = normal
         feature_out[i] = feature
         local_out[i] = local
-        status_out[i] = 0
-        if conv == 0:
+        status_out[i] = status
+        if active == 1 and conv == 0:
             status_out[i] = 4
     else:
         active_out[i] = 0
@@ -142,6 +173,8 @@ class Plan:
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
+    mode: int = 0  # 0 exact, 1 node
+    passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     master_ready: bool = False  # the master stages have run at least once
 
 
@@ -158,9 +191,10 @@ def _worlds(world, n, what):
 
 
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
-         device=None, growth=GROWTH, dtype="float32", sort_slaves=True) -> Plan:
-    """Allocate a detection of slaves [n, 3] against `master` (exact mode) computing in dtype
-    (float32 or float64).
+         device=None, growth=GROWTH, dtype="float32", sort_slaves=True, mode="exact") -> Plan:
+    """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
+    float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
+    spots, passing-by nodes on an open master's boundary), as arraycontact.detect.
 
     slave_world [n] and master_world [n_points]: world ids (non-negative ints). Without
     master_world the master is shared by all worlds. d_max: default the longest master edge.
@@ -172,9 +206,11 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     if here.real is not real:
         return here.plan(master, slave_points, slave_world=slave_world,
                          master_world=master_world, d_max=d_max, device=device, growth=growth,
-                         dtype=dtype, sort_slaves=sort_slaves)
+                         dtype=dtype, sort_slaves=sort_slaves, mode=mode)
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if master.n_faces == 0:
         raise ValueError("master has no faces")
     x = validate_points(slave_points, "slave_points")
@@ -223,6 +259,11 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     offsets, ids = master.node_faces
     m.nf_offsets, m.nf_ids = arr(offsets.astype(np.int32), int), arr(ids.astype(np.int32), int)
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
+    prev_node, next_node, prev_face, next_face, _ = boundary_topology(master)
+    m.prev_node, m.next_node = arr(prev_node.astype(np.int32), int), arr(
+        next_node.astype(np.int32), int)
+    m.prev_face, m.next_face = arr(prev_face.astype(np.int32), int), arr(
+        next_face.astype(np.int32), int)
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
     element = element_data(e.name, device)
@@ -241,7 +282,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
                     np.int32), int),
                 order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
-                else None)
+                else None, mode=MODES.index(mode),
+                passing_by=int(mode == "node" and not master.closed))
 
 
 def _kind(a):
@@ -286,8 +328,10 @@ def _master_stages(p: Plan, master_points):
     _grid.build(p.node_grid, m.points, p.zero_radii, p.node_ids, m.node_world,
                 len(p.master.nodes), dev)
     tri3 = p.master.element.name == "tri3"
-    _grid.build(p.face_grid, m.centres, m.radii, p.face_ids, m.face_world, p.master.n_faces,
-                dev, m.points if tri3 else None, m.faces if tri3 else None)
+    if p.mode == 0:  # node mode reads no face grid
+        _grid.build(p.face_grid, m.centres, m.radii, p.face_ids, m.face_world,
+                    p.master.n_faces, dev, m.points if tri3 else None,
+                    m.faces if tri3 else None)
     p.master_ready = True
 
 
@@ -321,7 +365,7 @@ def detect(p: Plan, slave_points, master_points=None):
               inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.order, p.slave_world,
                       p.shared,
                       s_origin, real(c["d_max"]), real(c["tie"]), real(c["slack"]),
-                      real(c["r_cap"]), c["iterations"], real(c["tol"])],
+                      real(c["r_cap"]), c["iterations"], real(c["tol"]), p.mode, p.passing_by],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
     kind = _kind(slave_points)
     if kind == "warp":
@@ -338,10 +382,8 @@ def detect(p: Plan, slave_points, master_points=None):
 
 def run_one_shot(slave_x, master, prep, st, dtype):
     """`arraycontact.detect(backend="warp")`: plan, detect, host arrays out."""
-    if st.mode != "exact":
-        raise ValueError("the warp back end implements mode='exact' only")
     x = slave_x[prep.slave_rows]
-    p = plan(master, x, d_max=prep.d_max, dtype=dtype)
+    p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode)
     out = detect(p, x, master.points)
     out["active"] = out["active"].astype(bool)
     out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back

@@ -54,6 +54,7 @@ class Triangles:
 
     n_corners: int
     nodes: wp.array(dtype=vec2)
+    centre: vec2
 
 
 @wp.struct
@@ -66,6 +67,7 @@ def triangle_data(device=None) -> Triangles:
     t.n_corners = 3
     t.nodes = wp.array(np.array([[0, 0], [1, 0], [0, 1]], NP_REAL), dtype=vec2,
                        device=device)
+    t.centre = vec2(1.0 / 3.0, 1.0 / 3.0)
     return t
 
 

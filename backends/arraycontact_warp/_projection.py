@@ -13,7 +13,7 @@ from typing import Any
 import warp as wp
 
 from ._closest_node import _cell_near, stencil_offset
-from ._geometry import (EDGE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
+from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
 from ._grid import Grid, cell_key, cell_of
@@ -36,6 +36,12 @@ class Master:
     nf_ids: wp.array(dtype=int)
     face_edges: wp.array2d(dtype=int)
     edge_faces: wp.array2d(dtype=int)
+    # node mode on an open master: the boundary neighbours of each node and the faces owning
+    # those boundary edges (-1 off the boundary), as arraycontact._select.boundary_topology
+    prev_node: wp.array(dtype=int)
+    next_node: wp.array(dtype=int)
+    prev_face: wp.array(dtype=int)
+    next_face: wp.array(dtype=int)
 
 
 @wp.func
@@ -88,11 +94,18 @@ def lattice_start(el: Element, r: vec3, xe: FaceNodes):
 def project(el: Triangles, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int,
             tol: real):
     """tri3: Voronoi regions on the corners the face grid holds in key order (item k), read
-    contiguously; a per-face node block would live in slow local memory."""
-    x0 = grid.corners[k, 0]
+    contiguously (k < 0, node mode: from the node array); a per-face node block would live in
+    slow local memory."""
+    x0 = m.points[m.faces[f, 0]]
+    x1 = m.points[m.faces[f, 1]]
+    x2 = m.points[m.faces[f, 2]]
+    if k >= 0:
+        x0 = grid.corners[k, 0]
+        x1 = grid.corners[k, 1]
+        x2 = grid.corners[k, 2]
     r = s - x0
-    b = grid.corners[k, 1] - x0
-    c = grid.corners[k, 2] - x0
+    b = x1 - x0
+    c = x2 - x0
     xi, feature, local = closest_point_triangle(r, vec3(0.0), b, c)
     return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
 
@@ -221,4 +234,36 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
     return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff, unsure
 
 
-__all__ = ["Master", "project", "scan_faces"]
+@wp.func
+def scan_attached(el: Any, m: Master, grid: Grid, s: vec3, node: int, only_face: int,
+                  limit: real, iterations: int, tol: real):
+    """Node mode (seed 000 section 2.2): the projections of s on the faces attached to its
+    closest node. Returns the smallest distance among the projections that land on a face's
+    interior and among all, and the smallest face id at distance <= limit (only interior
+    landings when only_face = 1) with its projection."""
+    d_face = real(3.0e38)
+    d_any = real(3.0e38)
+    best = int(-1)
+    b_xi = vec2(0.0)
+    b_feature = int(-1)
+    b_local = int(-1)
+    b_conv = int(0)
+    b_diff = vec3(0.0)
+    for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
+        f = m.nf_ids[j]
+        xi, feature, local, conv, diff = project(el, m, grid, -1, s, f, iterations, tol)
+        d = wp.length(diff)
+        d_any = wp.min(d_any, d)
+        if feature == FACE:
+            d_face = wp.min(d_face, d)
+        if d <= limit and (only_face == 0 or feature == FACE) and (best < 0 or f < best):
+            best = f
+            b_xi = xi
+            b_feature = feature
+            b_local = local
+            b_conv = conv
+            b_diff = diff
+    return d_face, d_any, best, b_xi, b_feature, b_local, b_conv, b_diff
+
+
+__all__ = ["Master", "project", "scan_attached", "scan_faces"]

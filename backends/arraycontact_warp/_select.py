@@ -122,4 +122,27 @@ def classify(el: Any, m: Master, f: int, feature: int, local: int, xi: vec2,
     return s * dist, dist, normal
 
 
-__all__ = ["pseudo_normal", "classify", "face_normal"]
+@wp.func
+def proximal(el: Any, m: Master, s: vec3, node: int):
+    """Seed 000 eq. (13), as arraycontact._select.proximal: is s in the proximal volume of
+    boundary node `node`? m2 -> m -> m1 follow the boundary; n2, n1 are the normals (at the
+    centre) of the faces owning edges (m2, m) and (m, m1). A convex corner (eq. 12) needs both
+    half-spaces, a concave one either."""
+    rm = m.points[node]
+    rm1 = m.points[m.next_node[node]]
+    rm2 = m.points[m.prev_node[node]]
+    n1 = vec3(0.0)
+    n2 = vec3(0.0)
+    if m.next_face[node] >= 0:
+        n1 = face_normal(el, m, m.next_face[node], el.centre)
+    if m.prev_face[node] >= 0:
+        n2 = face_normal(el, m, m.prev_face[node], el.centre)
+    rs = s - rm
+    a = wp.dot(wp.cross(n2, rm - rm2), rs) >= real(0.0)
+    b = wp.dot(wp.cross(n1, rm1 - rm), rs) >= real(0.0)
+    if wp.dot(wp.cross(rm - rm2, rm1 - rm), n2 + n1) < real(0.0):  # concave
+        return a or b
+    return a and b
+
+
+__all__ = ["pseudo_normal", "classify", "face_normal", "proximal"]
