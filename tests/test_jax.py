@@ -62,8 +62,7 @@ def test_float32_plan_is_close_to_float64_far_from_the_origin():
     assert np.abs(np.asarray(c.gap)[a] - r.gap[a]).max() <= 1e-5 * master.longest_edge
 
 
-@pytest.mark.parametrize("search", ["jax", "warp"])
-def test_no_recompilation_over_20_steps_of_a_moving_scene(search):
+def test_no_recompilation_over_20_steps_of_a_moving_scene(search="jax"):
     s = scenes.rough_surfaces(2**10, seed=5)
     p = acj.plan(s.master, s.slave, search=search)
     rng = np.random.default_rng(0)
@@ -128,8 +127,7 @@ def test_plan_rejects_bad_input():
             acj.plan(s.master, s.slave, dtype=np.float64)
 
 
-@pytest.mark.parametrize("search", ["jax", "warp"])
-def test_vmap_over_scenes_equals_one_by_one(search):
+def test_vmap_over_scenes_equals_one_by_one(search="jax"):
     s = scenes.rough_surfaces(2**10, seed=7)
     p = acj.plan(s.master, s.slave, search=search)
     shifts = np.array([[0, 0, 0], [0.1, 0, 0.1], [0, -0.2, 0.3]])
@@ -144,30 +142,22 @@ def test_vmap_over_scenes_equals_one_by_one(search):
         assert np.allclose(cb.gap[i], ci.gap, equal_nan=True, atol=1e-14)
 
 
-@pytest.mark.parametrize("make", [lambda: scenes.rough_surfaces(2**9, seed=11),
-                                  lambda: scenes.curved_patch(3, element="quad8", n_slaves=200)])
-def test_warp_search_equals_the_jax_search_with_the_same_gradients(make):
-    """search="warp" (the Warp kernels through Warp's JAX FFI) finds the same contacts as the
-    JAX stages, and the smooth outputs built on them have the same gradients."""
-    s = make()
-    pj, pw = (acj.plan(s.master, s.slave, search=k) for k in ("jax", "warp"))
-    x, m = jnp.asarray(s.slave), jnp.asarray(s.master.points)
-    cj, cw = acj.detect(pj, x, m), acj.detect(pw, x, m)
-    _compare(cw, jax.tree.map(np.asarray, cj))
-    assert not bool(cw.overflow) and np.asarray(cj.active).any()
+def test_warp_search_in_its_own_process():
+    """plan(search="warp") runs Warp kernels inside XLA through Warp's FFI. In one process with
+    the rest of this suite on the CPU, a later XLA compilation crashed (a segfault in
+    backend_compile, twice, in test_stress); so its tests (warp_search_checks.py: the same
+    contacts and gradients as the JAX search, no recompilation over 20 steps, vmap) run in a
+    child process of their own."""
+    import subprocess
+    import sys
+    from pathlib import Path
 
-    def energy(p):
-        def e(x, m):
-            c = acj.detect(p, x, m)
-            return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.1) ** 2, 0.0))
-        return e
-
-    gj = jax.grad(energy(pj), argnums=(0, 1))(x, m)
-    gw = jax.grad(energy(pw), argnums=(0, 1))(x, m)
-    for a, b in zip(gj, gw):
-        assert np.abs(np.asarray(a)).max() > 0 and np.allclose(a, b, atol=1e-12)
-    with pytest.raises(ValueError, match="exact"):
-        acj.plan(s.master, s.slave, mode="node", search="warp")
+    here = Path(__file__).parent
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                        str(here / "warp_search_checks.py")], cwd=here.parent,
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
+    assert "4 passed" in r.stdout
 
 
 # --- gradients ------------------------------------------------------------------------------

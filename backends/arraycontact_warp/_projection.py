@@ -94,20 +94,32 @@ def lattice_start(el: Element, r: vec3, xe: FaceNodes):
 def project(el: Triangles, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int,
             tol: real):
     """tri3: Voronoi regions on the corners the face grid holds in key order (item k), read
-    contiguously (k < 0, node mode: from the node array); a per-face node block would live in
-    slow local memory."""
-    x0 = m.points[m.faces[f, 0]]
-    x1 = m.points[m.faces[f, 1]]
-    x2 = m.points[m.faces[f, 2]]
-    if k >= 0:
-        x0 = grid.corners[k, 0]
-        x1 = grid.corners[k, 1]
-        x2 = grid.corners[k, 2]
+    contiguously; a per-face node block would live in slow local memory."""
+    return _on_triangle(s, grid.corners[k, 0], grid.corners[k, 1], grid.corners[k, 2])
+
+
+@wp.func
+def _on_triangle(s: vec3, x0: vec3, x1: vec3, x2: vec3):
+    """project's answer on the triangle (x0, x1, x2), in a frame at x0."""
     r = s - x0
     b = x1 - x0
     c = x2 - x0
     xi, feature, local = closest_point_triangle(r, vec3(0.0), b, c)
     return xi, feature, local, 1, r - (xi[0] * b + xi[1] * c)
+
+
+@wp.func
+def project_face(el: Triangles, m: Master, grid: Grid, s: vec3, f: int, iterations: int,
+                 tol: real):
+    """`project` by face id alone (node mode: the face's grid item is not known)."""
+    return _on_triangle(s, m.points[m.faces[f, 0]], m.points[m.faces[f, 1]],
+                        m.points[m.faces[f, 2]])
+
+
+@wp.func
+def project_face(el: Element, m: Master, grid: Grid, s: vec3, f: int,  # noqa: F811
+                 iterations: int, tol: real):
+    return project(el, m, grid, -1, s, f, iterations, tol)
 
 
 # A Warp overload of the tri3 `project` above, chosen by the element struct's type.
@@ -251,7 +263,7 @@ def scan_attached(el: Any, m: Master, grid: Grid, s: vec3, node: int, only_face:
     b_diff = vec3(0.0)
     for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
         f = m.nf_ids[j]
-        xi, feature, local, conv, diff = project(el, m, grid, -1, s, f, iterations, tol)
+        xi, feature, local, conv, diff = project_face(el, m, grid, s, f, iterations, tol)
         d = wp.length(diff)
         d_any = wp.min(d_any, d)
         if feature == FACE:

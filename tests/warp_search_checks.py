@@ -1,0 +1,53 @@
+"""The JAX back end's search="warp" (Warp kernels inside XLA through Warp's FFI), run by
+test_jax.test_warp_search_in_its_own_process in a process of its own."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import arraycontact_jax as acj
+from arraycontact import scenes
+
+import test_jax
+from test_jax import _compare
+
+
+@pytest.fixture(autouse=True)
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def test_no_recompilation_with_the_warp_search():
+    test_jax.test_no_recompilation_over_20_steps_of_a_moving_scene(search="warp")
+
+
+def test_vmap_with_the_warp_search():
+    test_jax.test_vmap_over_scenes_equals_one_by_one(search="warp")
+
+
+@pytest.mark.parametrize("make", [lambda: scenes.rough_surfaces(2**9, seed=11),
+                                  lambda: scenes.curved_patch(3, element="quad8", n_slaves=200)])
+def test_warp_search_equals_the_jax_search_with_the_same_gradients(make):
+    """search="warp" (the Warp kernels through Warp's JAX FFI) finds the same contacts as the
+    JAX stages, and the smooth outputs built on them have the same gradients."""
+    s = make()
+    pj, pw = (acj.plan(s.master, s.slave, search=k) for k in ("jax", "warp"))
+    x, m = jnp.asarray(s.slave), jnp.asarray(s.master.points)
+    cj, cw = acj.detect(pj, x, m), acj.detect(pw, x, m)
+    _compare(cw, jax.tree.map(np.asarray, cj))
+    assert not bool(cw.overflow) and np.asarray(cj.active).any()
+
+    def energy(p):
+        def e(x, m):
+            c = acj.detect(p, x, m)
+            return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.1) ** 2, 0.0))
+        return e
+
+    gj = jax.grad(energy(pj), argnums=(0, 1))(x, m)
+    gw = jax.grad(energy(pw), argnums=(0, 1))(x, m)
+    for a, b in zip(gj, gw):
+        assert np.abs(np.asarray(a)).max() > 0 and np.allclose(a, b, atol=1e-12)
+    with pytest.raises(ValueError, match="exact"):
+        acj.plan(s.master, s.slave, mode="node", search="warp")
