@@ -46,16 +46,33 @@ def bench_jax(scene, repeats, mode="exact", search="jax"):
         times.append(time.perf_counter() - t0)
     extra = {}
     if search == "warp":
-        # The Warp search alone (inside jit), to split its time from the smooth outputs'.
+        # Split the time: the Warp search alone (inside jit), and the JAX side's parts.
+        from arraycontact._elements import get_element
+        from arraycontact._surface import face_bounds, node_normals
+        from arraycontact_jax._gradients import smooth
+
+        def median_time(fn, *args):
+            fn = jax.jit(fn)
+            jax.block_until_ready(fn(*args))
+            t = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(*args))
+                t.append(time.perf_counter() - t0)
+            return statistics.median(t)
+
         origin = jnp.asarray(p.origin, jnp.float32)
-        only = jax.jit(lambda s, m: p.search(s - origin, m - origin))
-        jax.block_until_ready(only(s, m))
-        t = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(only(s, m))
-            t.append(time.perf_counter() - t0)
-        extra["search_only_s"] = statistics.median(t)
+        extra["search_only_s"] = median_time(lambda s, m: p.search(s - origin, m - origin), s, m)
+        el = get_element(p.static.element)
+        faces = p.topology["faces"]
+        out = jax.jit(lambda s, m: p.search(s - origin, m - origin))(s, m)
+        tie = dict(p.constants)["tie"]
+        extra["jax_parts_s"] = dict(
+            face_bounds=median_time(lambda m: face_bounds(el, m[faces], jnp)[1].max(), m),
+            node_normals=median_time(lambda m: node_normals(el, faces, m, jnp), m),
+            smooth=median_time(lambda s, m, o: smooth(
+                el, s, m, p.topology, o["face"], o["feature"], o["local"], o["xi"], o["gap"],
+                tie), s - origin, m - origin, out))
     c = jax.tree.map(np.asarray, c)
     return c, dict(**extra, plan_s=plan_s, first_call_s=first, steady_s=statistics.median(times),
                    steady_min_s=min(times), device=str(jax.devices()[0].device_kind),
@@ -78,6 +95,29 @@ def _node_stage_kernel():
         node_out[i] = node
 
     return node_stage
+
+
+def kernel_resources(device):
+    """Registers per thread and local (spilled) bytes of every CUDA kernel Warp has loaded:
+    what limits the detection kernel's occupancy."""
+    import ctypes
+
+    import warp as wp
+
+    cuda = ctypes.CDLL("libcuda.so.1")
+    out = {}
+    for module in list(wp._src.context.user_modules.values()):
+        for ex in module.execs.values():
+            if not ex.device.is_cuda or ex.device != wp.get_device(device):
+                continue
+            for name, hooks in ex.kernel_hooks.items():
+                v = {}
+                for what, attr in (("registers", 4), ("local_bytes", 3)):
+                    r = ctypes.c_int(0)
+                    cuda.cuFuncGetAttribute(ctypes.byref(r), attr, ctypes.c_void_p(hooks.forward))
+                    v[what] = r.value
+                out[name] = v
+    return out
 
 
 def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
@@ -131,6 +171,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
             wp.synchronize_device(device)
             gt.append(time.perf_counter() - t0)
         graph_s = statistics.median(gt)
+        kernels["resources"] = kernel_resources(device)
     o = {k: v.numpy() for k, v in p.out.items()}
     n = len(scene.slave)
     c = ac.Contacts(active=o["active"].astype(bool), face=o["face"], xi=o["xi"],
@@ -205,7 +246,9 @@ def main():
             with open(out / "gpu.jsonl", "a") as f:
                 f.write(json.dumps(rec) + "\n")
             if rec.get("search_only_s"):
-                print(f"   the Warp search alone {rec['search_only_s'] * 1e3:.3f} ms")
+                print(f"   the Warp search alone {rec['search_only_s'] * 1e3:.3f} ms; JAX parts "
+                      + ", ".join(f"{k} {v * 1e3:.3f} ms"
+                                  for k, v in rec["jax_parts_s"].items()))
             g = rec.get("graph_replay_s")
             print(f"2^{k} {backend} {rec['device']}: plan {rec['plan_s']:.2f} s, first "
                   f"{rec['first_call_s']:.2f} s, steady {rec['steady_s'] * 1e3:.3f} ms"
@@ -220,9 +263,13 @@ def main():
                 print("   variants ms: " + ", ".join(
                     f"{n} {t * 1e3:.3f}" for n, t in rec["variants_steady_s"].items()))
             if rec.get("kernels_s"):
+                res = rec["kernels_s"].pop("resources", {})  # printed apart
                 print("   per kernel ms: " + ", ".join(
                     f"{n[:40]} {t * 1e3:.3f}" for n, t in sorted(rec["kernels_s"].items(),
                                                                 key=lambda kv: -kv[1])))
+                print("   registers / local bytes: " + ", ".join(
+                    f"{n[:30]} {v['registers']}/{v['local_bytes']}" for n, v in res.items()
+                    if "detect" in n or "node_stage" in n))
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._grid import Grid, cell_key, cell_of
+from ._grid import Grid, box_near, cell_key, cell_of
 from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -47,24 +47,31 @@ def _scan(s: vec3, world: int, grid: Grid, d_max: real, tie: real, limit: real):
     for q in range(27):
         c = c0 + stencil_offset(q)
         # Cells beyond the running minimum plus the tie band (or the tie limit) cannot change
-        # the answer.
-        if _cell_near(s, c, grid.cell, wp.min(d_max, wp.max(dmin + tie, limit))):
+        # the answer; nor can a slot whose items' box is that far.
+        reach = wp.min(d_max, wp.max(dmin + tie, limit))
+        if _cell_near(s, c, grid.cell, reach):
             key = cell_key(c, world, grid.table)
-            for k in range(grid.begin[key], grid.end[key]):
-                ball = grid.balls[k]
-                if grid.worlds[k] == world:
-                    j = grid.sorted_ids[k]
-                    d = wp.length(vec3(ball[0], ball[1], ball[2]) - s)
-                    if d <= d_max:
-                        if d < dmin:
-                            second = dmin
-                            dmin = d
-                            if limit < real(0.0):
+            if box_near(s, grid, key, reach * real(1.0001)):
+                for k in range(grid.begin[key], grid.end[key]):
+                    ball = grid.balls[k]
+                    # Squares first, a little wide so that rounding cannot drop a node the
+                    # test on d keeps: most nodes are out of reach and need no root.
+                    d2 = wp.length_sq(vec3(ball[0], ball[1], ball[2]) - s)
+                    wide = reach * real(1.0001)
+                    if d2 <= wide * wide and grid.worlds[k] == world:
+                        d = wp.sqrt(d2)
+                        if d <= d_max:
+                            j = grid.sorted_ids[k]
+                            if d < dmin:
+                                second = dmin
+                                dmin = d
+                                if limit < real(0.0):
+                                    best = j
+                            else:
+                                second = wp.min(second, d)
+                            if d <= limit and (best < 0 or j < best):
                                 best = j
-                        else:
-                            second = wp.min(second, d)
-                        if d <= limit and (best < 0 or j < best):
-                            best = j
+                            reach = wp.min(d_max, wp.max(dmin + tie, limit))
     return dmin, second, best
 
 

@@ -1,5 +1,6 @@
-"""Stage 2 in Warp: one hashed key per item (cell and world), a radix sort of the keys, and the
-range of every table slot from the sorted keys (adjacent differences). No dense cell array."""
+"""Stage 2 in Warp: one hashed key per item (cell and world), a radix sort of the keys' table
+bits, and the range of every table slot from the sorted keys (adjacent differences) with the
+box around its items. No dense cell array."""
 
 from __future__ import annotations
 
@@ -20,6 +21,11 @@ class Grid:
     keys: wp.array(dtype=int)
     begin: wp.array(dtype=int)  # [table]
     end: wp.array(dtype=int)
+    # [table] the box around the balls of each slot's items: a scan skips a cell whose items
+    # are all out of reach without reading them (on a surface most of a cell is empty space).
+    # A slot left empty keeps a stale box; its range is empty, so that is harmless.
+    lo: wp.array(dtype=vec3)
+    hi: wp.array(dtype=vec3)
     # Item data in key order, so the stencil scans read each cell's items contiguously
     # instead of gathering them through sorted_ids.
     balls: wp.array(dtype=vec4)  # position and radius (0 for nodes)
@@ -57,9 +63,27 @@ def _ranges(n: int, grid: Grid):
     k = wp.tid()
     key = grid.keys[k]
     if k == 0 or grid.keys[k - 1] != key:
+        # The first item of a slot walks the slot's items (about ten) for its range and box.
+        b = grid.balls[k]
+        lo = vec3(b[0], b[1], b[2]) - vec3(b[3])
+        hi = vec3(b[0], b[1], b[2]) + vec3(b[3])
+        j = k + 1
+        while j < n and grid.keys[j] == key:
+            b = grid.balls[j]
+            lo = wp.min(lo, vec3(b[0], b[1], b[2]) - vec3(b[3]))
+            hi = wp.max(hi, vec3(b[0], b[1], b[2]) + vec3(b[3]))
+            j += 1
         grid.begin[key] = k
-    if k == n - 1 or grid.keys[k + 1] != key:
-        grid.end[key] = k + 1
+        grid.end[key] = j
+        grid.lo[key] = lo
+        grid.hi[key] = hi
+
+
+@wp.func
+def box_near(s: vec3, grid: Grid, key: int, reach: real):
+    """Whether the box of slot `key`'s items is within reach of s."""
+    g = wp.max(wp.max(grid.lo[key] - s, s - grid.hi[key]), vec3(0.0))
+    return wp.length_sq(g) <= reach * reach
 
 
 @wp.kernel
@@ -97,7 +121,7 @@ def spatial_order(x, origin, quantum, keys, order, n: int, device):
     the plan's box), so that the threads of a GPU warp work on neighbouring slaves and scan the
     same grid cells (launches only: capturable; keys and order hold 2n for the radix sort)."""
     wp.launch(_morton, n, inputs=[x, origin, quantum, keys, order], device=device)
-    wp.utils.radix_sort_pairs(keys, order, n)
+    wp.utils.radix_sort_pairs(keys, order, n, end_bit=30)
 
 
 @wp.kernel
@@ -110,11 +134,13 @@ def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=N
     """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable);
     with points and faces (tri3), also the corners of the faces in key order."""
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
-    wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n)
+    # Only the key bits the table uses (fewer radix passes).
+    wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
+                              end_bit=(grid.table - 1).bit_length())
     grid.begin.zero_()
     grid.end.zero_()
-    wp.launch(_ranges, n, inputs=[n, grid], device=device)
     wp.launch(_gather, n, inputs=[x, radii, world, grid], device=device)
+    wp.launch(_ranges, n, inputs=[n, grid], device=device)
     if faces is not None:
         wp.launch(_gather_corners, (n, 3), inputs=[points, faces, grid], device=device)
 
@@ -127,6 +153,8 @@ def new_grid(n: int, cell: float, device, corners=False) -> Grid:
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.begin = wp.zeros(table, dtype=int, device=device)
     g.end = wp.zeros(table, dtype=int, device=device)
+    g.lo = wp.zeros(table, dtype=vec3, device=device)
+    g.hi = wp.zeros(table, dtype=vec3, device=device)
     g.balls = wp.zeros(max(n, 1), dtype=vec4, device=device)
     g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
     g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)

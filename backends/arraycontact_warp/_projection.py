@@ -16,7 +16,7 @@ from ._closest_node import _cell_near, stencil_offset
 from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
-from ._grid import Grid, cell_key, cell_of
+from ._grid import Grid, box_near, cell_key, cell_of
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -197,52 +197,54 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
         c = c0 + stencil_offset(q)
         if _cell_near(s, c, grid.cell, reach + r_max):
             key = cell_key(c, world, grid.table)
-            for k in range(grid.begin[key], grid.end[key]):
-                ball = grid.balls[k]
-                f = grid.sorted_ids[k]
-                rb = reach + ball[3]  # the ball test in squares (no root)
-                near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
-                if near and grid.worlds[k] == world and (limit < real(0.0) or best < 0
-                                                         or f < best):
-                    xi, feature, local, conv, diff = project(el, m, grid, k, s, f, iterations,
-                                                             tol)
-                    d = wp.length(diff)
-                    dmin = wp.min(dmin, d)
-                    top = limit
-                    if limit < real(0.0):
-                        top = dmin + tie
-                        if d <= top:
-                            # into a free slot or one whose face has left the band
-                            slot = int(-1)
-                            for j in range(BAND):
-                                if slot < 0 and (j >= nb or band_d[j] > top):
-                                    slot = j
-                            if slot < 0:
-                                unsure = 1
-                            else:
-                                band_f[slot] = f
-                                band_d[slot] = d
-                                nb = wp.max(nb, slot + 1)
-                        if best >= 0 and b_d > top:
-                            # The chosen face left the band (d is the new minimum): the
-                            # smallest id still in it must be this face, whose projection
-                            # is at hand, or the second scan decides.
-                            low = f
-                            for j in range(nb):
-                                if band_d[j] <= top and band_f[j] < low:
-                                    low = band_f[j]
-                            if low != f:
-                                unsure = 1
-                            best = int(-1)
-                    reach = wp.min(reach, wp.max(dmin, limit) + slack)
-                    if d <= top and (best < 0 or f < best):
-                        best = f
-                        b_d = d
-                        b_xi = xi
-                        b_feature = feature
-                        b_local = local
-                        b_conv = conv
-                        b_diff = diff
+            if box_near(s, grid, key, reach):
+                for k in range(grid.begin[key], grid.end[key]):
+                    ball = grid.balls[k]
+                    rb = reach + ball[3]  # the ball test in squares (no root)
+                    near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
+                    f = int(-1)
+                    if near and grid.worlds[k] == world:
+                        f = grid.sorted_ids[k]
+                    if f >= 0 and (limit < real(0.0) or best < 0 or f < best):
+                        xi, feature, local, conv, diff = project(el, m, grid, k, s, f, iterations,
+                                                                 tol)
+                        d = wp.length(diff)
+                        dmin = wp.min(dmin, d)
+                        top = limit
+                        if limit < real(0.0):
+                            top = dmin + tie
+                            if d <= top:
+                                # into a free slot or one whose face has left the band
+                                slot = int(-1)
+                                for j in range(BAND):
+                                    if slot < 0 and (j >= nb or band_d[j] > top):
+                                        slot = j
+                                if slot < 0:
+                                    unsure = 1
+                                else:
+                                    band_f[slot] = f
+                                    band_d[slot] = d
+                                    nb = wp.max(nb, slot + 1)
+                            if best >= 0 and b_d > top:
+                                # The chosen face left the band (d is the new minimum): the
+                                # smallest id still in it must be this face, whose projection
+                                # is at hand, or the second scan decides.
+                                low = f
+                                for j in range(nb):
+                                    if band_d[j] <= top and band_f[j] < low:
+                                        low = band_f[j]
+                                if low != f:
+                                    unsure = 1
+                                best = int(-1)
+                        reach = wp.min(reach, wp.max(dmin, limit) + slack)
+                        if d <= top and (best < 0 or f < best):
+                            best = f
+                            b_d = d
+                            b_xi = xi
+                            b_feature = feature
+                            b_local = local
+                            b_conv = conv
+                            b_diff = diff
     return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff, unsure
 
 
