@@ -23,7 +23,8 @@ def face_normal(element, xe, xi, xp=np):
 
 def pseudo_normal(element, points, faces, face_edges, edge_faces, node_normals,
                   face, feature, local, xi, xp=np):
-    """Unit pseudo-normal of the feature each closest point lies on ([P, 3])."""
+    """Unit pseudo-normal of the feature each closest point lies on ([P, 3]). node_normals:
+    the nodes' pseudo-normals [n_points, 3], or a function giving them for node ids [P]."""
     f = xp.maximum(face, 0)
     n_face = face_normal(element, points[faces[f]], xi, xp)
 
@@ -51,7 +52,7 @@ def pseudo_normal(element, points, faces, face_edges, edge_faces, node_normals,
     n_edge = _unit(n_edge, xp)
 
     node = xp.take_along_axis(faces[f], loc[:, None], 1)[:, 0]
-    n_vertex = node_normals[node]
+    n_vertex = node_normals(node) if callable(node_normals) else node_normals[node]
     return xp.where((feature == FACE)[:, None], n_face,
                     xp.where((feature == EDGE)[:, None], n_edge, n_vertex))
 

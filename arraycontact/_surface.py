@@ -39,6 +39,20 @@ def face_bounds(element, xe, xp=np):
     return c, element.lebesgue * xp.sqrt(xp.where(d2 > 0, d2, 0 * d2))
 
 
+def corner_normal(element, dx, corner, xp=np):
+    """A face's unit normal times its interior angle at a corner, from the tangents dx
+    [..., 3, 2] at that corner (`corner`: an int or int array over the leading axes): the
+    terms of the angle-weighted node pseudo-normal (Baerentzen & Aanaes)."""
+    k = element.n_corners
+    nodes = xp.asarray(element.nodes, dx.dtype)
+    # Tangents along the two corner edges, in the natural-coordinate directions of the edges
+    # leaving the corner.
+    t1 = xp.sum(dx * (nodes[(corner + 1) % k] - nodes[corner])[..., None, :], -1)
+    t2 = xp.sum(dx * (nodes[(corner - 1) % k] - nodes[corner])[..., None, :], -1)
+    w = xp.arctan2(xp.sqrt(xp.sum(xp.cross(t1, t2) ** 2, -1)), xp.sum(t1 * t2, -1))
+    return _unit(xp.cross(dx[..., 0], dx[..., 1]), xp) * w[..., None]
+
+
 def node_normals(element, faces, points, xp=np):
     """Angle-weighted pseudo-normal at each node [n_points, 3] (zero for unused nodes).
 
@@ -51,18 +65,11 @@ def node_normals(element, faces, points, xp=np):
     xi = xp.zeros((nf, nn, 2), points.dtype) + xn
     xe = points[faces]
     _, dx = interpolate(e, xe[:, None], xi, xp)  # [nf, nn, 3, 2]
-    n = _unit(xp.cross(dx[..., 0], dx[..., 1]), xp)
     k = e.n_corners
-    w = []
-    for c in range(k):
-        # Tangents along the two corner edges, in the natural-coordinate directions of the
-        # edges leaving the corner.
-        t1 = dx[:, c] @ xp.asarray(e.nodes[(c + 1) % k] - e.nodes[c], points.dtype)
-        t2 = dx[:, c] @ xp.asarray(e.nodes[(c - 1) % k] - e.nodes[c], points.dtype)
-        w.append(xp.arctan2(xp.sqrt(xp.sum(xp.cross(t1, t2) ** 2, -1)), xp.sum(t1 * t2, -1)))
-    w = xp.stack(w + [xp.ones(nf, points.dtype)] * (nn - k), -1)
-    out = segment_sum(xp, (n * w[..., None]).reshape(-1, 3), faces.reshape(-1),
-                      points.shape[0])
+    terms = [corner_normal(e, dx[:, c], c, xp) for c in range(k)]
+    terms += [_unit(xp.cross(dx[:, c, :, 0], dx[:, c, :, 1]), xp) for c in range(k, nn)]
+    n = xp.stack(terms, 1)  # [nf, nn, 3]
+    out = segment_sum(xp, n.reshape(-1, 3), faces.reshape(-1), points.shape[0])
     return _unit(out, xp)
 
 

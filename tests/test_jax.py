@@ -157,7 +157,7 @@ def test_warp_search_in_its_own_process():
                         str(here / "warp_search_checks.py")], cwd=here.parent,
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
-    assert "4 passed" in r.stdout
+    assert "5 passed" in r.stdout
 
 
 # --- gradients ------------------------------------------------------------------------------

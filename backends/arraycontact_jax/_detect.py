@@ -20,7 +20,8 @@ seen at plan time times the growth factor; a master deformed beyond that reports
 gradients) as the Warp back end's kernels inside the jitted `detect`, through Warp's JAX FFI
 (`wp.jax_callable`, on the device of the JAX arrays, without copies); the differentiable
 outputs are computed from its answer by the same `smooth` as the JAX search's. It has no pair
-buffers: its only capacity is the face radius.
+buffers: its one overflow is the Warp search's face radius flag (count "face_radius_overflow",
+capacity 0).
 """
 
 from __future__ import annotations
@@ -38,9 +39,9 @@ from arraycontact._elements import get_element
 from arraycontact._detect import (ITERATIONS, Static, build_grids, check_options, master_arrays,
                                   master_geometry, master_topology, run_stages, scalars)
 from arraycontact._prepare import CELL_MARGIN, Prepared
-from arraycontact._surface import Surface, face_bounds, validate_points
+from arraycontact._surface import Surface, validate_points
 
-from ._gradients import smooth
+from ._gradients import padded_node_faces, smooth
 
 GROWTH = 1.25
 
@@ -185,8 +186,9 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
         # No pair counts to size: only the topology that the smooth outputs read.
         engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin)
         sc.pop("r_max")
-        topo = {k: jnp.asarray(v) for k, v in master_topology(master, prep).items()}
-        return Plan(topo, master, st, (("face_radius", r_cap),), tuple(sorted(sc.items())),
+        topo = _topology(master, prep)
+        # The Warp search's flag: a face outgrew the radius its grid was planned for.
+        return Plan(topo, master, st, (("face_radius_overflow", 0),), tuple(sorted(sc.items())),
                     tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
                     engine)
     m = master_arrays(master, prep, dtype)
@@ -196,9 +198,14 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
     cap["face_radius"] = r_cap
     sc.pop("r_max")  # computed from the coordinates at every detect
-    topo = {k: jnp.asarray(v) for k, v in master_topology(master, prep).items()}
-    return Plan(topo, master, st, tuple(sorted(cap.items())), tuple(sorted(sc.items())),
+    return Plan(_topology(master, prep), master, st, tuple(sorted(cap.items())), tuple(sorted(sc.items())),
                 tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth)
+
+
+def _topology(master, prep):
+    topo = master_topology(master, prep)
+    topo["node_faces"] = padded_node_faces(master)  # the smooth outputs' vertex normals
+    return {k: jnp.asarray(v) for k, v in topo.items()}
 
 
 def _check(p: Plan, slave_points, master_points):
@@ -227,9 +234,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     cap = dict(p.capacity)
     if p.search is not None:
         out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
-        _, radii = face_bounds(get_element(st.element), jax.lax.stop_gradient(xm)[topo["faces"]],
-                               jnp)
-        counts = {"face_radius": jnp.max(radii)}
+        counts = {"face_radius_overflow": out.pop("overflow")[0]}
     else:
         m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
         sc["r_max"] = jnp.max(m["radii"][topo["face_ids"]])
@@ -259,7 +264,8 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
 class _WarpSearch:
     """The Warp back end's detection as a JAX primitive (wp.jax_callable): called in `detect`
     with the slave and master coordinates in the plan's frame, returns the search's answer
-    (active, face, feature, local, xi, gap, master_node, status) as JAX arrays."""
+    (active, face, feature, local, xi, gap, master_node, status) and its face radius overflow
+    flag [1] as JAX arrays."""
 
     def __init__(self, master, slave_x, d_max, dtype, growth, origin):
         import warp as wp
@@ -273,13 +279,14 @@ class _WarpSearch:
         self.plan.origin = self.plan.origin - np.asarray(origin)
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
-        self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
+        self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status",
+                      "overflow")
         kinds = dict(active=wp.int32, face=int, feature=int, local=int, xi=vec2, gap=real,
-                     master_node=int, status=int)
+                     master_node=int, status=int, overflow=int)
         plan = self.plan
 
         def search(slaves, master_points, *outs):
-            o = acw.detect(plan, slaves, master_points)
+            o = dict(acw.detect(plan, slaves, master_points), overflow=plan.overflow)
             for name, a in zip(self.names, outs):
                 wp.copy(a, o[name])
 
@@ -289,15 +296,20 @@ class _WarpSearch:
                                   **{f"o_{k}": wp.array(dtype=kinds[k]) for k in self.names}}
         search.__signature__ = _signature(["slaves", "master_points",
                                            *[f"o_{k}" for k in self.names]])
-        # vmap over scenes calls the search once per scene (its plan holds one scene's buffers).
-        # No graph capture by JAX: the radix sort's temporary storage cannot be a child graph.
-        self.call = wp.jax_callable(search, num_outputs=len(self.names),
-                                    graph_mode=wp.JaxCallableGraphMode.NONE,
+        # On a GPU, Warp captures the search in a CUDA graph of its own, replayed on staging
+        # buffers with the copies in and out outside it (JAX cannot take the radix sort's
+        # temporary storage as a child graph); without the graph every call pays Python's
+        # launch overhead. vmap over scenes calls the search once per scene (its plan holds
+        # one scene's buffers).
+        mode = (wp.JaxCallableGraphMode.WARP_STAGED_EX if device.is_cuda
+                else wp.JaxCallableGraphMode.NONE)
+        self.call = wp.jax_callable(search, num_outputs=len(self.names), graph_mode=mode,
                                     vmap_method="sequential")
 
     def __call__(self, s, xm):
         n = s.shape[0]
-        outs = self.call(s, xm, output_dims={f"o_{k}": n for k in self.names})
+        outs = self.call(s, xm, output_dims={f"o_{k}": 1 if k == "overflow" else n
+                                             for k in self.names})
         out = dict(zip(self.names, outs))
         out["active"] = out["active"].astype(bool)
         ok = out["active"]

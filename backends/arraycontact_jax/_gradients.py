@@ -20,21 +20,24 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from arraycontact._elements import EDGE, FACE, interpolate, shape_functions
 from arraycontact._geometry import _solve2
 from arraycontact._normals import pseudo_normal
-from arraycontact._surface import _unit, node_normals
+from arraycontact._surface import _unit, corner_normal
 
 
 def _residual(element, u, s, xe, base, b, mask):
     """Stationarity of |s - x(xi)|^2 / 2 along the feature's free directions (2 equations);
     a direction the feature does not have (mask 0) is pinned by u_k = 0."""
-    xi = base + b @ u
+    # Products written as sums: XLA fuses them (a batched dot is a GEMM call on a GPU).
+    xi = base + jnp.sum(b * u, -1)
     n = shape_functions(element, xi, jnp)
     _, dx = interpolate(element, xe, xi, jnp)  # [3, 2]
-    to_slave = n @ (xe - s)  # x(xi) - s from nearby differences (partition of unity)
-    return b.T @ (dx.T @ to_slave) + (1 - mask) * u
+    to_slave = jnp.sum(n[:, None] * (xe - s), 0)  # x(xi) - s from nearby differences
+    g = jnp.sum(dx * to_slave[:, None], 0)
+    return jnp.sum(b * g[:, None], 0) + (1 - mask) * u
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -53,10 +56,11 @@ def _root_jvp(element, primals, tangents):
     return u, -_solve2(h, rhs, jnp)
 
 
-def _polish(element, u, s, xe, base, b, mask, steps=2):
+def _polish(element, u, s, xe, base, b, mask):
     """Newton steps on R(u) = 0 from the search's answer (met to its KKT tolerance): the
-    values then hold to rounding, as the implicit derivatives assume."""
-    for _ in range(steps):
+    values then hold to rounding, as the implicit derivatives assume. None on tri3, whose
+    closed-form answer already does (R is affine in u there)."""
+    for _ in range(0 if element.name == "tri3" else 2):
         h = jax.jacfwd(_residual, 1)(element, u, s, xe, base, b, mask)
         u = u - _solve2(h, _residual(element, u, s, xe, base, b, mask), jnp)
     return u
@@ -84,8 +88,9 @@ def _one(element, on_surface, s, xe, feature, local, xi0, n_pseudo, sign):
     base, b, mask, u0 = _feature_frame(element, feature, local, jax.lax.stop_gradient(xi0))
     u0 = _polish(element, u0, jax.lax.stop_gradient(s), jax.lax.stop_gradient(xe), base, b, mask)
     u = _root(element, u0, s, xe, base, b, mask)
-    xi = base + b @ u
-    to_slave = -(shape_functions(element, xi, jnp) @ (xe - s))  # s - x(xi), nearby terms
+    xi = base + jnp.sum(b * u, -1)
+    # s - x(xi) from nearby differences (partition of unity)
+    to_slave = -jnp.sum(shape_functions(element, xi, jnp)[:, None] * (xe - s), 0)
     _, dx = interpolate(element, xe, xi, jnp)
     n_face = _unit(jnp.cross(dx[:, 0], dx[:, 1]), jnp)
     r2 = jnp.dot(to_slave, to_slave)
@@ -103,6 +108,29 @@ def _one(element, on_surface, s, xe, feature, local, xi0, n_pseudo, sign):
     return xi, point, gap, normal
 
 
+def vertex_normals(element, nodes_x, faces, node_faces, node):
+    """The angle-weighted pseudo-normals (arraycontact._surface.node_normals) of the corner
+    nodes `node` [P] only, from the faces around each (node_faces [n_points, V], -1 padded):
+    a gather per slave instead of a scatter over every face of the master."""
+    g = node_faces[node]  # [P, V]
+    fg = faces[jnp.maximum(g, 0)]  # [P, V, nn]
+    corner = jnp.argmax(fg[..., : element.n_corners] == node[:, None, None], -1)
+    xi = jnp.asarray(element.nodes, nodes_x.dtype)[corner]
+    _, dx = interpolate(element, nodes_x[fg], xi, jnp)  # [P, V, 3, 2]
+    terms = corner_normal(element, dx, corner, jnp)
+    return _unit(jnp.sum(jnp.where((g >= 0)[..., None], terms, 0), 1), jnp)
+
+
+def padded_node_faces(master):
+    """[n_points, V] the faces of each node, -1 padded (V: the largest valence)."""
+    offsets, ids = master.node_faces
+    counts = np.diff(offsets)
+    rows = np.repeat(np.arange(len(counts)), counts)
+    table = np.full((len(counts), max(int(counts.max()), 1)), -1, np.int32)
+    table[rows, np.arange(len(ids)) - offsets[rows]] = ids
+    return table
+
+
 def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_surface):
     """Differentiable xi, point, gap, normal of the search's answer ([n] rows).
 
@@ -117,7 +145,8 @@ def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_su
     sign = jax.lax.stop_gradient(jnp.where(ok & (gap < 0), -1.0, 1.0)).astype(slave_x.dtype)
     faces = topo["faces"]
     n_pseudo = pseudo_normal(element, nodes_x, faces, topo["face_edges"], topo["edge_faces"],
-                             node_normals(element, faces, nodes_x, jnp), face, feature,
+                             partial(vertex_normals, element, nodes_x, faces,
+                                     topo["node_faces"]), face, feature,
                              jnp.maximum(local, 0), jax.lax.stop_gradient(xi), jnp)
     xe = nodes_x[faces[face]]
     return jax.vmap(partial(_one, element, on_surface))(slave_x, xe, feature, local, xi, n_pseudo,

@@ -170,7 +170,8 @@ _band_d = wp.types.vector(length=BAND, dtype=real)
 def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r_max: real,
                tie: real, limit: real, slack: real, iterations: int, tol: real):
     """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
-    tie rule (smallest id within `tie` of it) with its projection. The reach shrinks to the
+    tie rule (smallest id within `tie` of it) with its grid item (its projection is computed
+    again by the caller: keeping it through the scan costs registers that all threads pay). The reach shrinks to the
     running minimum (plus rounding slack) as closer faces are found: no farther face can hold
     the answer.
 
@@ -183,11 +184,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
     dmin = real(3.0e38)
     best = int(-1)
     b_d = real(3.0e38)
-    b_xi = vec2(0.0)
-    b_feature = int(-1)
-    b_local = int(-1)
-    b_conv = int(0)
-    b_diff = vec3(0.0)
+    b_k = int(-1)
     band_f = _band_ids(0)
     band_d = _band_d(0.0)
     nb = int(0)
@@ -240,12 +237,8 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
                         if d <= top and (best < 0 or f < best):
                             best = f
                             b_d = d
-                            b_xi = xi
-                            b_feature = feature
-                            b_local = local
-                            b_conv = conv
-                            b_diff = diff
-    return dmin, best, b_xi, b_feature, b_local, b_conv, b_diff, unsure
+                            b_k = k
+    return dmin, best, b_k, unsure
 
 
 @wp.func
