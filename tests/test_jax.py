@@ -188,11 +188,13 @@ CASES = {-0.8: [(0.0, 0.0, 0.3, Feature.VERTEX, 1), (0.25, 0.01, 0.3, Feature.ED
 
 def _fd_check(fn, slave, master_points, h=1e-6, tol=2e-8, outs=("gap", "point", "normal", "xi"),
               skip=()):
-    """Returns the detection and the Jacobians {("x" | "m", output): array}."""
-    """jacfwd (slave) and jacrev (master) of the differentiable outputs against central
-    differences of the whole detection. Master nodes off the faces touching the chosen faces
-    must get exactly zero (the closest point depends on its face's nodes, a pseudo-normal on
-    the faces around its edge or vertex); the others are differenced."""
+    """jacrev of the differentiable outputs with respect to slave and master coordinates against
+    central differences of the whole detection; returns the detection and the Jacobians
+    {("x" | "m", output): array}. Master nodes off the faces touching the chosen faces must get
+    exactly zero (the closest point depends on its face's nodes, a pseudo-normal on the faces
+    around its edge or vertex); the others are differenced. (One reverse-mode Jacobian for both
+    arguments: one compilation. Reverse mode transposes the forward rules, so it checks them
+    too; jacfwd itself is checked in test_hessian_and_jacfwd_of_a_penalty_energy.)"""
     val = fn(slave, master_points)
     faces = np.asarray(fn.faces)
     near = np.isin(faces, faces[np.asarray(val.face)]).any(1)
@@ -202,10 +204,9 @@ def _fd_check(fn, slave, master_points, h=1e-6, tol=2e-8, outs=("gap", "point", 
         c = fn(s, m)
         return tuple(getattr(c, out) for out in outs)
 
-    js = jax.jacfwd(outputs, 0)(slave, master_points)
-    jm = jax.jacrev(outputs, 1)(slave, master_points)
+    jac2 = jax.jacrev(outputs, (0, 1))(slave, master_points)
     jac = {}
-    for out, a, b in zip(outs, js, jm):
+    for out, (a, b) in zip(outs, jac2):
         a, b = np.asarray(a), np.asarray(b)
         assert np.isfinite(a).all() and np.isfinite(b).all(), out
         assert not np.delete(b, used, axis=-2).any(), out
