@@ -167,38 +167,42 @@ def _monomials(element, xi, xp, order):
     return xp.stack(cols, -2)  # [..., m, 3]: d/dxi2, d/dxi deta, d/deta2
 
 
-def _contract(xp, a, b, spec, a_axes, b_axes, axis):
-    """einsum(spec, a, b) of small operands. NumPy: einsum. Under JAX: a product and a sum over
-    `axis` after inserting new axes (a_axes into a, b_axes into b), which XLA fuses with the
-    arithmetic around it: on a GPU each dot of tiny matrices batched over millions of points
-    became a library GEMM call of its own (2-3x slower smooth outputs)."""
-    if xp is np:
-        return np.einsum(spec, a, b)
+def _fused(xp, a, b, a_axes, b_axes, axis):
+    """A contraction of small operands under JAX as a product and a sum over `axis` (after
+    new axes a_axes in a, b_axes in b), which XLA fuses with the arithmetic around it: on a GPU
+    each dot of tiny matrices batched over millions of points was a GEMM call of its own
+    (2-3x slower smooth outputs). NumPy takes matmul (einsum's broadcast loops were 1.4-3x
+    slower and most of the brute-force reference's time on curved faces)."""
     return xp.sum(xp.expand_dims(a, a_axes) * xp.expand_dims(b, b_axes), axis)
 
 
 def shape_functions(element, xi, xp=np):
     """N [..., nn] at natural coordinates xi [..., 2]."""
     c = xp.asarray(element.coefficients, dtype=xi.dtype)
-    return _contract(xp, _monomials(element, xi, xp, 0), c, "...j,ij->...i", -2, (), -1)
+    m = _monomials(element, xi, xp, 0)
+    return m @ c.T if xp is np else _fused(xp, m, c, -2, (), -1)
+
+
+def _derivatives(element, xi, xp, order):
+    c = xp.asarray(element.coefficients, dtype=xi.dtype)
+    m = _monomials(element, xi, xp, order)  # [..., m, k]
+    return c @ m if xp is np else _fused(xp, c, m, -1, -3, -2)
 
 
 def shape_derivatives(element, xi, xp=np):
     """dN/dxi [..., nn, 2]."""
-    c = xp.asarray(element.coefficients, dtype=xi.dtype)
-    return _contract(xp, c, _monomials(element, xi, xp, 1), "ij,...jk->...ik", -1, -3, -2)
+    return _derivatives(element, xi, xp, 1)
 
 
 def shape_second_derivatives(element, xi, xp=np):
     """[..., nn, 3]: d2N/dxi2, d2N/dxi deta, d2N/deta2."""
-    c = xp.asarray(element.coefficients, dtype=xi.dtype)
-    return _contract(xp, c, _monomials(element, xi, xp, 2), "ij,...jk->...ik", -1, -3, -2)
+    return _derivatives(element, xi, xp, 2)
 
 
 def interpolate(element, xe, xi, xp=np):
     """Point x(xi) [..., 3] and tangents x_xi, x_eta [..., 3, 2] of faces with nodes xe [..., nn, 3]."""
     n = shape_functions(element, xi, xp)
     dn = shape_derivatives(element, xi, xp)
-    x = _contract(xp, n, xe, "...i,...ik->...k", -1, (), -2)
-    dx = _contract(xp, dn, xe, "...ia,...ik->...ka", -2, -1, -3)
-    return x, dx
+    if xp is np:
+        return (n[..., None, :] @ xe)[..., 0, :], np.swapaxes(xe, -1, -2) @ dn
+    return _fused(xp, n, xe, -1, (), -2), _fused(xp, dn, xe, -2, -1, -3)

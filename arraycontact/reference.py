@@ -99,8 +99,8 @@ def _interior_candidates(element, r, xe):
     xi = np.broadcast_to(starts, (len(r), len(starts), 2)).copy()
     rr, xx = r[:, None], np.broadcast_to(xe[:, None], (len(r), len(starts)) + xe.shape[1:])
 
-    def f(xi):
-        return np.sum((np.einsum("...n,...nk->...k", shape_functions(element, xi), xx) - rr) ** 2,
+    def f(xi):  # |x(xi) - r|^2, x = sum_n N_n x_n as a matmul (einsum's loops are slow here)
+        return np.sum(((shape_functions(element, xi)[..., None, :] @ xx)[..., 0, :] - rr) ** 2,
                       -1)
 
     # Descent: Newton where the Hessian is positive definite, Gauss-Newton elsewhere, each step
@@ -109,7 +109,7 @@ def _interior_candidates(element, r, xe):
         x, dx = interpolate(element, xx, xi)
         d = rr - x
         g = -np.einsum("...ka,...k->...a", dx, d)
-        d2 = np.einsum("...ns,...nk->...ks", shape_second_derivatives(element, xi), xx)
+        d2 = np.swapaxes(xx, -1, -2) @ shape_second_derivatives(element, xi)  # [..., 3, 3]
         c = np.einsum("...ks,...k->...s", d2, d)
         gn = np.einsum("...ka,...kb->...ab", dx, dx)
         h = gn - np.stack([np.stack([c[..., 0], c[..., 1]], -1),

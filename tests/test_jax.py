@@ -265,6 +265,19 @@ def test_gradients_match_finite_differences_for_every_feature_and_at_zero_gap(el
     assert np.allclose(dgap, [[0, 0, 1]] * 3)
 
 
+@pytest.mark.parametrize("element", ELEMENTS)
+def test_vertex_normals_per_slave_equal_the_node_normals(element):
+    """The smooth outputs' vertex pseudo-normals, gathered per slave from the node -> faces
+    table, equal the NumPy scatter over all faces at every corner node."""
+    from arraycontact_jax._gradients import padded_node_faces, vertex_normals
+
+    m = _grid_master(element, _z(-0.8))
+    corners = np.unique(m.faces[:, : m.element.n_corners])
+    got = vertex_normals(m.element, jnp.asarray(m.points), jnp.asarray(m.faces),
+                         jnp.asarray(padded_node_faces(m)), jnp.asarray(corners))
+    assert np.allclose(got, m.node_normals[corners], atol=1e-12)
+
+
 def test_hessian_and_jacfwd_of_a_penalty_energy():
     s = scenes.rough_surfaces(2**8, seed=2)
     slave = s.slave - [0, 0, 1.2]
