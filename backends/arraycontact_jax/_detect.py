@@ -18,7 +18,8 @@ seen at plan time times the growth factor; a master deformed beyond that reports
 
 `plan(..., search="warp")` (exact mode) runs the discrete search (stages 1-5 without
 gradients) as the Warp back end's kernels inside the jitted `detect`, through Warp's JAX FFI
-(`wp.jax_callable`, on the device of the JAX arrays, without copies); the differentiable
+(`wp.jax_callable`, on the device of the JAX arrays; on a GPU a CUDA graph captured by Warp
+on staging buffers); the differentiable
 outputs are computed from its answer by the same `smooth` as the JAX search's. It has no pair
 buffers: its one overflow is the Warp search's face radius flag (count "face_radius_overflow",
 capacity 0).
