@@ -278,6 +278,29 @@ def test_vertex_normals_per_slave_equal_the_node_normals(element):
     assert np.allclose(got, m.node_normals[corners], atol=1e-12)
 
 
+def test_a_pole_of_high_valence_takes_the_scatter_and_equals_numpy():
+    """A cone of 40 faces around its apex: the padded node -> faces table would be 40 wide, so
+    the smooth outputs take the scatter of every node's pseudo-normal; contacts (a slave above
+    the apex on its vertex) equal NumPy's and the gradient is finite."""
+    from arraycontact_jax._gradients import MAX_VALENCE
+
+    k = 40
+    assert k > MAX_VALENCE
+    t = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    pts = np.r_[[[0.0, 0.0, 0.5]], np.c_[np.cos(t), np.sin(t), np.zeros(k)]]
+    faces = [[0, 1 + i, 1 + (i + 1) % k] for i in range(k)]
+    master = ac.Surface(pts, faces, "tri3")
+    slave = np.array([[0.0, 0.0, 0.9], [0.3, 0.1, 0.6], [0.5, -0.2, 0.1], [0.2, 0.2, 0.2]])
+    p = acj.plan(master, slave, d_max=1.0)
+    assert "node_faces" not in p.topology
+    c = acj.detect(p, jnp.asarray(slave), jnp.asarray(pts))
+    r = ac.detect(slave, master, d_max=1.0)
+    _compare(c, r)
+    assert int(np.asarray(c.feature)[0]) == int(Feature.VERTEX)
+    g = jax.grad(lambda m: jnp.sum(acj.detect(p, jnp.asarray(slave), m).gap))(jnp.asarray(pts))
+    assert np.isfinite(np.asarray(g)).all() and np.abs(np.asarray(g)).max() > 0
+
+
 def test_hessian_and_jacfwd_of_a_penalty_energy():
     s = scenes.rough_surfaces(2**8, seed=2)
     slave = s.slave - [0, 0, 1.2]

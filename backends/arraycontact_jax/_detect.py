@@ -205,7 +205,9 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
 
 def _topology(master, prep):
     topo = master_topology(master, prep)
-    topo["node_faces"] = padded_node_faces(master)  # the smooth outputs' vertex normals
+    table = padded_node_faces(master)  # the smooth outputs' vertex normals
+    if table is not None:
+        topo["node_faces"] = table
     return {k: jnp.asarray(v) for k, v in topo.items()}
 
 

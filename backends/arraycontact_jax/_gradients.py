@@ -25,7 +25,7 @@ import numpy as np
 from arraycontact._elements import EDGE, FACE, interpolate, shape_functions
 from arraycontact._geometry import _solve2
 from arraycontact._normals import pseudo_normal
-from arraycontact._surface import _unit, corner_normal
+from arraycontact._surface import _unit, corner_normal, node_normals
 
 
 def _residual(element, u, s, xe, base, b, mask):
@@ -121,10 +121,19 @@ def vertex_normals(element, nodes_x, faces, node_faces, node):
     return _unit(jnp.sum(jnp.where((g >= 0)[..., None], terms, 0), 1), jnp)
 
 
+#: Above this largest valence (a pole or fan node) the padded table would cost n_points x V
+#: memory and every slave V faces: the smooth outputs then take every node's pseudo-normal by
+#: one scatter over all faces instead.
+MAX_VALENCE = 32
+
+
 def padded_node_faces(master):
-    """[n_points, V] the faces of each node, -1 padded (V: the largest valence)."""
+    """[n_points, V] the faces of each node, -1 padded (V: the largest valence); None when V
+    exceeds MAX_VALENCE."""
     offsets, ids = master.node_faces
     counts = np.diff(offsets)
+    if counts.max() > MAX_VALENCE:
+        return None
     rows = np.repeat(np.arange(len(counts)), counts)
     table = np.full((len(counts), max(int(counts.max()), 1)), -1, np.int32)
     table[rows, np.arange(len(ids)) - offsets[rows]] = ids
@@ -144,10 +153,13 @@ def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_su
     xi = jnp.where(ok[:, None], xi, jnp.asarray(element.centre, slave_x.dtype))
     sign = jax.lax.stop_gradient(jnp.where(ok & (gap < 0), -1.0, 1.0)).astype(slave_x.dtype)
     faces = topo["faces"]
+    if "node_faces" in topo:
+        vertex = partial(vertex_normals, element, nodes_x, faces, topo["node_faces"])
+    else:
+        vertex = node_normals(element, faces, nodes_x, jnp)
     n_pseudo = pseudo_normal(element, nodes_x, faces, topo["face_edges"], topo["edge_faces"],
-                             partial(vertex_normals, element, nodes_x, faces,
-                                     topo["node_faces"]), face, feature,
-                             jnp.maximum(local, 0), jax.lax.stop_gradient(xi), jnp)
+                             vertex, face, feature, jnp.maximum(local, 0),
+                             jax.lax.stop_gradient(xi), jnp)
     xe = nodes_x[faces[face]]
     return jax.vmap(partial(_one, element, on_surface))(slave_x, xe, feature, local, xi, n_pseudo,
                                                          sign)
