@@ -199,8 +199,9 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
     cap["face_radius"] = r_cap
     sc.pop("r_max")  # computed from the coordinates at every detect
-    return Plan(_topology(master, prep), master, st, tuple(sorted(cap.items())), tuple(sorted(sc.items())),
-                tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth)
+    return Plan(_topology(master, prep), master, st, tuple(sorted(cap.items())),
+                tuple(sorted(sc.items())), tuple(float(v) for v in origin), np.dtype(dtype).name,
+                len(slave_x), growth)
 
 
 def _topology(master, prep):

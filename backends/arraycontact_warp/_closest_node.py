@@ -51,13 +51,13 @@ def _scan(s: vec3, world: int, grid: Grid, d_max: real, tie: real, limit: real):
         reach = wp.min(d_max, wp.max(dmin + tie, limit))
         if _cell_near(s, c, grid.cell, reach):
             key = cell_key(c, world, grid.table)
-            if box_near(s, grid, key, reach * real(1.0001)):
+            # A little wide, so that rounding cannot drop a node the test on d keeps.
+            wide = reach * real(1.0001)
+            if box_near(s, grid, key, wide):
                 for k in range(grid.begin[key], grid.end[key]):
                     ball = grid.balls[k]
-                    # Squares first, a little wide so that rounding cannot drop a node the
-                    # test on d keeps: most nodes are out of reach and need no root.
+                    # Squares first: most nodes are out of reach and need no root.
                     d2 = wp.length_sq(vec3(ball[0], ball[1], ball[2]) - s)
-                    wide = reach * real(1.0001)
                     if d2 <= wide * wide and grid.worlds[k] == world:
                         d = wp.sqrt(d2)
                         if d <= d_max:
@@ -72,6 +72,7 @@ def _scan(s: vec3, world: int, grid: Grid, d_max: real, tie: real, limit: real):
                             if d <= limit and (best < 0 or j < best):
                                 best = j
                             reach = wp.min(d_max, wp.max(dmin + tie, limit))
+                            wide = reach * real(1.0001)
     return dmin, second, best
 
 

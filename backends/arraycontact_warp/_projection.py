@@ -171,9 +171,9 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r
                tie: real, limit: real, slack: real, iterations: int, tol: real):
     """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its grid item (its projection is computed
-    again by the caller: keeping it through the scan costs registers that all threads pay). The reach shrinks to the
-    running minimum (plus rounding slack) as closer faces are found: no farther face can hold
-    the answer.
+    again by the caller: keeping it through the scan costs registers that all threads pay).
+    The reach shrinks to the running minimum (plus rounding slack) as closer faces are found:
+    no farther face can hold the answer.
 
     limit < 0, the first scan: the faces within `tie` of the running minimum are remembered
     (ids and distances, BAND of them) and the tie rule applied as they come; `unsure` = 1 when
