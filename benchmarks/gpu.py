@@ -91,7 +91,7 @@ def _node_stage_kernel():
     def node_stage(grid: Grid, slaves: wp.array(dtype=wp.vec3), order: wp.array(dtype=int),
                    d_max: float, tie: float, node_out: wp.array(dtype=int)):
         i = order[wp.tid()]
-        node, dn = closest_node(slaves[i], 0, grid, d_max, tie)
+        node, dn = closest_node(slaves[i], 0, 1, grid, d_max, tie)
         node_out[i] = node
 
     return node_stage

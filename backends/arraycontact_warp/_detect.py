@@ -65,7 +65,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     w = slave_world[i]
     if shared == 1:
         w = 0
-    node, dn = closest_node(s, w, node_grid, d_max, tie)
+    node, dn = closest_node(s, w, shared, node_grid, d_max, tie)
     node_out[i] = node
     rho = wp.min(dn, d_max) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
@@ -86,7 +86,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
         k = int(-1)
         for scan in range(2):
             if scan == 0 or (dmin <= d_max and unsure == 1):
-                d, f, k, unsure = scan_faces(el, m, face_grid, s, w, rho, r_cap, tie, limit,
+                d, f, k, unsure = scan_faces(el, m, face_grid, s, w, shared, rho, r_cap, tie, limit,
                                              slack, iterations, tol)
                 if scan == 0:
                     dmin = d

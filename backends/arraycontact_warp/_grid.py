@@ -14,18 +14,26 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
 @wp.struct
+class Slot:
+    """One table slot: its items' range in key order and the box around their balls (a scan
+    skips a cell whose items are all out of reach without reading them: on a surface most of
+    a cell is empty space). One 32-byte record, so one memory transaction reads it."""
+
+    lo: vec3
+    begin: int
+    hi: vec3
+    end: int
+
+
+@wp.struct
 class Grid:
     cell: real
     table: int  # slots, a power of two
     sorted_ids: wp.array(dtype=int)  # item ids in key order (first n of 2n: radix scratch)
     keys: wp.array(dtype=int)
-    begin: wp.array(dtype=int)  # [table]
-    end: wp.array(dtype=int)
-    # [table] the box around the balls of each slot's items: a scan skips a cell whose items
-    # are all out of reach without reading them (on a surface most of a cell is empty space).
-    # A slot left empty keeps a stale box; its range is empty, so that is harmless.
-    lo: wp.array(dtype=vec3)
-    hi: wp.array(dtype=vec3)
+    # [table]; a slot no item of the current build hashes to has begin = end (its box is stale
+    # and unread).
+    slots: wp.array(dtype=Slot)
     # Item data in key order, so the stencil scans read each cell's items contiguously
     # instead of gathering them through sorted_ids.
     balls: wp.array(dtype=vec4)  # position and radius (0 for nodes)
@@ -59,41 +67,50 @@ def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dty
 
 
 @wp.kernel
-def _ranges(n: int, grid: Grid):
+def _clear(n: int, grid: Grid):
+    """Empty the slots the previous build filled (the keys still hold its items)."""
     k = wp.tid()
     key = grid.keys[k]
     if k == 0 or grid.keys[k - 1] != key:
-        # The first item of a slot walks the slot's items (about ten) for its range and box.
-        b = grid.balls[k]
-        lo = vec3(b[0], b[1], b[2]) - vec3(b[3])
-        hi = vec3(b[0], b[1], b[2]) + vec3(b[3])
-        j = k + 1
-        while j < n and grid.keys[j] == key:
-            b = grid.balls[j]
-            lo = wp.min(lo, vec3(b[0], b[1], b[2]) - vec3(b[3]))
-            hi = wp.max(hi, vec3(b[0], b[1], b[2]) + vec3(b[3]))
-            j += 1
-        grid.begin[key] = k
-        grid.end[key] = j
-        grid.lo[key] = lo
-        grid.hi[key] = hi
-
-
-@wp.func
-def box_near(s: vec3, grid: Grid, key: int, reach: real):
-    """Whether the box of slot `key`'s items is within reach of s."""
-    g = wp.max(wp.max(grid.lo[key] - s, s - grid.hi[key]), vec3(0.0))
-    return wp.length_sq(g) <= reach * reach
+        grid.slots[key] = Slot()
 
 
 @wp.kernel
 def _gather(x: wp.array(dtype=vec3), radii: wp.array(dtype=real),
-            world: wp.array(dtype=int), grid: Grid):
+            world: wp.array(dtype=int), n: int, tri3: int, points: wp.array(dtype=vec3),
+            faces: wp.array2d(dtype=int), grid: Grid):
+    """Each item's data in key order; the first item of a slot also walks the slot's items
+    (about ten) for its range and box."""
     k = wp.tid()
     i = grid.sorted_ids[k]
     p = x[i]
-    grid.balls[k] = vec4(p[0], p[1], p[2], radii[i])
+    r = radii[i]
+    grid.balls[k] = vec4(p[0], p[1], p[2], r)
     grid.worlds[k] = world[i]
+    if tri3 == 1:
+        for j in range(3):
+            grid.corners[k, j] = points[faces[i, j]]
+    key = grid.keys[k]
+    if k == 0 or grid.keys[k - 1] != key:
+        slot = Slot()
+        slot.lo = p - vec3(r)
+        slot.hi = p + vec3(r)
+        slot.begin = k
+        j = k + 1
+        while j < n and grid.keys[j] == key:
+            q = grid.sorted_ids[j]
+            slot.lo = wp.min(slot.lo, x[q] - vec3(radii[q]))
+            slot.hi = wp.max(slot.hi, x[q] + vec3(radii[q]))
+            j += 1
+        slot.end = j
+        grid.slots[key] = slot
+
+
+@wp.func
+def box_near(s: vec3, slot: Slot, reach: real):
+    """Whether the box of a slot's items is within reach of s."""
+    g = wp.max(wp.max(slot.lo - s, s - slot.hi), vec3(0.0))
+    return wp.length_sq(g) <= reach * reach
 
 
 @wp.func
@@ -124,25 +141,29 @@ def spatial_order(x, origin, quantum, keys, order, n: int, device):
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=30)
 
 
-@wp.kernel
-def _gather_corners(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), grid: Grid):
-    k, j = wp.tid()
-    grid.corners[k, j] = points[faces[grid.sorted_ids[k], j]]
-
-
 def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=None):
     """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable);
     with points and faces (tri3), also the corners of the faces in key order."""
+    wp.launch(_clear, n, inputs=[n, grid], device=device)
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     # Only the key bits the table uses (fewer radix passes).
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
                               end_bit=(grid.table - 1).bit_length())
-    grid.begin.zero_()
-    grid.end.zero_()
-    wp.launch(_gather, n, inputs=[x, radii, world, grid], device=device)
-    wp.launch(_ranges, n, inputs=[n, grid], device=device)
-    if faces is not None:
-        wp.launch(_gather_corners, (n, 3), inputs=[points, faces, grid], device=device)
+    tri3 = faces is not None
+    if not tri3:  # arguments the kernel does not read
+        points, faces = x, _no_faces(device)
+    wp.launch(_gather, n, inputs=[x, radii, world, n, int(tri3), points, faces, grid],
+              device=device)
+
+
+_NO_FACES = {}
+
+
+def _no_faces(device):
+    name = str(wp.get_device(device))
+    if name not in _NO_FACES:
+        _NO_FACES[name] = wp.zeros((1, 3), dtype=int, device=device)
+    return _NO_FACES[name]
 
 
 def new_grid(n: int, cell: float, device, corners=False) -> Grid:
@@ -151,10 +172,8 @@ def new_grid(n: int, cell: float, device, corners=False) -> Grid:
     g.cell, g.table = real(cell), table
     g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
-    g.begin = wp.zeros(table, dtype=int, device=device)
-    g.end = wp.zeros(table, dtype=int, device=device)
-    g.lo = wp.zeros(table, dtype=vec3, device=device)
-    g.hi = wp.zeros(table, dtype=vec3, device=device)
+    g.slots = wp.zeros(table, dtype=Slot, device=device)
+    _no_faces(device)  # made now, not while a graph is captured
     g.balls = wp.zeros(max(n, 1), dtype=vec4, device=device)
     g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
     g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)

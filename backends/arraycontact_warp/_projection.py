@@ -12,10 +12,10 @@ from typing import Any
 
 import warp as wp
 
-from ._closest_node import _cell_near, stencil_offset
 from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
+from ._closest_node import _cell_near, stencil_offset
 from ._grid import Grid, box_near, cell_key, cell_of
 from ._real import real, vec2, vec3
 
@@ -161,83 +161,76 @@ def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
-BAND = 8  # faces within the tie band that the first scan remembers
-_band_ids = wp.types.vector(length=BAND, dtype=int)
-_band_d = wp.types.vector(length=BAND, dtype=real)
-
-
 @wp.func
-def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, rho: real, r_max: real,
-               tie: real, limit: real, slack: real, iterations: int, tol: real):
+def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int, rho: real,
+               r_max: real, tie: real, limit: real, slack: real, iterations: int, tol: real):
     """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its grid item (its projection is computed
     again by the caller: keeping it through the scan costs registers that all threads pay).
     The reach shrinks to the running minimum (plus rounding slack) as closer faces are found:
-    no farther face can hold the answer.
+    no farther face can hold the answer. shared = 1: every item is of this world.
 
-    limit < 0, the first scan: the faces within `tie` of the running minimum are remembered
-    (ids and distances, BAND of them) and the tie rule applied as they come; `unsure` = 1 when
-    that cannot be done from what one scan keeps (band full, or the chosen face left the band
-    while an earlier one stayed: rare). limit >= 0, the second scan: the smallest face id at
-    distance <= limit, skipping larger ids than the best so far."""
+    limit < 0, the first scan: the tie rule applied as the faces come, from the face at the
+    running minimum, the smallest distance of any other face seen and the chosen face. When a
+    new minimum pushes the chosen face out of the band, the band's other members were all seen
+    before: the face at the old minimum, if in the band, and, when the second smallest
+    distance is in it too, faces this scan did not keep: then `unsure` = 1 (three faces within
+    about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
+    scan: the smallest face id at distance <= limit, skipping larger ids than the best so far."""
     c0 = cell_of(s, grid.cell)
     dmin = real(3.0e38)
+    f_min = int(-1)  # the face at dmin and its grid item
+    k_min = int(-1)
+    second = real(3.0e38)  # the smallest distance of the other faces
     best = int(-1)
     b_d = real(3.0e38)
     b_k = int(-1)
-    band_f = _band_ids(0)
-    band_d = _band_d(0.0)
-    nb = int(0)
     unsure = int(0)
     reach = rho
     for q in range(27):
         c = c0 + stencil_offset(q)
         if _cell_near(s, c, grid.cell, reach + r_max):
-            key = cell_key(c, world, grid.table)
-            if box_near(s, grid, key, reach):
-                for k in range(grid.begin[key], grid.end[key]):
+            slot = grid.slots[cell_key(c, world, grid.table)]
+            if box_near(s, slot, reach):
+                for k in range(slot.begin, slot.end):
                     ball = grid.balls[k]
                     rb = reach + ball[3]  # the ball test in squares (no root)
                     near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
-                    f = int(-1)
-                    if near and grid.worlds[k] == world:
+                    if near and shared == 0:  # (Warp evaluates both sides of `or`)
+                        near = grid.worlds[k] == world
+                    if near:
                         f = grid.sorted_ids[k]
-                    if f >= 0 and (limit < real(0.0) or best < 0 or f < best):
-                        xi, feature, local, conv, diff = project(el, m, grid, k, s, f, iterations,
-                                                                 tol)
-                        d = wp.length(diff)
-                        dmin = wp.min(dmin, d)
-                        top = limit
-                        if limit < real(0.0):
-                            top = dmin + tie
-                            if d <= top:
-                                # into a free slot or one whose face has left the band
-                                slot = int(-1)
-                                for j in range(BAND):
-                                    if slot < 0 and (j >= nb or band_d[j] > top):
-                                        slot = j
-                                if slot < 0:
-                                    unsure = 1
+                        # The second scan skips ids above the best so far.
+                        if limit < real(0.0) or best < 0 or f < best:
+                            xi, feature, local, conv, diff = project(
+                                el, m, grid, k, s, f, iterations, tol)
+                            d = wp.length(diff)
+                            top = limit
+                            if limit < real(0.0):
+                                if d < dmin:
+                                    top = d + tie
+                                    if best >= 0 and b_d > top:
+                                        best = int(-1)
+                                        if dmin <= top:
+                                            best = f_min
+                                            b_d = dmin
+                                            b_k = k_min
+                                            if second <= top:
+                                                unsure = 1
+                                    second = wp.min(second, dmin)
+                                    dmin = d
+                                    f_min = f
+                                    k_min = k
                                 else:
-                                    band_f[slot] = f
-                                    band_d[slot] = d
-                                    nb = wp.max(nb, slot + 1)
-                            if best >= 0 and b_d > top:
-                                # The chosen face left the band (d is the new minimum): the
-                                # smallest id still in it must be this face, whose projection
-                                # is at hand, or the second scan decides.
-                                low = f
-                                for j in range(nb):
-                                    if band_d[j] <= top and band_f[j] < low:
-                                        low = band_f[j]
-                                if low != f:
-                                    unsure = 1
-                                best = int(-1)
-                        reach = wp.min(reach, wp.max(dmin, limit) + slack)
-                        if d <= top and (best < 0 or f < best):
-                            best = f
-                            b_d = d
-                            b_k = k
+                                    second = wp.min(second, d)
+                                top = dmin + tie
+                            else:
+                                dmin = wp.min(dmin, d)
+                            reach = wp.min(reach, wp.max(dmin, limit) + slack)
+                            if d <= top and (best < 0 or f < best):
+                                best = f
+                                b_d = d
+                                b_k = k
     return dmin, best, b_k, unsure
 
 
