@@ -40,13 +40,13 @@ def main():
     p.origin = np.zeros(3)
     acw.detect(p, xs, xm)
     shipped = {k: v.numpy().copy() for k, v in p.out.items()}
-    base = _detect._detect_kernel
+    base = _detect._face_kernel
     # The shipped module's options; a module of its own per variant.
     options = {"enable_backward": False, "max_unroll": 1}
     try:
         for cap in a.caps:
             extra = {"cuda_max_registers": cap} if cap else {}
-            _detect._detect_kernel = wp.kernel(module="unique", module_options=options,
+            _detect._face_kernel = wp.kernel(module="unique", module_options=options,
                                                **extra)(base.func)
             acw.detect(p, xs, xm)
             times = []
@@ -55,15 +55,15 @@ def main():
                                     print=False) as t:
                     acw.detect(p, xs, xm)
                 times.append(sum(r.elapsed for r in t.timing_results
-                                 if "_detect_kernel" in r.name))
+                                 if "_face_kernel" in r.name))
             same = all(np.array_equal(v.numpy(), shipped[k], equal_nan=True)
                        for k, v in p.out.items())
             print(f"cap {cap or 'none'}: kernel {statistics.median(times):.3f} ms, "
                   f"same outputs {same}", flush=True)
     finally:
-        _detect._detect_kernel = base
+        _detect._face_kernel = base
     for name, v in kernel_resources("cuda").items():
-        if "_detect_kernel" in name:
+        if "_face_kernel" in name:
             print(f"{name}: {v['registers']} registers, {v['local_bytes']} local bytes")
 
 

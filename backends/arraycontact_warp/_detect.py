@@ -45,35 +45,73 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 GROWTH = 1.25
 
 
-# 64 registers a thread (125 unbounded; some spill to local memory): twice the threads in
-# flight hide the grid reads' latency better (kernel 2.44 -> 1.93 ms at 2^20 on an H200;
-# 56: 1.94, 72: 2.01, 96: 2.38 ms).
+@wp.kernel
+def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.array(dtype=int),
+                 slave_world: wp.array(dtype=int), shared: int, origin: vec3, d_max: real,
+                 tie: real, node_out: wp.array(dtype=int), dist: wp.array(dtype=real)):
+    """Stage 3: each slave's closest node and its distance (into `dist`)."""
+    i = order[wp.tid()]
+    w = slave_world[i]
+    if shared == 1:
+        w = 0
+    node, dn = closest_node(slaves[i] - origin, w, shared, node_grid, d_max, tie)
+    node_out[i] = node
+    dist[i] = dn
+
+
+# Stages 3, 4 and 5 are three kernels: the face scan alone needs few registers, so more threads
+# are in flight to hide its grid reads' latency. 64 registers a thread: MEASURE.
 @wp.kernel(cuda_max_registers=64)
-def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.Grid,
-                   slaves: wp.array(dtype=vec3), order: wp.array(dtype=int),
-                   slave_world: wp.array(dtype=int),
-                   shared: int, origin: vec3, d_max: real, tie: real, slack: real,
-                   r_cap: real, iterations: int, tol: real, mode: int, passing_by: int,
-                   active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
-                   xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
-                   gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
-                   normal_out: wp.array(dtype=vec3), feature_out: wp.array(dtype=int),
-                   node_out: wp.array(dtype=int), status_out: wp.array(dtype=int),
-                   local_out: wp.array(dtype=int)):
+def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
+                 order: wp.array(dtype=int), slave_world: wp.array(dtype=int), shared: int,
+                 origin: vec3, d_max: real, tie: real, slack: real, r_cap: real,
+                 iterations: int, tol: real, dist: wp.array(dtype=real),
+                 face_out: wp.array(dtype=int), item: wp.array(dtype=int)):
+    """Stage 4, exact mode: the smallest distance (into `dist`, replacing the closest node's),
+    the face of the tie rule (into face_out) and its face-grid item."""
     i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
     if shared == 1:
         w = 0
-    node, dn = closest_node(s, w, shared, node_grid, d_max, tie)
-    node_out[i] = node
-    rho = wp.min(dn, d_max) + slack
+    rho = wp.min(dist[i], d_max) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
     # unsure. One call site in a loop keeps the generated code small.
     limit = real(-1.0)
     unsure = int(0)
     dmin = real(3.0e38)
+    f = int(-1)
+    k = int(-1)
+    for scan in range(2):
+        if scan == 0 or (dmin <= d_max and unsure == 1):
+            d, f, k, unsure = scan_faces(el, m, face_grid, s, w, shared, rho, r_cap, tie, limit,
+                                         slack, iterations, tol)
+            if scan == 0:
+                dmin = d
+                limit = dmin + tie
+                rho = wp.min(rho, limit + slack)  # the second scan needs only this near
+    dist[i] = dmin
+    face_out[i] = f
+    item[i] = k
+
+
+@wp.kernel
+def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
+                   order: wp.array(dtype=int), origin: vec3, d_max: real, tie: real,
+                   iterations: int, tol: real, mode: int, passing_by: int,
+                   dist: wp.array(dtype=real), item: wp.array(dtype=int),
+                   active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
+                   xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
+                   gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
+                   normal_out: wp.array(dtype=vec3), feature_out: wp.array(dtype=int),
+                   node_out: wp.array(dtype=int), status_out: wp.array(dtype=int),
+                   local_out: wp.array(dtype=int)):
+    """The chosen face's projection (exact mode) or the node-mode search on the faces around
+    the closest node, then stage 5 and every output."""
+    i = order[wp.tid()]
+    s = slaves[i] - origin
+    node = node_out[i]
     f = int(-1)
     xi = vec2(0.0)
     feature = int(-1)
@@ -83,17 +121,10 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
     active = int(0)
     status = int(1)  # out of range
     if mode == 0:
-        k = int(-1)
-        for scan in range(2):
-            if scan == 0 or (dmin <= d_max and unsure == 1):
-                d, f, k, unsure = scan_faces(el, m, face_grid, s, w, shared, rho, r_cap, tie, limit,
-                                             slack, iterations, tol)
-                if scan == 0:
-                    dmin = d
-                    limit = dmin + tie
-                    rho = wp.min(rho, limit + slack)  # the second scan needs only this near
-        if dmin <= d_max:
-            xi, feature, local, conv, diff = project(el, m, face_grid, k, s, f, iterations, tol)
+        f = face_out[i]
+        if dist[i] <= d_max:
+            xi, feature, local, conv, diff = project(el, m, face_grid, item[i], s, f, iterations,
+                                                     tol)
             active = 1
             status = 0
     elif node >= 0:
@@ -102,6 +133,7 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
         # pass picks the smallest face id within `tie`). A blind spot at a boundary node outside
         # its proximal volume is passing by: reported, not active.
         only_face = int(0)
+        limit = real(-1.0)
         for scan in range(2):
             d_face, d_any, f, xi, feature, local, conv, diff = scan_attached(
                 el, m, face_grid, s, node, only_face, limit, iterations, tol)
@@ -120,13 +152,13 @@ def _detect_kernel(el: Any, m: Master, node_grid: _grid.Grid, face_grid: _grid.G
                     status = 3  # passing by
     nan = real(wp.nan)
     if active == 1 or status == 3:
-        gap, dist, normal = classify(el, m, f, feature, local, xi, diff, tie)
+        gap, distance, normal = classify(el, m, f, feature, local, xi, diff, tie)
         active_out[i] = active
         face_out[i] = f
         xi_out[i] = xi
         point_out[i] = s - diff + origin
         gap_out[i] = gap
-        dist_out[i] = dist
+        dist_out[i] = distance
         normal_out[i] = normal
         feature_out[i] = feature
         local_out[i] = local
@@ -178,6 +210,8 @@ class Plan:
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
+    dist: wp.array  # [n] between kernels: the closest node's distance, then the face's
+    item: wp.array  # [n] between kernels: the chosen face's item in the face grid
     mode: int = 0  # 0 exact, 1 node
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     master_ready: bool = False  # the master stages have run at least once
@@ -287,7 +321,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
                     np.int32), int),
                 order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
-                else None, mode=MODES.index(mode),
+                else None, dist=wp.zeros(len(x), dtype=real, device=device),
+                item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
                 passing_by=int(mode == "node" and not master.closed))
 
 
@@ -366,11 +401,21 @@ def detect(p: Plan, slave_points, master_points=None):
         _grid.spatial_order(xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves,
                             dev)
     o = p.out
-    wp.launch(_detect_kernel, p.n_slaves,
-              inputs=[p.kernel_element, p.m, p.node_grid, p.face_grid, xs, p.order, p.slave_world,
-                      p.shared,
-                      s_origin, real(c["d_max"]), real(c["tie"]), real(c["slack"]),
-                      real(c["r_cap"]), c["iterations"], real(c["tol"]), p.mode, p.passing_by],
+    n = p.n_slaves
+    wp.launch(_node_kernel, n,
+              inputs=[p.node_grid, xs, p.order, p.slave_world, p.shared, s_origin,
+                      real(c["d_max"]), real(c["tie"])],
+              outputs=[o["master_node"], p.dist], device=dev)
+    if p.mode == 0:
+        wp.launch(_face_kernel, n,
+                  inputs=[p.kernel_element, p.m, p.face_grid, xs, p.order, p.slave_world,
+                          p.shared, s_origin, real(c["d_max"]), real(c["tie"]),
+                          real(c["slack"]), real(c["r_cap"]), c["iterations"], real(c["tol"])],
+                  outputs=[p.dist, o["face"], p.item], device=dev)
+    wp.launch(_finish_kernel, n,
+              inputs=[p.kernel_element, p.m, p.face_grid, xs, p.order, s_origin,
+                      real(c["d_max"]), real(c["tie"]), c["iterations"], real(c["tol"]), p.mode,
+                      p.passing_by, p.dist, p.item],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
     kind = _kind(slave_points)
     if kind == "warp":
