@@ -77,8 +77,7 @@ def _clear(n: int, grid: Grid):
 
 @wp.kernel
 def _gather(x: wp.array(dtype=vec3), radii: wp.array(dtype=real),
-            world: wp.array(dtype=int), n: int, tri3: int, points: wp.array(dtype=vec3),
-            faces: wp.array2d(dtype=int), grid: Grid):
+            world: wp.array(dtype=int), n: int, grid: Grid):
     """Each item's data in key order; the first item of a slot also walks the slot's items
     (about ten) for its range and box."""
     k = wp.tid()
@@ -87,9 +86,6 @@ def _gather(x: wp.array(dtype=vec3), radii: wp.array(dtype=real),
     r = radii[i]
     grid.balls[k] = vec4(p[0], p[1], p[2], r)
     grid.worlds[k] = world[i]
-    if tri3 == 1:
-        for j in range(3):
-            grid.corners[k, j] = points[faces[i, j]]
     key = grid.keys[k]
     if k == 0 or grid.keys[k - 1] != key:
         slot = Slot()
@@ -141,6 +137,12 @@ def spatial_order(x, origin, quantum, keys, order, n: int, device):
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=30)
 
 
+@wp.kernel
+def _gather_corners(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), grid: Grid):
+    k, j = wp.tid()
+    grid.corners[k, j] = points[faces[grid.sorted_ids[k], j]]
+
+
 def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=None):
     """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable);
     with points and faces (tri3), also the corners of the faces in key order."""
@@ -149,21 +151,9 @@ def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=N
     # Only the key bits the table uses (fewer radix passes).
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
                               end_bit=(grid.table - 1).bit_length())
-    tri3 = faces is not None
-    if not tri3:  # arguments the kernel does not read
-        points, faces = x, _no_faces(device)
-    wp.launch(_gather, n, inputs=[x, radii, world, n, int(tri3), points, faces, grid],
-              device=device)
-
-
-_NO_FACES = {}
-
-
-def _no_faces(device):
-    name = str(wp.get_device(device))
-    if name not in _NO_FACES:
-        _NO_FACES[name] = wp.zeros((1, 3), dtype=int, device=device)
-    return _NO_FACES[name]
+    wp.launch(_gather, n, inputs=[x, radii, world, n, grid], device=device)
+    if faces is not None:
+        wp.launch(_gather_corners, (n, 3), inputs=[points, faces, grid], device=device)
 
 
 def new_grid(n: int, cell: float, device, corners=False) -> Grid:
@@ -173,7 +163,6 @@ def new_grid(n: int, cell: float, device, corners=False) -> Grid:
     g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.slots = wp.zeros(table, dtype=Slot, device=device)
-    _no_faces(device)  # made now, not while a graph is captured
     g.balls = wp.zeros(max(n, 1), dtype=vec4, device=device)
     g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
     g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)

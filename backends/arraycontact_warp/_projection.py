@@ -161,14 +161,24 @@ def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
+CANDIDATES = 16  # faces a thread collects before projecting them (about 10 on a surface)
+_slots = wp.types.vector(length=27, dtype=int)
+_candidates = wp.types.vector(length=CANDIDATES, dtype=int)
+
+
 @wp.func
 def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int, rho: real,
                r_max: real, tie: real, limit: real, slack: real, iterations: int, tol: real):
     """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its grid item (its projection is computed
     again by the caller: keeping it through the scan costs registers that all threads pay).
-    The reach shrinks to the running minimum (plus rounding slack) as closer faces are found:
-    no farther face can hold the answer. shared = 1: every item is of this world.
+    shared = 1: every item is of this world.
+
+    In three flat loops, so that the threads of a GPU warp, each with its own cells and
+    candidates, diverge little: the slots of the 27 stencil cells within reach; their items'
+    balls, collecting the faces within reach (CANDIDATES at a time); the projections of the
+    collected faces. The reach shrinks to the running minimum (plus rounding slack) after each
+    batch: no farther face can hold the answer.
 
     limit < 0, the first scan: the tie rule applied as the faces come, from the face at the
     running minimum, the smallest distance of any other face seen and the chosen face. When a
@@ -178,6 +188,19 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far."""
     c0 = cell_of(s, grid.cell)
+    reach = rho
+    begins = _slots(0)
+    ends = _slots(0)
+    n_slots = int(0)
+    for q in range(27):
+        c = c0 + stencil_offset(q)
+        if _cell_near(s, c, grid.cell, reach + r_max):
+            slot = grid.slots[cell_key(c, world, grid.table)]
+            if slot.begin < slot.end:
+                if box_near(s, slot, reach):
+                    begins[n_slots] = slot.begin
+                    ends[n_slots] = slot.end
+                    n_slots += 1
     dmin = real(3.0e38)
     f_min = int(-1)  # the face at dmin and its grid item
     k_min = int(-1)
@@ -186,51 +209,59 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     b_d = real(3.0e38)
     b_k = int(-1)
     unsure = int(0)
-    reach = rho
-    for q in range(27):
-        c = c0 + stencil_offset(q)
-        if _cell_near(s, c, grid.cell, reach + r_max):
-            slot = grid.slots[cell_key(c, world, grid.table)]
-            if box_near(s, slot, reach):
-                for k in range(slot.begin, slot.end):
-                    ball = grid.balls[k]
-                    rb = reach + ball[3]  # the ball test in squares (no root)
-                    near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
-                    if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                        near = grid.worlds[k] == world
-                    if near:
-                        f = grid.sorted_ids[k]
-                        # The second scan skips ids above the best so far.
-                        if limit < real(0.0) or best < 0 or f < best:
-                            xi, feature, local, conv, diff = project(
-                                el, m, grid, k, s, f, iterations, tol)
-                            d = wp.length(diff)
-                            top = limit
-                            if limit < real(0.0):
-                                if d < dmin:
-                                    top = d + tie
-                                    if best >= 0 and b_d > top:
-                                        best = int(-1)
-                                        if dmin <= top:
-                                            best = f_min
-                                            b_d = dmin
-                                            b_k = k_min
-                                            if second <= top:
-                                                unsure = 1
-                                    second = wp.min(second, dmin)
-                                    dmin = d
-                                    f_min = f
-                                    k_min = k
-                                else:
-                                    second = wp.min(second, d)
-                                top = dmin + tie
-                            else:
-                                dmin = wp.min(dmin, d)
-                            reach = wp.min(reach, wp.max(dmin, limit) + slack)
-                            if d <= top and (best < 0 or f < best):
-                                best = f
-                                b_d = d
-                                b_k = k
+    found = _candidates(0)
+    j = int(0)  # the slot and item the collection goes on from
+    k = begins[0]
+    while j < n_slots:
+        n = int(0)
+        while n < CANDIDATES and j < n_slots:
+            if k < ends[j]:
+                ball = grid.balls[k]
+                rb = reach + ball[3]  # the ball test in squares (no root)
+                near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
+                if near and shared == 0:  # (Warp evaluates both sides of `or`)
+                    near = grid.worlds[k] == world
+                if near:
+                    found[n] = k
+                    n += 1
+                k += 1
+            else:
+                j += 1
+                if j < n_slots:
+                    k = begins[j]
+        for t in range(n):
+            kt = found[t]
+            f = grid.sorted_ids[kt]
+            # The second scan skips ids above the best so far.
+            if limit < real(0.0) or best < 0 or f < best:
+                xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
+                d = wp.length(diff)
+                top = limit
+                if limit < real(0.0):
+                    if d < dmin:
+                        top = d + tie
+                        if best >= 0 and b_d > top:
+                            best = int(-1)
+                            if dmin <= top:
+                                best = f_min
+                                b_d = dmin
+                                b_k = k_min
+                                if second <= top:
+                                    unsure = 1
+                        second = wp.min(second, dmin)
+                        dmin = d
+                        f_min = f
+                        k_min = kt
+                    else:
+                        second = wp.min(second, d)
+                    top = dmin + tie
+                else:
+                    dmin = wp.min(dmin, d)
+                if d <= top and (best < 0 or f < best):
+                    best = f
+                    b_d = d
+                    b_k = kt
+        reach = wp.min(reach, wp.max(dmin, limit) + slack)
     return dmin, best, b_k, unsure
 
 
