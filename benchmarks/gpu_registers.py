@@ -1,4 +1,4 @@
-"""The Warp detection kernel's register cap against its time (GPU only): the same kernel
+"""The Warp face-scan kernel's register cap against its time (GPU only): the same kernel
 compiled with cuda_max_registers = each value given (0: no cap) and launched through
 `arraycontact_warp.detect` on the rough_close scene; CUDA activity timing of the kernel,
 median of the repeats, outputs checked equal to the shipped kernel's.

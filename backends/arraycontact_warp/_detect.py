@@ -3,13 +3,15 @@ kernels (no allocation, no host synchronisation), so a CUDA graph can capture an
 
 Stages, one module each (the names of the other back ends): _prepare (master geometry from
 the current coordinates), _grid (hashed keys with the world id, radix sort, slot ranges),
-_closest_node, _projection (candidates and projections), _select (gap, normal). Each slave is
-one thread (slaves taken in Morton order) that scans the 27 grid cells around it, once for the
-closest node and once for the closest face, applying the tie rule as it goes (a second scan
-only when that was unsure); in node mode it projects on the faces attached to the closest
-node instead. There is no pair buffer to overflow; the one planned quantity that motion can
-outgrow is the largest face radius the face grid's cells were sized for, reported in the
-device flag `plan.overflow`.
+_closest_node, _projection (candidates and projections), _select (gap, normal). Three kernels,
+each slave one thread: the closest node (the 27 grid cells around the slave); in exact mode the
+closest face (the cells within reach, their items' balls, the faces within reach collected and
+projected together, the tie rule applied as they come, a second scan only when that was
+unsure); then the chosen face's projection, or in node mode the projections on the faces
+attached to the closest node, and every output. The two scans take the slaves in Morton order,
+so that the threads of a GPU warp read the same cells. There is no pair buffer to overflow;
+the one planned quantity that motion can outgrow is the largest face radius the face grid's
+cells were sized for, reported in the device flag `plan.overflow`.
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;
 results per world equal running each world alone. A master without world ids is shared by all
@@ -59,8 +61,10 @@ def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.
     dist[i] = dn
 
 
-# Stages 3, 4 and 5 are three kernels: the face scan alone needs few registers, so more threads
-# are in flight to hide its grid reads' latency. 64 registers a thread: MEASURE.
+# Three kernels rather than one: the face scan alone spills fewer registers. 64 registers a
+# thread, from a sweep at 2^20 on an H200 (benchmarks/gpu_registers.py): no cap 1.03 ms (111
+# registers), 48: 0.83, 64: 0.82, 80: 0.88, 96: 1.02 ms; more threads in flight hide the
+# grid reads' latency.
 @wp.kernel(cuda_max_registers=64)
 def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
                  order: wp.array(dtype=int), slave_world: wp.array(dtype=int), shared: int,
@@ -98,7 +102,7 @@ def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dty
 
 @wp.kernel
 def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
-                   order: wp.array(dtype=int), origin: vec3, d_max: real, tie: real,
+                   origin: vec3, d_max: real, tie: real,
                    iterations: int, tol: real, mode: int, passing_by: int,
                    dist: wp.array(dtype=real), item: wp.array(dtype=int),
                    active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
@@ -108,8 +112,9 @@ def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(d
                    node_out: wp.array(dtype=int), status_out: wp.array(dtype=int),
                    local_out: wp.array(dtype=int)):
     """The chosen face's projection (exact mode) or the node-mode search on the faces around
-    the closest node, then stage 5 and every output."""
-    i = order[wp.tid()]
+    the closest node, then stage 5 and every output. Slaves in their own order, so that the
+    outputs are written in whole cache lines."""
+    i = wp.tid()
     s = slaves[i] - origin
     node = node_out[i]
     f = int(-1)
@@ -309,7 +314,10 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     return Plan(device=device, master=master, n_slaves=len(x), element=element,
                 kernel_element=triangle_data(device) if e.name == "tri3" else element,
                 m=m, node_grid=_grid.new_grid(len(master.nodes), CELL_MARGIN * d_max, device),
-                face_grid=_grid.new_grid(master.n_faces, CELL_MARGIN * (d_max + r_cap), device,
+                # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
+                # stays under a cell: the cells it visits are at most 3 a side.
+                face_grid=_grid.new_grid(master.n_faces,
+                                         CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
                                          corners=e.name == "tri3"),
                 node_ids=arr(master.nodes.astype(np.int32), int),
                 face_ids=arr(np.arange(master.n_faces, dtype=np.int32), int),
@@ -413,7 +421,7 @@ def detect(p: Plan, slave_points, master_points=None):
                           real(c["slack"]), real(c["r_cap"]), c["iterations"], real(c["tol"])],
                   outputs=[p.dist, o["face"], p.item], device=dev)
     wp.launch(_finish_kernel, n,
-              inputs=[p.kernel_element, p.m, p.face_grid, xs, p.order, s_origin,
+              inputs=[p.kernel_element, p.m, p.face_grid, xs, s_origin,
                       real(c["d_max"]), real(c["tie"]), c["iterations"], real(c["tol"]), p.mode,
                       p.passing_by, p.dist, p.item],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)

@@ -15,7 +15,7 @@ import warp as wp
 from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
-from ._closest_node import _cell_near, stencil_offset
+from ._closest_node import _cell_near
 from ._grid import Grid, box_near, cell_key, cell_of
 from ._real import real, vec2, vec3
 
@@ -187,20 +187,25 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     distance is in it too, faces this scan did not keep: then `unsure` = 1 (three faces within
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far."""
-    c0 = cell_of(s, grid.cell)
     reach = rho
     begins = _slots(0)
     ends = _slots(0)
     n_slots = int(0)
-    for q in range(27):
-        c = c0 + stencil_offset(q)
-        if _cell_near(s, c, grid.cell, reach + r_max):
-            slot = grid.slots[cell_key(c, world, grid.table)]
-            if slot.begin < slot.end:
-                if box_near(s, slot, reach):
-                    begins[n_slots] = slot.begin
-                    ends[n_slots] = slot.end
-                    n_slots += 1
+    # The cells meeting the cube of half-side reach + r_max around s (at most 3 a side, as the
+    # cell is wider than that reach; mostly 2).
+    a = cell_of(s - vec3(reach + r_max), grid.cell)
+    b = cell_of(s + vec3(reach + r_max), grid.cell)
+    for cz in range(a[2], b[2] + 1):
+        for cy in range(a[1], b[1] + 1):
+            for cx in range(a[0], b[0] + 1):
+                c = wp.vec3i(cx, cy, cz)
+                if _cell_near(s, c, grid.cell, reach + r_max):
+                    slot = grid.slots[cell_key(c, world, grid.table)]
+                    if slot.begin < slot.end:
+                        if box_near(s, slot, reach):
+                            begins[n_slots] = slot.begin
+                            ends[n_slots] = slot.end
+                            n_slots += 1
     dmin = real(3.0e38)
     f_min = int(-1)  # the face at dmin and its grid item
     k_min = int(-1)
