@@ -120,6 +120,21 @@ def kernel_resources(device):
     return out
 
 
+def warp_plan(scene, device="cuda", **plan_options):
+    """A Warp plan for the scene and its slave and master coordinates as device arrays in the
+    plan's frame, as a simulator holds them (the plan's origin then zero)."""
+    import warp as wp
+
+    import arraycontact_warp as acw
+
+    p = acw.plan(scene.master, scene.slave, device=device, **plan_options)
+    xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
+    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
+                  device=device)
+    p.origin = np.zeros(3)  # the arrays above are already local
+    return p, xs, xm
+
+
 def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
     """quick: the steady-state time only (variants beside the main record)."""
     import warp as wp
@@ -127,13 +142,8 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
     import arraycontact_warp as acw
 
     t0 = time.perf_counter()
-    p = acw.plan(scene.master, scene.slave, device=device, sort_slaves=sort_slaves)
+    p, xs, xm = warp_plan(scene, device, sort_slaves=sort_slaves)
     plan_s = time.perf_counter() - t0
-    # Device arrays in the plan's frame, as a simulator holds them.
-    xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
-    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
-                  device=device)
-    p.origin = np.zeros(3)  # the arrays above are already local
 
     def run():
         acw.detect(p, xs, xm)

@@ -10,9 +10,9 @@ import ctypes
 import sys
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+from gpu import warp_plan  # noqa: E402
 from run import make_scene  # noqa: E402
 
 
@@ -34,12 +34,7 @@ def main():
     import arraycontact_warp as acw
 
     wp.init()
-    scene = make_scene("rough_close", a.log2)
-    p = acw.plan(scene.master, scene.slave, device="cuda")
-    xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device="cuda")
-    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
-                  device="cuda")
-    p.origin = np.zeros(3)
+    p, xs, xm = warp_plan(make_scene("rough_close", a.log2))
     for _ in range(3):
         acw.detect(p, xs, xm)
     wp.synchronize()

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from gpu import kernel_resources  # noqa: E402
+from gpu import kernel_resources, warp_plan  # noqa: E402
 from run import make_scene  # noqa: E402
 
 
@@ -32,12 +32,7 @@ def main():
 
     wp.config.quiet = True
     wp.init()
-    scene = make_scene("rough_close", a.log2)
-    p = acw.plan(scene.master, scene.slave, device="cuda")
-    xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device="cuda")
-    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
-                  device="cuda")
-    p.origin = np.zeros(3)
+    p, xs, xm = warp_plan(make_scene("rough_close", a.log2))
     acw.detect(p, xs, xm)
     shipped = {k: v.numpy().copy() for k, v in p.out.items()}
     base = _detect._face_kernel

@@ -67,7 +67,7 @@ def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dty
 
 
 @wp.kernel
-def _clear(n: int, grid: Grid):
+def _clear(grid: Grid):
     """Empty the slots the previous build filled (the keys still hold its items)."""
     k = wp.tid()
     key = grid.keys[k]
@@ -146,7 +146,7 @@ def _gather_corners(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), 
 def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=None):
     """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable);
     with points and faces (tri3), also the corners of the faces in key order."""
-    wp.launch(_clear, n, inputs=[n, grid], device=device)
+    wp.launch(_clear, n, inputs=[grid], device=device)
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     # Only the key bits the table uses (fewer radix passes).
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
