@@ -57,16 +57,16 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
             wide = reach * real(1.0001)
             if box_near(s, slot, wide):
                 for k in range(slot.begin, slot.end):
-                    ball = grid.balls[k]
+                    item = grid.items[k]
                     # Squares first: most nodes are out of reach, need no root.
-                    d2 = wp.length_sq(vec3(ball[0], ball[1], ball[2]) - s)
+                    d2 = wp.length_sq(item.lo - s)
                     near = d2 <= wide * wide
                     if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                        near = grid.worlds[k] == world
+                        near = item.world == world
                     if near:
                         d = wp.sqrt(d2)
                         if d <= d_max:
-                            j = grid.sorted_ids[k]
+                            j = item.id
                             if d < dmin:
                                 second = dmin
                                 dmin = d

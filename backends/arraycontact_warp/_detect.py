@@ -213,7 +213,6 @@ class Plan:
     master_in: wp.array
     overflow: wp.array
     out: dict
-    zero_radii: wp.array  # the node grid's items are points
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
@@ -302,6 +301,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
         m.face_world = arr(0 * fw, int)
     m.centres = wp.zeros(master.n_faces, dtype=vec3, device=device)
     m.radii = wp.zeros(master.n_faces, dtype=real, device=device)
+    m.box_lo = wp.zeros(master.n_faces, dtype=vec3, device=device)
+    m.box_hi = wp.zeros(master.n_faces, dtype=vec3, device=device)
     offsets, ids = master.node_faces
     m.nf_offsets, m.nf_ids = arr(offsets.astype(np.int32), int), arr(ids.astype(np.int32), int)
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
@@ -327,7 +328,6 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 slave_in=wp.zeros(len(x), dtype=vec3, device=device),
                 master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
                 overflow=wp.zeros(1, dtype=int, device=device), out=out,
-                zero_radii=wp.zeros(len(master.points), dtype=real, device=device),
                 dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
                     np.int32), int),
                 order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
@@ -374,12 +374,12 @@ def _master_stages(p: Plan, master_points):
     p.overflow.zero_()
     wp.launch(_prepare.face_bounds, p.master.n_faces,
               inputs=[m.points, m.faces, c["lebesgue"], c["r_cap"]],
-              outputs=[m.centres, m.radii, p.overflow], device=dev)
-    _grid.build(p.node_grid, m.points, p.zero_radii, p.node_ids, m.node_world,
+              outputs=[m.centres, m.radii, m.box_lo, m.box_hi, p.overflow], device=dev)
+    _grid.build(p.node_grid, m.points, m.points, m.points, p.node_ids, m.node_world,
                 len(p.master.nodes), dev)
     tri3 = p.master.element.name == "tri3"
     if p.mode == 0:  # node mode reads no face grid
-        _grid.build(p.face_grid, m.centres, m.radii, p.face_ids, m.face_world,
+        _grid.build(p.face_grid, m.centres, m.box_lo, m.box_hi, p.face_ids, m.face_world,
                     p.master.n_faces, dev, m.points if tri3 else None,
                     m.faces if tri3 else None)
     p.master_ready = True

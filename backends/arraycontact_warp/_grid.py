@@ -1,12 +1,13 @@
 """Stage 2 in Warp: one hashed key per item (cell and world), a radix sort of the keys' table
 bits, and the range of every table slot from the sorted keys (adjacent differences) with the
-box around its items. No dense cell array."""
+box around its items. No dense cell array. An item is a box (a point for a node) with its id
+and world, in key order."""
 
 from __future__ import annotations
 
 import warp as wp
 
-from ._real import real, vec3, vec4
+from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
 # projection 27 times into the kernel (minutes of CUDA compilation for no speed).
@@ -26,6 +27,18 @@ class Slot:
 
 
 @wp.struct
+class Item:
+    """One item in key order: the box around it (lo = hi for a node), its id and world. One
+    32-byte record in float32: a scan's one read per item. A face's box rejects far more
+    faces of a surface than its ball (which bounds the face's extent in every direction)."""
+
+    lo: vec3
+    id: int
+    hi: vec3
+    world: int
+
+
+@wp.struct
 class Grid:
     cell: real
     table: int  # slots, a power of two
@@ -34,10 +47,8 @@ class Grid:
     # [table]; a slot no item of the current build hashes to has begin = end (its box is stale
     # and unread).
     slots: wp.array(dtype=Slot)
-    # Item data in key order, so the stencil scans read each cell's items contiguously
-    # instead of gathering them through sorted_ids.
-    balls: wp.array(dtype=vec4)  # position and radius (0 for nodes)
-    worlds: wp.array(dtype=int)
+    # In key order, so the scans read each cell's items contiguously.
+    items: wp.array(dtype=Item)
     # tri3 face grids: the three corners of each face in key order (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
@@ -76,37 +87,56 @@ def _clear(grid: Grid):
 
 
 @wp.kernel
-def _gather(x: wp.array(dtype=vec3), radii: wp.array(dtype=real),
-            world: wp.array(dtype=int), n: int, grid: Grid):
-    """Each item's data in key order; the first item of a slot also walks the slot's items
+def _gather(lo: wp.array(dtype=vec3), hi: wp.array(dtype=vec3), world: wp.array(dtype=int),
+            n: int, grid: Grid):
+    """Each item's record in key order; the first item of a slot also walks the slot's items
     (about ten) for its range and box."""
     k = wp.tid()
     i = grid.sorted_ids[k]
-    p = x[i]
-    r = radii[i]
-    grid.balls[k] = vec4(p[0], p[1], p[2], r)
-    grid.worlds[k] = world[i]
+    item = Item()
+    item.lo = lo[i]
+    item.hi = hi[i]
+    item.id = i
+    item.world = world[i]
+    grid.items[k] = item
     key = grid.keys[k]
     if k == 0 or grid.keys[k - 1] != key:
         slot = Slot()
-        slot.lo = p - vec3(r)
-        slot.hi = p + vec3(r)
+        slot.lo = item.lo
+        slot.hi = item.hi
         slot.begin = k
         j = k + 1
         while j < n and grid.keys[j] == key:
             q = grid.sorted_ids[j]
-            slot.lo = wp.min(slot.lo, x[q] - vec3(radii[q]))
-            slot.hi = wp.max(slot.hi, x[q] + vec3(radii[q]))
+            slot.lo = wp.min(slot.lo, lo[q])
+            slot.hi = wp.max(slot.hi, hi[q])
             j += 1
         slot.end = j
         grid.slots[key] = slot
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __ffs(x) - 1;
+#else
+return __builtin_ffs(x) - 1;
+#endif
+""")
+def lowest_bit(x: int) -> int:
+    """The index of x's lowest set bit (-1 for 0)."""
+    ...
+
+
+@wp.func
+def box_gap_sq(s: vec3, lo: vec3, hi: vec3):
+    """The squared distance from s to the box [lo, hi]."""
+    return wp.length_sq(wp.max(wp.max(lo - s, s - hi), vec3(0.0)))
+
+
 @wp.func
 def box_near(s: vec3, slot: Slot, reach: real):
     """Whether the box of a slot's items is within reach of s."""
-    g = wp.max(wp.max(slot.lo - s, s - slot.hi), vec3(0.0))
-    return wp.length_sq(g) <= reach * reach
+    return box_gap_sq(s, slot.lo, slot.hi) <= reach * reach
 
 
 @wp.func
@@ -143,15 +173,16 @@ def _gather_corners(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), 
     grid.corners[k, j] = points[faces[grid.sorted_ids[k], j]]
 
 
-def build(grid: Grid, x, radii, ids, world, n: int, device, points=None, faces=None):
-    """Fill `grid` with items ids[:n] at x[ids] with radii[ids] (launches only: capturable);
-    with points and faces (tri3), also the corners of the faces in key order."""
+def build(grid: Grid, x, lo, hi, ids, world, n: int, device, points=None, faces=None):
+    """Fill `grid` with items ids[:n] in the cells of x[ids], boxes [lo, hi][ids] (launches
+    only: capturable); with points and faces (tri3), also the corners of the faces in key
+    order."""
     wp.launch(_clear, n, inputs=[grid], device=device)
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     # Only the key bits the table uses (fewer radix passes).
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
                               end_bit=(grid.table - 1).bit_length())
-    wp.launch(_gather, n, inputs=[x, radii, world, n, grid], device=device)
+    wp.launch(_gather, n, inputs=[lo, hi, world, n, grid], device=device)
     if faces is not None:
         wp.launch(_gather_corners, (n, 3), inputs=[points, faces, grid], device=device)
 
@@ -163,7 +194,6 @@ def new_grid(n: int, cell: float, device, corners=False) -> Grid:
     g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.slots = wp.zeros(table, dtype=Slot, device=device)
-    g.balls = wp.zeros(max(n, 1), dtype=vec4, device=device)
-    g.worlds = wp.zeros(max(n, 1), dtype=int, device=device)
+    g.items = wp.zeros(max(n, 1), dtype=Item, device=device)
     g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
     return g

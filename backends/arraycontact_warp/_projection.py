@@ -16,7 +16,7 @@ from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, close
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
 from ._closest_node import _cell_near
-from ._grid import Grid, box_near, cell_key, cell_of
+from ._grid import Grid, lowest_bit, box_gap_sq, box_near, cell_key, cell_of
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -32,6 +32,8 @@ class Master:
     node_world: wp.array(dtype=int)
     centres: wp.array(dtype=vec3)
     radii: wp.array(dtype=real)
+    box_lo: wp.array(dtype=vec3)  # the box around each face (_prepare.face_bounds)
+    box_hi: wp.array(dtype=vec3)
     nf_offsets: wp.array(dtype=int)  # node -> faces (CSR): the vertex pseudo-normals
     nf_ids: wp.array(dtype=int)
     face_edges: wp.array2d(dtype=int)
@@ -162,7 +164,6 @@ def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa
 
 
 CANDIDATES = 16  # faces a thread collects before projecting them (about 10 on a surface)
-_slots = wp.types.vector(length=27, dtype=int)
 _candidates = wp.types.vector(length=CANDIDATES, dtype=int)
 
 
@@ -188,13 +189,14 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far."""
     reach = rho
-    begins = _slots(0)
-    ends = _slots(0)
-    n_slots = int(0)
     # The cells meeting the cube of half-side reach + r_max around s (at most 3 a side, as the
-    # cell is wider than that reach; mostly 2).
+    # cell is wider than that reach; mostly 2): bit q of `cells` marks the cell a + (q % 3,
+    # q // 3 % 3, q // 9) as within reach with items in reach. A mask, not a list of ranges:
+    # a thread's state stays small enough for the cache (lists spilled to local memory
+    # evicted the grid's data from it).
     a = cell_of(s - vec3(reach + r_max), grid.cell)
     b = cell_of(s + vec3(reach + r_max), grid.cell)
+    cells = int(0)
     for cz in range(a[2], b[2] + 1):
         for cy in range(a[1], b[1] + 1):
             for cx in range(a[0], b[0] + 1):
@@ -203,9 +205,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
                     slot = grid.slots[cell_key(c, world, grid.table)]
                     if slot.begin < slot.end:
                         if box_near(s, slot, reach):
-                            begins[n_slots] = slot.begin
-                            ends[n_slots] = slot.end
-                            n_slots += 1
+                            cells = cells | (1 << ((cz - a[2]) * 9 + (cy - a[1]) * 3 + cx - a[0]))
     dmin = real(3.0e38)
     f_min = int(-1)  # the face at dmin and its grid item
     k_min = int(-1)
@@ -215,30 +215,49 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     b_k = int(-1)
     unsure = int(0)
     found = _candidates(0)
-    j = int(0)  # the slot and item the collection goes on from
-    k = begins[0]
-    while j < n_slots:
+    k = int(0)  # the item the collection goes on from, and its slot's end
+    end = int(0)
+    while k < end or cells != 0:
         n = int(0)
-        while n < CANDIDATES and j < n_slots:
-            if k < ends[j]:
-                ball = grid.balls[k]
-                rb = reach + ball[3]  # the ball test in squares (no root)
-                near = wp.length_sq(s - vec3(ball[0], ball[1], ball[2])) <= rb * rb
+        first = int(0)  # the collected face with the nearest box: projected first
+        first_d2 = real(3.0e38)
+        while n < CANDIDATES and (k < end or cells != 0):
+            if k < end:
+                item = grid.items[k]
+                d2 = box_gap_sq(s, item.lo, item.hi)
+                near = d2 <= reach * reach
                 if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                    near = grid.worlds[k] == world
+                    near = item.world == world
                 if near:
+                    if d2 < first_d2:
+                        first = n
+                        first_d2 = d2
                     found[n] = k
                     n += 1
                 k += 1
-            else:
-                j += 1
-                if j < n_slots:
-                    k = begins[j]
+            else:  # the next marked cell's slot
+                q = lowest_bit(cells)
+                cells = cells & (cells - 1)
+                slot = grid.slots[cell_key(a + wp.vec3i(q % 3, (q // 3) % 3, q // 9), world,
+                                           grid.table)]
+                k = slot.begin
+                end = slot.end
         for t in range(n):
-            kt = found[t]
-            f = grid.sorted_ids[kt]
+            # The nearest box first (swapped with the first collected): its face is mostly the
+            # closest or nearly, and the faces after it are tested again against the reach of
+            # the running minimum, which rejects most of them before their projection.
+            tt = t
+            if t == 0:
+                tt = first
+            elif t == first:
+                tt = 0
+            kt = found[tt]
+            item = grid.items[kt]
+            f = item.id
+            cut = wp.min(reach, wp.max(dmin, limit) + slack)
+            near = box_gap_sq(s, item.lo, item.hi) <= cut * cut
             # The second scan skips ids above the best so far.
-            if limit < real(0.0) or best < 0 or f < best:
+            if near and (limit < real(0.0) or best < 0 or f < best):
                 xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
                 d = wp.length(diff)
                 top = limit
