@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._grid import Grid, box_near, cell_key, cell_of
+from ._grid import Grid, box_near, cell_key, cell_of, item_lo, read_slot
 from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -53,20 +53,19 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
     for q in range(27):
         c = c0 + stencil_offset(q)
         if _cell_near(s, c, grid.cell, reach):
-            slot = grid.slots[cell_key(c, world, grid.table)]
+            slot = read_slot(grid, cell_key(c, world, grid.table))
             wide = reach * real(1.0001)
             if box_near(s, slot, wide):
                 for k in range(slot.begin, slot.end):
-                    item = grid.items[k]
                     # Squares first: most nodes are out of reach, need no root.
-                    d2 = wp.length_sq(item.lo - s)
+                    d2 = wp.length_sq(item_lo(grid, k) - s)
                     near = d2 <= wide * wide
                     if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                        near = item.world == world
+                        near = grid.items[k].world == world
                     if near:
                         d = wp.sqrt(d2)
                         if d <= d_max:
-                            j = item.id
+                            j = grid.sorted_ids[k]
                             if d < dmin:
                                 second = dmin
                                 dmin = d

@@ -221,6 +221,10 @@ class Plan:
     mode: int = 0  # 0 exact, 1 node
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     master_ready: bool = False  # the master stages have run at least once
+    graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
+    graph: object = None  # the captured graph and the inputs it was captured for
+    graph_key: tuple = None
+    last_key: tuple = None  # the previous call's inputs
 
 
 def _worlds(world, n, what):
@@ -236,7 +240,8 @@ def _worlds(world, n, what):
 
 
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
-         device=None, growth=GROWTH, dtype="float32", sort_slaves=True, mode="exact") -> Plan:
+         device=None, growth=GROWTH, dtype="float32", sort_slaves=True, mode="exact",
+         graphs=True) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
     spots, passing-by nodes on an open master's boundary), as arraycontact.detect.
@@ -246,12 +251,15 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     growth: how much larger than now the master's faces may become before `overflow`.
     sort_slaves: each detect first sorts the slaves in Morton order, so that the threads of a
     GPU warp take neighbouring slaves and scan the same cells (faster unless the slaves are
-    already numbered in a spatial order; results are the same either way)."""
+    already numbered in a spatial order; results are the same either way).
+    graphs: on CUDA, a detect called again with the same input buffers (wp.array or NumPy
+    staged into the plan's own) replays the previous call's launches as a CUDA graph, captured
+    then: the same kernels without Python's launch overhead."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(master, slave_points, slave_world=slave_world,
                          master_world=master_world, d_max=d_max, device=device, growth=growth,
-                         dtype=dtype, sort_slaves=sort_slaves, mode=mode)
+                         dtype=dtype, sort_slaves=sort_slaves, mode=mode, graphs=graphs)
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if mode not in MODES:
@@ -333,7 +341,7 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
                 else None, dist=wp.zeros(len(x), dtype=real, device=device),
                 item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
-                passing_by=int(mode == "node" and not master.closed))
+                passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs))
 
 
 def _kind(a):
@@ -364,10 +372,9 @@ def _input(p: Plan, a, staging, what, n):
     return a, vec3(*[float(v) for v in p.origin])
 
 
-def _master_stages(p: Plan, master_points):
+def _master_stages(p: Plan, xm, m_origin):
     c = p.constants
     dev = p.device
-    xm, m_origin = _input(p, master_points, p.master_in, "master_points", len(p.master.points))
     m = p.m
     wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
               device=dev)
@@ -385,28 +392,12 @@ def _master_stages(p: Plan, master_points):
     p.master_ready = True
 
 
-def detect(p: Plan, slave_points, master_points=None):
-    """Launch the detection. Inputs: wp.array of wp.vec3 on the plan's device (used in place:
-    capturable), JAX arrays (DLPack) or NumPy [n, 3]. Returns a dict of output arrays of the
-    slaves' kind (the plan's own buffers for wp.array input, overwritten by the next call):
-    active, face, xi, point, gap, distance, normal, feature, master_node, status, local (the
-    edge or corner of an edge or vertex feature, else -1).
-    master_points=None reuses the master's geometry and grids of the previous call (a master
-    that does not move: only the slave kernel runs)."""
-    if not isinstance(p, Plan):
-        # A plan of the other precision: its own module's detect.
-        if not hasattr(p, "dtype"):
-            raise ValueError(f"p must be a Plan from arraycontact_warp.plan, got {type(p)}")
-        return precision(p.dtype).detect(p, slave_points, master_points)
+def _launch(p: Plan, xs, s_origin, master):
+    """Every launch of one detection (master: its points and origin, or None)."""
     c = p.constants
     dev = p.device
-    xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
-    if master_points is None:
-        # A master that does not move keeps its geometry and grids from the last call.
-        if not p.master_ready:
-            raise ValueError("master_points=None needs a previous detect with the master")
-    else:
-        _master_stages(p, master_points)
+    if master is not None:
+        _master_stages(p, *master)
     if p.order_keys is not None:
         _grid.spatial_order(xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves,
                             dev)
@@ -427,6 +418,48 @@ def detect(p: Plan, slave_points, master_points=None):
                       real(c["d_max"]), real(c["tie"]), c["iterations"], real(c["tol"]), p.mode,
                       p.passing_by, p.dist, p.item],
               outputs=[o[k] for k, _ in OUTPUTS], device=dev)
+
+
+def detect(p: Plan, slave_points, master_points=None):
+    """Launch the detection. Inputs: wp.array of wp.vec3 on the plan's device (used in place:
+    capturable), JAX arrays (DLPack) or NumPy [n, 3]. Returns a dict of output arrays of the
+    slaves' kind (the plan's own buffers for wp.array input, overwritten by the next call):
+    active, face, xi, point, gap, distance, normal, feature, master_node, status, local (the
+    edge or corner of an edge or vertex feature, else -1).
+    master_points=None reuses the master's geometry and grids of the previous call (a master
+    that does not move: only the slave kernel runs)."""
+    if not isinstance(p, Plan):
+        # A plan of the other precision: its own module's detect.
+        if not hasattr(p, "dtype"):
+            raise ValueError(f"p must be a Plan from arraycontact_warp.plan, got {type(p)}")
+        return precision(p.dtype).detect(p, slave_points, master_points)
+    xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
+    master = None
+    if master_points is None:
+        # A master that does not move keeps its geometry and grids from the last call.
+        if not p.master_ready:
+            raise ValueError("master_points=None needs a previous detect with the master")
+    else:
+        master = _input(p, master_points, p.master_in, "master_points", len(p.master.points))
+    dev = p.device
+    if dev.is_cuda and p.graphs and not dev.is_capturing:
+        # Called again on the same buffers: the launches as one CUDA graph, captured on the
+        # second such call and replayed from then on (no Python launch overhead). A caller
+        # capturing detect in a graph of its own gets the launches themselves.
+        key = (xs.ptr, tuple(float(v) for v in s_origin),
+               None if master is None else (master[0].ptr, tuple(float(v) for v in master[1])))
+        if key != p.graph_key and key == p.last_key:
+            with wp.ScopedCapture(device=dev) as cap:
+                _launch(p, xs, s_origin, master)
+            p.graph, p.graph_key = cap.graph, key
+        if key == p.graph_key:
+            wp.capture_launch(p.graph)
+        else:
+            _launch(p, xs, s_origin, master)
+        p.last_key = key
+    else:
+        _launch(p, xs, s_origin, master)
+    o = p.out
     kind = _kind(slave_points)
     if kind == "warp":
         return o

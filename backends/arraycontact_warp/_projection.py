@@ -16,7 +16,8 @@ from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, close
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
 from ._closest_node import _cell_near
-from ._grid import Grid, lowest_bit, box_gap_sq, box_near, cell_key, cell_of
+from ._grid import (Grid, box_gap_sq, box_near, cell_key, cell_of, item_hi, item_lo,
+                    lowest_bit, read_slot)
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -202,7 +203,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
             for cx in range(a[0], b[0] + 1):
                 c = wp.vec3i(cx, cy, cz)
                 if _cell_near(s, c, grid.cell, reach + r_max):
-                    slot = grid.slots[cell_key(c, world, grid.table)]
+                    slot = read_slot(grid, cell_key(c, world, grid.table))
                     if slot.begin < slot.end:
                         if box_near(s, slot, reach):
                             cells = cells | (1 << ((cz - a[2]) * 9 + (cy - a[1]) * 3 + cx - a[0]))
@@ -223,11 +224,10 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
         first_d2 = real(3.0e38)
         while n < CANDIDATES and (k < end or cells != 0):
             if k < end:
-                item = grid.items[k]
-                d2 = box_gap_sq(s, item.lo, item.hi)
+                d2 = box_gap_sq(s, item_lo(grid, k), item_hi(grid, k))
                 near = d2 <= reach * reach
                 if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                    near = item.world == world
+                    near = grid.items[k].world == world
                 if near:
                     if d2 < first_d2:
                         first = n
@@ -238,8 +238,8 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
             else:  # the next marked cell's slot
                 q = lowest_bit(cells)
                 cells = cells & (cells - 1)
-                slot = grid.slots[cell_key(a + wp.vec3i(q % 3, (q // 3) % 3, q // 9), world,
-                                           grid.table)]
+                slot = read_slot(grid, cell_key(a + wp.vec3i(q % 3, (q // 3) % 3, q // 9),
+                                                world, grid.table))
                 k = slot.begin
                 end = slot.end
         for t in range(n):
@@ -252,10 +252,9 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
             elif t == first:
                 tt = 0
             kt = found[tt]
-            item = grid.items[kt]
-            f = item.id
+            f = grid.sorted_ids[kt]
             cut = wp.min(reach, wp.max(dmin, limit) + slack)
-            near = box_gap_sq(s, item.lo, item.hi) <= cut * cut
+            near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
             # The second scan skips ids above the best so far.
             if near and (limit < real(0.0) or best < 0 or f < best):
                 xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
