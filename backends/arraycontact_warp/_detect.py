@@ -45,6 +45,7 @@ from ._select import classify, proximal
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
+NODE_CELL = 1.5 * CELL_MARGIN
 
 
 @wp.kernel
@@ -204,7 +205,6 @@ class Plan:
     node_grid: _grid.Grid
     face_grid: _grid.Grid
     node_ids: wp.array
-    face_ids: wp.array
     slave_world: wp.array
     shared: int
     origin: np.ndarray
@@ -307,10 +307,6 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     m.face_world, m.node_world = arr(fw, int), arr(nw if not shared else 0 * nw, int)
     if shared:
         m.face_world = arr(0 * fw, int)
-    m.centres = wp.zeros(master.n_faces, dtype=vec3, device=device)
-    m.radii = wp.zeros(master.n_faces, dtype=real, device=device)
-    m.box_lo = wp.zeros(master.n_faces, dtype=vec3, device=device)
-    m.box_hi = wp.zeros(master.n_faces, dtype=vec3, device=device)
     offsets, ids = master.node_faces
     m.nf_offsets, m.nf_ids = arr(offsets.astype(np.int32), int), arr(ids.astype(np.int32), int)
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
@@ -324,14 +320,16 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     element = element_data(e.name, device)
     return Plan(device=device, master=master, n_slaves=len(x), element=element,
                 kernel_element=triangle_data(device) if e.name == "tri3" else element,
-                m=m, node_grid=_grid.new_grid(len(master.nodes), CELL_MARGIN * d_max, device),
+                # Node cells of 1.5 d_max: fewer empty cells read around a surface (closest-node
+                # kernel 0.23 -> 0.17 ms at 2^20 on an H100, d_max the longest edge; 2 d_max:
+                # 0.20 ms).
+                m=m, node_grid=_grid.new_grid(len(master.nodes), NODE_CELL * d_max, device),
                 # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
                 # stays under a cell: the cells it visits are at most 3 a side.
                 face_grid=_grid.new_grid(master.n_faces,
                                          CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
                                          corners=e.name == "tri3"),
                 node_ids=arr(master.nodes.astype(np.int32), int),
-                face_ids=arr(np.arange(master.n_faces, dtype=np.int32), int),
                 slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
                 slave_in=wp.zeros(len(x), dtype=vec3, device=device),
                 master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
@@ -379,16 +377,14 @@ def _master_stages(p: Plan, xm, m_origin):
     wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
               device=dev)
     p.overflow.zero_()
-    wp.launch(_prepare.face_bounds, p.master.n_faces,
-              inputs=[m.points, m.faces, c["lebesgue"], c["r_cap"]],
-              outputs=[m.centres, m.radii, m.box_lo, m.box_hi, p.overflow], device=dev)
-    _grid.build(p.node_grid, m.points, m.points, m.points, p.node_ids, m.node_world,
-                len(p.master.nodes), dev)
-    tri3 = p.master.element.name == "tri3"
+    _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
     if p.mode == 0:  # node mode reads no face grid
-        _grid.build(p.face_grid, m.centres, m.box_lo, m.box_hi, p.face_ids, m.face_world,
-                    p.master.n_faces, dev, m.points if tri3 else None,
-                    m.faces if tri3 else None)
+        _grid.build_faces(p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"],
+                          m.face_world, p.overflow, dev, p.master.element.name == "tri3")
+    else:  # the overflow flag all the same
+        wp.launch(_prepare.radius_check, p.master.n_faces,
+                  inputs=[m.points, m.faces, real(c["lebesgue"]), real(c["r_cap"])],
+                  outputs=[p.overflow], device=dev)
     p.master_ready = True
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ._prepare import face_bounds
 from ._real import real, vec3
 
 # Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
@@ -187,26 +188,55 @@ def _clear(grid: Grid):
 
 
 @wp.kernel
-def _gather(lo: wp.array(dtype=vec3), hi: wp.array(dtype=vec3), world: wp.array(dtype=int),
-            n: int, grid: Grid):
-    """Each item's record in key order; the first item of a slot also walks the slot's items
-    (about ten) for its range and box."""
+def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
+               r_cap: real, world: wp.array(dtype=int), grid: Grid,
+               overflow: wp.array(dtype=int)):
+    """The face grid's keys (the cells of the faces' centres); a face whose radius outgrew
+    the one the grid was planned for raises `overflow`."""
+    f = wp.tid()
+    c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
+    grid.keys[f] = cell_key(cell_of(c, grid.cell), world[f], grid.table)
+    grid.sorted_ids[f] = f
+    if r > r_cap:
+        wp.atomic_max(overflow, 0, 1)
+
+
+@wp.kernel
+def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), grid: Grid):
+    """Each node's record in key order (a point: lo = hi)."""
     k = wp.tid()
     i = grid.sorted_ids[k]
-    a = lo[i]
-    b = hi[i]
-    write_item(grid, k, a, i, b, world[i])
+    write_item(grid, k, x[i], i, x[i], world[i])
+
+
+@wp.kernel
+def _face_gather(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
+                 world: wp.array(dtype=int), corners: int, grid: Grid):
+    """Each face's record in key order, and (corners = 1, tri3) its corners."""
+    k = wp.tid()
+    i = grid.sorted_ids[k]
+    c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
+    write_item(grid, k, lo, i, hi, world[i])
+    if corners == 1:
+        for j in range(3):
+            grid.corners[k, j] = points[faces[i, j]]
+
+
+@wp.kernel
+def _fill_slots(n: int, grid: Grid):
+    """The first item of each slot walks the slot's items (about ten, contiguous in key order)
+    for its range and box."""
+    k = wp.tid()
     key = grid.keys[k]
     if k == 0 or grid.keys[k - 1] != key:
         slot = Slot()
-        slot.lo = a
-        slot.hi = b
+        slot.lo = item_lo(grid, k)
+        slot.hi = item_hi(grid, k)
         slot.begin = k
         j = k + 1
         while j < n and grid.keys[j] == key:
-            q = grid.sorted_ids[j]
-            slot.lo = wp.min(slot.lo, lo[q])
-            slot.hi = wp.max(slot.hi, hi[q])
+            slot.lo = wp.min(slot.lo, item_lo(grid, j))
+            slot.hi = wp.max(slot.hi, item_hi(grid, j))
             j += 1
         slot.end = j
         write_slot(grid, key, slot)
@@ -264,24 +294,33 @@ def spatial_order(x, origin, quantum, keys, order, n: int, device):
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=30)
 
 
-@wp.kernel
-def _gather_corners(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), grid: Grid):
-    k, j = wp.tid()
-    grid.corners[k, j] = points[faces[grid.sorted_ids[k], j]]
-
-
-def build(grid: Grid, x, lo, hi, ids, world, n: int, device, points=None, faces=None):
-    """Fill `grid` with items ids[:n] in the cells of x[ids], boxes [lo, hi][ids] (launches
-    only: capturable); with points and faces (tri3), also the corners of the faces in key
-    order."""
-    wp.launch(_clear, n, inputs=[grid], device=device)
-    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+def _sort(grid: Grid, n: int):
     # Only the key bits the table uses (fewer radix passes).
     wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
                               end_bit=(grid.table - 1).bit_length())
-    wp.launch(_gather, n, inputs=[lo, hi, world, n, grid], device=device)
-    if faces is not None:
-        wp.launch(_gather_corners, (n, 3), inputs=[points, faces, grid], device=device)
+
+
+def build(grid: Grid, x, ids, world, n: int, device):
+    """Fill `grid` with the points x[ids[:n]] (launches only: capturable)."""
+    wp.launch(_clear, n, inputs=[grid], device=device)
+    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+    _sort(grid, n)
+    wp.launch(_gather, n, inputs=[x, world, grid], device=device)
+    wp.launch(_fill_slots, n, inputs=[n, grid], device=device)
+
+
+def build_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, overflow,
+                device, corners: bool):
+    """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
+    corners in key order. overflow[0] is raised when a face's radius exceeds r_cap."""
+    n = faces.shape[0]
+    wp.launch(_clear, n, inputs=[grid], device=device)
+    wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), real(r_cap), world, grid,
+                                     overflow], device=device)
+    _sort(grid, n)
+    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners),
+                                       grid], device=device)
+    wp.launch(_fill_slots, n, inputs=[n, grid], device=device)
 
 
 def new_grid(n: int, cell: float, device, corners=False) -> Grid:

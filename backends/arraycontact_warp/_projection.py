@@ -31,10 +31,6 @@ class Master:
     faces: wp.array2d(dtype=int)
     face_world: wp.array(dtype=int)
     node_world: wp.array(dtype=int)
-    centres: wp.array(dtype=vec3)
-    radii: wp.array(dtype=real)
-    box_lo: wp.array(dtype=vec3)  # the box around each face (_prepare.face_bounds)
-    box_hi: wp.array(dtype=vec3)
     nf_offsets: wp.array(dtype=int)  # node -> faces (CSR): the vertex pseudo-normals
     nf_ids: wp.array(dtype=int)
     face_edges: wp.array2d(dtype=int)
