@@ -135,7 +135,7 @@ def warp_plan(scene, device="cuda", **plan_options):
     return p, xs, xm
 
 
-def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
+def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False):
     """quick: the steady-state time only (variants beside the main record)."""
     import warp as wp
 
@@ -150,16 +150,22 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
 
     from peers_warp import timed
 
+    # Steady state: from the second call on the same buffers, detect replays its launches as
+    # a CUDA graph (the plan's `graphs`).
     first, steady = timed(run, repeats, device)
     if quick:
         return steady
     graph_s = None
     kernels = None
+    launches_s = None
     if wp.get_device(device).is_cuda:
+        p.graphs = False  # the launches one by one from Python
+        launches_s = timed(run, repeats, device)[1]
         # Time per kernel / copy / memset of one detection (CUDA activity timing).
         with wp.ScopedTimer("detect", cuda_filter=wp.TIMING_ALL, synchronize=True,
                             print=False) as timer:
             run()
+        p.graphs = True
         kernels = {}
         for r in timer.timing_results:
             kernels[r.name] = kernels.get(r.name, 0.0) + r.elapsed / 1e3
@@ -172,6 +178,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
             repeats, device)[1]
         kernels["closest_node_stage_alone"] = rec_node
 
+        # The caller's own capture of detect (as a simulator's step graph).
         with wp.ScopedCapture(device=device) as cap:
             run()
         gt = []
@@ -189,7 +196,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves=True, quick=False):
                     feature=o["feature"], master_node=o["master_node"], status=o["status"],
                     slave_ids=np.arange(n), d_max=p.constants["d_max"])
     return c, dict(plan_s=plan_s, first_call_s=first, steady_s=steady,
-                   graph_replay_s=graph_s, kernels_s=kernels,
+                   launches_s=launches_s, graph_replay_s=graph_s, kernels_s=kernels,
                    device=wp.get_device(device).name,
                    overflow=bool(p.overflow.numpy()[0]))
 
@@ -223,6 +230,8 @@ def main():
         peers = dict(
             warp_mesh_build_query=dict(zip(("first_s", "steady_s"), mesh["build_query"])),
             warp_mesh_refit_query=dict(zip(("first_s", "steady_s"), mesh["refit_query"])),
+            warp_mesh_refit_query_graph=dict(zip(("first_s", "steady_s"),
+                                                 mesh.get("refit_query_graph", (None, None)))),
             warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"), grid["build_query"])))
         for backend in backends:
             if backend.startswith("jax"):
@@ -230,14 +239,16 @@ def main():
                                    search="warp" if backend == "jax-warp" else "jax")
             else:
                 c, rec = bench_warp(scene, a.repeats, a.device)
-                # The same detection without the Morton sort of the slaves, and both on the
-                # slaves in a random order (a mesh numbered without spatial order).
+                # The same detection with the slaves sorted again in every call, and in the
+                # order they come; then on the slaves in a random order (a mesh numbered
+                # without spatial order), sorted at plan time or not.
                 perm = np.random.default_rng(0).permutation(len(scene.slave))
                 shuffled = type(scene)(scene.name, scene.master, scene.slave[perm],
                                        scene.slave_surface, scene.params)
                 rec["variants_steady_s"] = {
+                    "sorted_per_call": bench_warp(scene, a.repeats, a.device, "detect", True),
                     "unsorted": bench_warp(scene, a.repeats, a.device, False, True),
-                    "shuffled_sorted": bench_warp(shuffled, a.repeats, a.device, True, True),
+                    "shuffled_sorted": bench_warp(shuffled, a.repeats, a.device, "plan", True),
                     "shuffled_unsorted": bench_warp(shuffled, a.repeats, a.device, False, True)}
             ok = c.active & (mesh["face"] >= 0)
             rec.update(
@@ -253,6 +264,8 @@ def main():
                                                 / peers["warp_mesh_build_query"]["steady_s"])
             rec["ratio_to_mesh_refit_query"] = (rec["steady_s"]
                                                 / peers["warp_mesh_refit_query"]["steady_s"])
+            rg = peers["warp_mesh_refit_query_graph"]["steady_s"]
+            rec["ratio_to_mesh_refit_query_graph"] = rec["steady_s"] / rg if rg else None
             with open(out / "gpu.jsonl", "a") as f:
                 f.write(json.dumps(rec) + "\n")
             if rec.get("search_only_s"):
@@ -260,11 +273,15 @@ def main():
                       + ", ".join(f"{k} {v * 1e3:.3f} ms"
                                   for k, v in rec["jax_parts_s"].items()))
             g = rec.get("graph_replay_s")
+            la = rec.get("launches_s")
             print(f"2^{k} {backend} {rec['device']}: plan {rec['plan_s']:.2f} s, first "
                   f"{rec['first_call_s']:.2f} s, steady {rec['steady_s'] * 1e3:.3f} ms"
-                  + (f", graph replay {g * 1e3:.3f} ms" if g else "") + " | wp.Mesh build+query "
+                  + (f", launches one by one {la * 1e3:.3f} ms" if la else "")
+                  + (f", in the caller's graph {g * 1e3:.3f} ms" if g else "")
+                  + " | wp.Mesh build+query "
                   f"{peers['warp_mesh_build_query']['steady_s'] * 1e3:.3f} ms, refit+query "
-                  f"{peers['warp_mesh_refit_query']['steady_s'] * 1e3:.3f} ms, HashGrid node "
+                  f"{peers['warp_mesh_refit_query']['steady_s'] * 1e3:.3f} ms"
+                  + (f" (as a graph {rg * 1e3:.3f} ms)" if rg else "") + ", HashGrid node "
                   f"{peers['warp_hashgrid_closest_node']['steady_s'] * 1e3:.3f} ms | ratio to "
                   f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
                   f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "

@@ -79,14 +79,20 @@ def test_warp_float64_equals_numpy_float64_and_the_reference(name):
 
 
 def test_slave_order_does_not_change_the_result():
-    """The Morton sort of the slaves (default) only reorders the work: every output equals the
-    unsorted run's, on slaves given in a random order."""
+    """The Morton order of the slaves (at plan time by default, or each detect) only reorders
+    the work: every output equals the unsorted run's, on slaves given in a random order, also
+    once they moved away from the points the plan ordered."""
     s = scenes.rough_surfaces(2**10, seed=9)
     x = s.slave[np.random.default_rng(1).permutation(len(s.slave))]
-    outs = [acw.detect(acw.plan(s.master, x, device=DEVICE, sort_slaves=v), x, s.master.points)
-            for v in (True, False)]
-    for k in outs[0]:
-        assert np.array_equal(outs[0][k], outs[1][k], equal_nan=True), k
+    moved = x + np.random.default_rng(2).normal(scale=0.3, size=x.shape)
+    for y in (x, moved):
+        outs = [acw.detect(acw.plan(s.master, x, device=DEVICE, sort_slaves=v), y,
+                           s.master.points) for v in ("plan", "detect", False)]
+        for o in outs[1:]:
+            for k in outs[0]:
+                assert np.array_equal(outs[0][k], o[k], equal_nan=True), k
+    with pytest.raises(ValueError, match="sort_slaves"):
+        acw.plan(s.master, x, sort_slaves="never")
 
 
 @pytest.mark.parametrize("n_fan", [5, 12])

@@ -239,8 +239,18 @@ def _worlds(world, n, what):
     return w.astype(np.int32)
 
 
+def _morton_order(x, origin, quantum):
+    """The rows of x in Morton order of cells of size `quantum` (as _grid.spatial_order)."""
+    c = np.clip(np.floor((x - origin) / quantum), 0, 1023).astype(np.uint64)
+    key = np.zeros(len(x), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            key |= ((c[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(key, kind="stable")
+
+
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
-         device=None, growth=GROWTH, dtype="float32", sort_slaves=True, mode="exact",
+         device=None, growth=GROWTH, dtype="float32", sort_slaves="plan", mode="exact",
          graphs=True) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
@@ -249,9 +259,12 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     slave_world [n] and master_world [n_points]: world ids (non-negative ints). Without
     master_world the master is shared by all worlds. d_max: default the longest master edge.
     growth: how much larger than now the master's faces may become before `overflow`.
-    sort_slaves: each detect first sorts the slaves in Morton order, so that the threads of a
-    GPU warp take neighbouring slaves and scan the same cells (faster unless the slaves are
-    already numbered in a spatial order; results are the same either way).
+    sort_slaves: the order the threads take the slaves in, so that the threads of a GPU warp
+    take neighbouring slaves and scan the same cells (results are the same in any order):
+    "plan" (default), the Morton order of slave_points, once (the slaves of a body keep their
+    neighbours as it moves and deforms); "detect" (or True), each detect sorts them again
+    first (slaves that mix, like particles: about 0.08 ms at 2^20 on an H100); False, the
+    order they are numbered in.
     graphs: on CUDA, a detect called again with the same input buffers (wp.array or NumPy
     staged into the plan's own) replays the previous call's launches as a CUDA graph, captured
     then: the same kernels without Python's launch overhead."""
@@ -275,6 +288,9 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
         raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
+    sort_slaves = {True: "detect", None: False}.get(sort_slaves, sort_slaves)
+    if sort_slaves not in ("plan", "detect", False):
+        raise ValueError(f"sort_slaves must be 'plan', 'detect' or False, got {sort_slaves!r}")
     device = wp.get_device(device)
     sw = _worlds(slave_world, len(x), "slave_world")
     shared = master_world is None
@@ -334,10 +350,12 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
                 slave_in=wp.zeros(len(x), dtype=vec3, device=device),
                 master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
                 overflow=wp.zeros(1, dtype=int, device=device), out=out,
-                dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
-                    np.int32), int),
-                order_keys=wp.zeros(2 * len(x), dtype=int, device=device) if sort_slaves
-                else None, dist=wp.zeros(len(x), dtype=real, device=device),
+                dtype=NP_REAL, order=arr(np.r_[_morton_order(x, lo, consts["quantum"])
+                                               if sort_slaves == "plan" else np.arange(len(x)),
+                                               np.zeros(len(x))].astype(np.int32), int),
+                order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
+                if sort_slaves == "detect" else None,
+                dist=wp.zeros(len(x), dtype=real, device=device),
                 item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
                 passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs))
 
