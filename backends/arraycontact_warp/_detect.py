@@ -239,16 +239,6 @@ def _worlds(world, n, what):
     return w.astype(np.int32)
 
 
-def _morton_order(x, origin, quantum):
-    """The rows of x in Morton order of cells of size `quantum` (as _grid.spatial_order)."""
-    c = np.clip(np.floor((x - origin) / quantum), 0, 1023).astype(np.uint64)
-    key = np.zeros(len(x), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            key |= ((c[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(key, kind="stable")
-
-
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
          device=None, growth=GROWTH, dtype="float32", sort_slaves="plan", mode="exact",
          graphs=True) -> Plan:
@@ -334,30 +324,35 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
     element = element_data(e.name, device)
-    return Plan(device=device, master=master, n_slaves=len(x), element=element,
-                kernel_element=triangle_data(device) if e.name == "tri3" else element,
-                # Node cells of 1.5 d_max: fewer empty cells read around a surface (closest-node
-                # kernel 0.23 -> 0.17 ms at 2^20 on an H100, d_max the longest edge; 2 d_max:
-                # 0.20 ms).
-                m=m, node_grid=_grid.new_grid(len(master.nodes), NODE_CELL * d_max, device),
-                # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
-                # stays under a cell: the cells it visits are at most 3 a side.
-                face_grid=_grid.new_grid(master.n_faces,
-                                         CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
-                                         corners=e.name == "tri3"),
-                node_ids=arr(master.nodes.astype(np.int32), int),
-                slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
-                slave_in=wp.zeros(len(x), dtype=vec3, device=device),
-                master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
-                overflow=wp.zeros(1, dtype=int, device=device), out=out,
-                dtype=NP_REAL, order=arr(np.r_[_morton_order(x, lo, consts["quantum"])
-                                               if sort_slaves == "plan" else np.arange(len(x)),
-                                               np.zeros(len(x))].astype(np.int32), int),
-                order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
-                if sort_slaves == "detect" else None,
-                dist=wp.zeros(len(x), dtype=real, device=device),
-                item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
-                passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs))
+    p = Plan(device=device, master=master, n_slaves=len(x), element=element,
+             kernel_element=triangle_data(device) if e.name == "tri3" else element,
+             # Node cells of 1.5 d_max: fewer empty cells read around a surface (closest-node
+             # kernel 0.23 -> 0.17 ms at 2^20 on an H100, d_max the longest edge; 2 d_max:
+             # 0.20 ms).
+             m=m, node_grid=_grid.new_grid(len(master.nodes), NODE_CELL * d_max, device),
+             # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
+             # stays under a cell: the cells it visits are at most 3 a side.
+             face_grid=_grid.new_grid(master.n_faces,
+                                      CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
+                                      corners=e.name == "tri3"),
+             node_ids=arr(master.nodes.astype(np.int32), int),
+             slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
+             slave_in=wp.zeros(len(x), dtype=vec3, device=device),
+             master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
+             overflow=wp.zeros(1, dtype=int, device=device), out=out,
+             dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
+                 np.int32), int),
+             order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
+             if sort_slaves == "detect" else None,
+             dist=wp.zeros(len(x), dtype=real, device=device),
+             item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
+             passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs))
+    if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
+        p.slave_in.assign((x - lo).astype(NP_REAL))
+        _grid.spatial_order(p.slave_in, vec3(0.0, 0.0, 0.0), real(consts["quantum"]),
+                            wp.zeros(2 * len(x), dtype=int, device=device), p.order, len(x),
+                            device)
+    return p
 
 
 def _kind(a):

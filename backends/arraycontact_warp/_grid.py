@@ -31,7 +31,9 @@ class Slot:
 class Item:
     """One item in key order: the box around it (lo = hi for a node), its id and world. One
     32-byte record in float32: a scan's one read per item. A face's box rejects far more
-    faces of a surface than its ball (which bounds the face's extent in every direction)."""
+    faces of a surface than its ball (which bounds the face's extent in every direction).
+    `id` repeats sorted_ids[k] to fill the first half; the scans read sorted_ids, only for
+    the items they keep."""
 
     lo: vec3
     id: int
