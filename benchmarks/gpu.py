@@ -135,14 +135,53 @@ def warp_plan(scene, device="cuda", **plan_options):
     return p, xs, xm
 
 
-def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False):
+def bench_warp_moving(scene, steps, step, device="cuda"):
+    """A moving master: before each detect, master and slaves move `step` (a vector) in place,
+    as a simulator's step writes them. The mean time of the steps (detect's graph: a refit
+    while every face stays within the plan's margin of where it was keyed, else a build) and
+    how many steps built the face grid again."""
+    import warp as wp
+
+    import arraycontact_warp as acw
+
+    p, xs, xm = warp_plan(scene, device)
+
+    @wp.kernel(module="unique")
+    def move(x: wp.array(dtype=wp.vec3), d: wp.vec3):
+        x[wp.tid()] = x[wp.tid()] + d
+
+    d = wp.vec3(*[float(v) for v in step])
+    for _ in range(3):  # the build, the capture, a replay
+        wp.launch(move, xs.shape[0], inputs=[xs, wp.vec3(0.0)], device=device)  # (compiled)
+        acw.detect(p, xs, xm)
+    wp.synchronize_device(device)
+    times, rebuilds = [], 0
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        wp.launch(move, xs.shape[0], inputs=[xs, d], device=device)
+        wp.launch(move, xm.shape[0], inputs=[xm, d], device=device)
+        acw.detect(p, xs, xm)
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+        rebuilds += int(p.rebuild.numpy()[0])
+    # The last step's contacts against a plan that builds its grids in every call.
+    q = warp_plan(scene, device, refit=False)[0]
+    ref = acw.detect(q, xs, xm)
+    same = all(np.array_equal(v.numpy(), ref[k].numpy(), equal_nan=v.dtype != wp.int32
+                              and v.dtype != int) for k, v in p.out.items())
+    return dict(mean_s=statistics.fmean(times), median_s=statistics.median(times),
+                steps=steps, rebuilds=rebuilds, step=[float(v) for v in step],
+                same_as_building=same)
+
+
+def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, **plan_options):
     """quick: the steady-state time only (variants beside the main record)."""
     import warp as wp
 
     import arraycontact_warp as acw
 
     t0 = time.perf_counter()
-    p, xs, xm = warp_plan(scene, device, sort_slaves=sort_slaves)
+    p, xs, xm = warp_plan(scene, device, sort_slaves=sort_slaves, **plan_options)
     plan_s = time.perf_counter() - t0
 
     def run():
@@ -151,7 +190,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False):
     from peers_warp import timed
 
     # Steady state: from the second call on the same buffers, detect replays its launches as
-    # a CUDA graph (the plan's `graphs`).
+    # a CUDA graph (the plan's `graphs`), which refits the face grid (the plan's `refit`).
     first, steady = timed(run, repeats, device)
     if quick:
         return steady
@@ -250,7 +289,14 @@ def main():
                     "sorted_per_call": bench_warp(scene, a.repeats, a.device, "detect", True),
                     "unsorted": bench_warp(scene, a.repeats, a.device, False, True),
                     "shuffled_sorted": bench_warp(shuffled, a.repeats, a.device, "plan", True),
-                    "shuffled_unsorted": bench_warp(shuffled, a.repeats, a.device, False, True)}
+                    "shuffled_unsorted": bench_warp(shuffled, a.repeats, a.device, False, True),
+                    # a build of the face grid in every call, no refit
+                    "no_refit": bench_warp(scene, a.repeats, a.device, "plan", True,
+                                           refit=False)}
+                # Master and slaves moving a thousandth of the longest edge a step.
+                rec["moving_master"] = bench_warp_moving(
+                    scene, 200, np.array([1e-3, 0.0, 0.0]) * scene.master.longest_edge,
+                    a.device)
             ok = c.active & (mesh["face"] >= 0)
             rec.update(
                 suite="gpu", scene="rough_close", log2_nodes=k, n_slaves=len(scene.slave),
@@ -287,6 +333,10 @@ def main():
                   f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
                   f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
                   f"{rec['overflow']}", flush=True)
+            if rec.get("moving_master"):
+                mm = rec["moving_master"]
+                print(f"   moving master: mean {mm['mean_s'] * 1e3:.3f} ms a step "
+                      f"(incl. moving both), {mm['rebuilds']} builds in {mm['steps']} steps")
             if rec.get("variants_steady_s"):
                 print("   variants ms: " + ", ".join(
                     f"{n} {t * 1e3:.3f}" for n, t in rec["variants_steady_s"].items()))

@@ -290,6 +290,52 @@ def test_a_master_that_does_not_move_keeps_its_grid():
                                                                         first["face"])
 
 
+def test_face_grid_refit_and_rebuild():
+    """Where the device chooses (a CUDA graph with conditional nodes; the CPU), the face grid
+    keeps its keys while every face stays within r_cap of the centre it was keyed by, and is
+    built again otherwise: contacts equal NumPy's on either path, and the path taken is the one
+    the faces' balls (NumPy's face_bounds) call for."""
+    s = scenes.rough_surfaces(2**9, seed=9)
+    L = s.master.longest_edge
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    q = acw.plan(s.master, s.slave, device=DEVICE, refit=False)
+    xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    acw.detect(p, xs, xm)  # a build (on CUDA outside a capture, always)
+    run = lambda: acw.detect(p, xs, xm)  # noqa: E731
+    if DEVICE == "cuda":
+        if not wp.is_conditional_graph_supported():
+            pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+        with wp.ScopedCapture(device=DEVICE) as cap:
+            acw.detect(p, xs, xm)
+        run = lambda: wp.capture_launch(cap.graph)  # noqa: E731
+    c0, _ = s.master.face_bounds
+    r_cap = p.constants["r_cap"]
+    rng = np.random.default_rng(3)
+    shift = np.array([0.013, -0.007, 0.02]) * L
+    for step, moved in enumerate([
+            s.master.points + shift + rng.normal(0, 0.002 * L, s.master.points.shape),
+            s.master.points + [1.7 * L, 0.4 * L, -0.05 * L]]):
+        master = ac.Surface(moved, s.master.faces, element=s.master.element.name)
+        slave = s.slave + (moved - s.master.points).mean(0)
+        c, r = master.face_bounds
+        stale = bool((r + np.linalg.norm(c - c0, axis=1) > r_cap).any())
+        assert stale == (step == 1)  # the first motion stays within the margin, the second not
+        xs.assign(slave.astype(np.float32))
+        xm.assign(moved.astype(np.float32))
+        run()
+        assert int(p.rebuild.numpy()[0]) == int(stale)
+        got = {k: v.numpy() for k, v in p.out.items()}
+        r = ac.detect(slave, master, d_max=p.constants["d_max"], dtype=np.float32)
+        _same_as_numpy(got, r, L)
+        built = {k: v.numpy() for k, v in acw.detect(q, xs, xm).items()}
+        for k in got:  # a grid built in every call: the same bits
+            assert np.array_equal(got[k], built[k], equal_nan=got[k].dtype.kind == "f"), k
+        assert int(q.rebuild.numpy()[0]) == 0
+        if stale:
+            c0 = c
+
+
 def test_exported_geometry_in_a_user_kernel():
     """The README's example: a simulator's own kernel calls the exported @wp.func."""
 

@@ -212,6 +212,7 @@ class Plan:
     slave_in: wp.array
     master_in: wp.array
     overflow: wp.array
+    rebuild: wp.array  # int32 [1]: the last refit found the face grid's keys stale and rebuilt
     out: dict
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
@@ -222,6 +223,7 @@ class Plan:
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     master_ready: bool = False  # the master stages have run at least once
     graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
+    refit: bool = True  # refit the face grid where the device can choose (see `plan`)
     graph: object = None  # the captured graph and the inputs it was captured for
     graph_key: tuple = None
     last_key: tuple = None  # the previous call's inputs
@@ -241,7 +243,7 @@ def _worlds(world, n, what):
 
 def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
          device=None, growth=GROWTH, dtype="float32", sort_slaves="plan", mode="exact",
-         graphs=True) -> Plan:
+         graphs=True, refit=True) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
     spots, passing-by nodes on an open master's boundary), as arraycontact.detect.
@@ -257,12 +259,19 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     order they are numbered in.
     graphs: on CUDA, a detect called again with the same input buffers (wp.array or NumPy
     staged into the plan's own) replays the previous call's launches as a CUDA graph, captured
-    then: the same kernels without Python's launch overhead."""
+    then: the same kernels without Python's launch overhead.
+    refit: where the device can choose without the host (in a CUDA graph, detect's own or the
+    caller's, with conditional nodes: CUDA 12.4+; on the CPU), the face grid keeps its keys and
+    order while every face stays within r_cap (growth times the plan's largest face radius) of
+    the centre it was keyed by, and is built again when one does not; `rebuild[0]` says which
+    the last call did. The results are the same; a refit skips the keys and the sort of the
+    faces (about 0.15 ms at 2^20 on an H100). False: a build in every call."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(master, slave_points, slave_world=slave_world,
                          master_world=master_world, d_max=d_max, device=device, growth=growth,
-                         dtype=dtype, sort_slaves=sort_slaves, mode=mode, graphs=graphs)
+                         dtype=dtype, sort_slaves=sort_slaves, mode=mode, graphs=graphs,
+                         refit=refit)
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if mode not in MODES:
@@ -334,19 +343,21 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
              # stays under a cell: the cells it visits are at most 3 a side.
              face_grid=_grid.new_grid(master.n_faces,
                                       CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
-                                      corners=e.name == "tri3"),
+                                      faces=True, corners=e.name == "tri3"),
              node_ids=arr(master.nodes.astype(np.int32), int),
              slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
              slave_in=wp.zeros(len(x), dtype=vec3, device=device),
              master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
-             overflow=wp.zeros(1, dtype=int, device=device), out=out,
+             overflow=wp.zeros(1, dtype=int, device=device),
+             rebuild=wp.zeros(1, dtype=wp.int32, device=device), out=out,
              dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
                  np.int32), int),
              order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
              if sort_slaves == "detect" else None,
              dist=wp.zeros(len(x), dtype=real, device=device),
              item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
-             passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs))
+             passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs),
+             refit=bool(refit))
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
         p.slave_in.assign((x - lo).astype(NP_REAL))
         _grid.spatial_order(p.slave_in, vec3(0.0, 0.0, 0.0), real(consts["quantum"]),
@@ -392,8 +403,13 @@ def _master_stages(p: Plan, xm, m_origin):
     p.overflow.zero_()
     _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
     if p.mode == 0:  # node mode reads no face grid
-        _grid.build_faces(p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"],
-                          m.face_world, p.overflow, dev, p.master.element.name == "tri3")
+        # A refit where the device decides without the host: in a CUDA graph (detect's own or
+        # the caller's) with conditional nodes, and on the CPU.
+        refit = p.refit and (dev.is_cpu or (dev.is_capturing
+                                            and wp.is_conditional_graph_supported()))
+        (_grid.refit_faces if refit else _grid.build_faces)(
+            p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"], m.face_world, p.overflow,
+            dev, p.master.element.name == "tri3", p.rebuild)
     else:  # the overflow flag all the same
         wp.launch(_prepare.radius_check, p.master.n_faces,
                   inputs=[m.points, m.faces, real(c["lebesgue"]), real(c["r_cap"])],

@@ -55,6 +55,9 @@ class Grid:
     # tri3 face grids: the three corners of each face in key order (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
+    # Face grids: each face's centre when its key was computed, in key order (a refit keeps the
+    # keys while the faces stay near them); 1e30 before the first build.
+    centres: wp.array(dtype=vec3)
 
 
 # Item and Slot are records of two 16-byte halves (a vec3 and an int each). Warp moves a struct
@@ -213,11 +216,20 @@ def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), grid: Grid):
 
 @wp.kernel
 def _face_gather(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
-                 world: wp.array(dtype=int), corners: int, grid: Grid):
-    """Each face's record in key order, and (corners = 1, tri3) its corners."""
+                 world: wp.array(dtype=int), corners: int, refit: int, r_cap: real, grid: Grid,
+                 rebuild: wp.array(dtype=wp.int32)):
+    """Each face's record in key order, and (corners = 1, tri3) its corners. refit = 1: the
+    keys are the previous build's; rebuild[0] is raised unless every face still lies within
+    r_cap of the centre it was keyed by (the scans' assumption, which a build checks as
+    radius <= r_cap)."""
     k = wp.tid()
     i = grid.sorted_ids[k]
     c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
+    if refit == 1:
+        if r + wp.length(c - grid.centres[k]) > r_cap:
+            rebuild[0] = 1
+    else:
+        grid.centres[k] = c
     write_item(grid, k, lo, i, hi, world[i])
     if corners == 1:
         for j in range(3):
@@ -312,7 +324,7 @@ def build(grid: Grid, x, ids, world, n: int, device):
 
 
 def build_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, overflow,
-                device, corners: bool):
+                device, corners: bool, rebuild):
     """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
     corners in key order. overflow[0] is raised when a face's radius exceeds r_cap."""
     n = faces.shape[0]
@@ -320,12 +332,29 @@ def build_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world,
     wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), real(r_cap), world, grid,
                                      overflow], device=device)
     _sort(grid, n)
-    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners),
-                                       grid], device=device)
+    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 0,
+                                       real(r_cap), grid, rebuild], device=device)
     wp.launch(_fill_slots, n, inputs=[n, grid], device=device)
 
 
-def new_grid(n: int, cell: float, device, corners=False) -> Grid:
+def refit_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, overflow,
+                device, corners: bool, rebuild):
+    """`build_faces` keeping the previous build's keys and order while every face stays within
+    r_cap of the centre it was keyed by (a master that moves and deforms little): only the
+    records and the slot boxes are computed again. Otherwise (rebuild[0] = 1 after the call)
+    a build. The choice is made on the device, in a conditional node of a CUDA graph (outside
+    a capture, the CUDA device would wait for it: use `build_faces` there)."""
+    n = faces.shape[0]
+    rebuild.zero_()
+    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 1,
+                                       real(r_cap), grid, rebuild], device=device)
+    wp.capture_if(rebuild,
+                  on_true=lambda: build_faces(grid, points, faces, lebesgue, r_cap, world,
+                                              overflow, device, corners, rebuild),
+                  on_false=lambda: wp.launch(_fill_slots, n, inputs=[n, grid], device=device))
+
+
+def new_grid(n: int, cell: float, device, faces=False, corners=False) -> Grid:
     table = max(64, 1 << int(max(2 * n, 1) - 1).bit_length())
     g = Grid()
     g.cell, g.table = real(cell), table
@@ -334,4 +363,5 @@ def new_grid(n: int, cell: float, device, corners=False) -> Grid:
     g.slots = wp.zeros(table, dtype=Slot, device=device)
     g.items = wp.zeros(max(n, 1), dtype=Item, device=device)
     g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
+    g.centres = wp.full(max(n, 1) if faces else 1, vec3(1.0e30), dtype=vec3, device=device)
     return g
