@@ -290,11 +290,12 @@ def test_a_master_that_does_not_move_keeps_its_grid():
                                                                         first["face"])
 
 
-def test_face_grid_refit_and_rebuild():
-    """Where the device chooses (a CUDA graph with conditional nodes; the CPU), the face grid
-    keeps its keys while every face stays within r_cap of the centre it was keyed by, and is
-    built again otherwise: contacts equal NumPy's on either path, and the path taken is the one
-    the faces' balls (NumPy's face_bounds) call for."""
+def test_grid_refit_and_rebuild():
+    """Where the device chooses (a CUDA graph with conditional nodes; the CPU), the master's
+    grids keep their keys while every face stays within r_cap of the centre it was keyed by
+    and every node within the node grid's margin of where it was, and are built again
+    otherwise: contacts equal NumPy's on either path, and the path taken is the one the
+    nodes and the faces' balls (NumPy's face_bounds) call for."""
     s = scenes.rough_surfaces(2**9, seed=9)
     L = s.master.longest_edge
     p = acw.plan(s.master, s.slave, device=DEVICE)
@@ -310,7 +311,9 @@ def test_face_grid_refit_and_rebuild():
             acw.detect(p, xs, xm)
         run = lambda: wp.capture_launch(cap.graph)  # noqa: E731
     c0, _ = s.master.face_bounds
-    r_cap = p.constants["r_cap"]
+    x0 = s.master.points[s.master.nodes]
+    r_cap, margin = p.constants["r_cap"], float(p.node_grid.margin)
+    assert margin > 0
     rng = np.random.default_rng(3)
     shift = np.array([0.013, -0.007, 0.02]) * L
     for step, moved in enumerate([
@@ -319,7 +322,9 @@ def test_face_grid_refit_and_rebuild():
         master = ac.Surface(moved, s.master.faces, element=s.master.element.name)
         slave = s.slave + (moved - s.master.points).mean(0)
         c, r = master.face_bounds
-        stale = bool((r + np.linalg.norm(c - c0, axis=1) > r_cap).any())
+        x = moved[s.master.nodes]
+        stale = bool((r + np.linalg.norm(c - c0, axis=1) > r_cap).any()
+                     or (np.linalg.norm(x - x0, axis=1) > margin).any())
         assert stale == (step == 1)  # the first motion stays within the margin, the second not
         xs.assign(slave.astype(np.float32))
         xm.assign(moved.astype(np.float32))
@@ -333,7 +338,7 @@ def test_face_grid_refit_and_rebuild():
             assert np.array_equal(got[k], built[k], equal_nan=got[k].dtype.kind == "f"), k
         assert int(q.rebuild.numpy()[0]) == 0
         if stale:
-            c0 = c
+            c0, x0 = c, x
 
 
 def test_exported_geometry_in_a_user_kernel():

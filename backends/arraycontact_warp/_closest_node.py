@@ -52,7 +52,8 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
     reach = wp.min(d_max, wp.max(dmin + tie, limit))
     for q in range(27):
         c = c0 + stencil_offset(q)
-        if _cell_near(s, c, grid.cell, reach):
+        # A node may have moved grid.margin from the cell it was keyed in (a refit).
+        if _cell_near(s, c, grid.cell, reach + grid.margin):
             slot = read_slot(grid, cell_key(c, world, grid.table))
             wide = reach * real(1.0001)
             if box_near(s, slot, wide):

@@ -11,7 +11,9 @@ unsure); then the chosen face's projection, or in node mode the projections on t
 attached to the closest node, and every output. The two scans take the slaves in Morton order,
 so that the threads of a GPU warp read the same cells. There is no pair buffer to overflow;
 the one planned quantity that motion can outgrow is the largest face radius the face grid's
-cells were sized for, reported in the device flag `plan.overflow`.
+cells were sized for, reported in the device flag `plan.overflow`. Inside a CUDA graph the
+master's grids are refitted (the previous keys and order kept) while the master stays within
+that margin, and built again when it does not: a conditional node decides on the device.
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;
 results per world equal running each world alone. A master without world ids is shared by all
@@ -212,7 +214,7 @@ class Plan:
     slave_in: wp.array
     master_in: wp.array
     overflow: wp.array
-    rebuild: wp.array  # int32 [1]: the last refit found the face grid's keys stale and rebuilt
+    rebuild: wp.array  # int32 [1]: the last refit found the grids' keys stale and rebuilt
     out: dict
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
@@ -223,7 +225,7 @@ class Plan:
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     master_ready: bool = False  # the master stages have run at least once
     graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
-    refit: bool = True  # refit the face grid where the device can choose (see `plan`)
+    refit: bool = True  # refit the master's grids where the device can choose (see `plan`)
     graph: object = None  # the captured graph and the inputs it was captured for
     graph_key: tuple = None
     last_key: tuple = None  # the previous call's inputs
@@ -261,11 +263,12 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     staged into the plan's own) replays the previous call's launches as a CUDA graph, captured
     then: the same kernels without Python's launch overhead.
     refit: where the device can choose without the host (in a CUDA graph, detect's own or the
-    caller's, with conditional nodes: CUDA 12.4+; on the CPU), the face grid keeps its keys and
-    order while every face stays within r_cap (growth times the plan's largest face radius) of
-    the centre it was keyed by, and is built again when one does not; `rebuild[0]` says which
-    the last call did. The results are the same; a refit skips the keys and the sort of the
-    faces (about 0.15 ms at 2^20 on an H100). False: a build in every call."""
+    caller's, with conditional nodes: CUDA 12.4+; on the CPU), the master's grids keep their
+    keys and order while every face stays within r_cap (growth times the plan's largest face
+    radius) of the centre it was keyed by and every node within r_cap less that radius of
+    where it was, and are built again when one does not; `rebuild[0]` says which the last call
+    did. The results are the same; a refit skips the keys and the sorts (at 2^20 on an H100,
+    1.61 -> 1.37 ms). False: builds in every call."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(master, slave_points, slave_world=slave_world,
@@ -338,12 +341,16 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
              # Node cells of 1.5 d_max: fewer empty cells read around a surface (closest-node
              # kernel 0.23 -> 0.17 ms at 2^20 on an H100, d_max the longest edge; 2 d_max:
              # 0.20 ms).
-             m=m, node_grid=_grid.new_grid(len(master.nodes), NODE_CELL * d_max, device),
+             # A refit lets the nodes move as far as the largest face may grow (r_cap less its
+             # radius), within the stencil's reach: (NODE_CELL - 1) d_max past d_max.
+             m=m, node_grid=_grid.new_grid(
+                 len(master.nodes), NODE_CELL * d_max, device,
+                 margin=min(r_cap * (1 - 1 / growth), (NODE_CELL - 1) * d_max) if refit else 0),
              # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
              # stays under a cell: the cells it visits are at most 3 a side.
              face_grid=_grid.new_grid(master.n_faces,
                                       CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
-                                      faces=True, corners=e.name == "tri3"),
+                                      corners=e.name == "tri3"),
              node_ids=arr(master.nodes.astype(np.int32), int),
              slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
              slave_in=wp.zeros(len(x), dtype=vec3, device=device),
@@ -394,6 +401,19 @@ def _input(p: Plan, a, staging, what, n):
     return a, vec3(*[float(v) for v in p.origin])
 
 
+def _build(p: Plan):
+    """The master's grids from its localised points."""
+    c = p.constants
+    dev = p.device
+    m = p.m
+    _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev,
+                p.rebuild)
+    if p.mode == 0:  # node mode reads no face grid
+        _grid.build_faces(p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"],
+                          m.face_world, p.overflow, dev, p.master.element.name == "tri3",
+                          p.rebuild)
+
+
 def _master_stages(p: Plan, xm, m_origin):
     c = p.constants
     dev = p.device
@@ -401,19 +421,28 @@ def _master_stages(p: Plan, xm, m_origin):
     wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
               device=dev)
     p.overflow.zero_()
-    _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev)
-    if p.mode == 0:  # node mode reads no face grid
-        # A refit where the device decides without the host: in a CUDA graph (detect's own or
-        # the caller's) with conditional nodes, and on the CPU.
-        refit = p.refit and (dev.is_cpu or (dev.is_capturing
-                                            and wp.is_conditional_graph_supported()))
-        (_grid.refit_faces if refit else _grid.build_faces)(
-            p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"], m.face_world, p.overflow,
-            dev, p.master.element.name == "tri3", p.rebuild)
-    else:  # the overflow flag all the same
+    if p.mode == 1:  # the overflow flag, which the face grid's build raises in exact mode
         wp.launch(_prepare.radius_check, p.master.n_faces,
                   inputs=[m.points, m.faces, real(c["lebesgue"]), real(c["r_cap"])],
                   outputs=[p.overflow], device=dev)
+    # A refit where the device decides without the host: in a CUDA graph (detect's own or the
+    # caller's) with conditional nodes, and on the CPU.
+    if p.refit and (dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())):
+        n_nodes = len(p.master.nodes)
+        p.rebuild.zero_()
+        _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild)
+        if p.mode == 0:
+            _grid.refit_faces(p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"],
+                              m.face_world, dev, p.master.element.name == "tri3", p.rebuild)
+
+        def fill():
+            _grid.fill(p.node_grid, n_nodes, dev)
+            if p.mode == 0:
+                _grid.fill(p.face_grid, p.master.n_faces, dev)
+
+        wp.capture_if(p.rebuild, on_true=lambda: _build(p), on_false=fill)
+    else:
+        _build(p)
     p.master_ready = True
 
 

@@ -1,7 +1,8 @@
 """Stage 2 in Warp: one hashed key per item (cell and world), a radix sort of the keys' table
 bits, and the range of every table slot from the sorted keys (adjacent differences) with the
 box around its items. No dense cell array. An item is a box (a point for a node) with its id
-and world, in key order."""
+and world, in key order. A refit computes the items and slot boxes again in the previous
+build's order, and says when an item moved farther than its cell allows."""
 
 from __future__ import annotations
 
@@ -44,6 +45,10 @@ class Item:
 @wp.struct
 class Grid:
     cell: real
+    # How far a node may be from the cell it was keyed in (a refit's allowance, which the
+    # closest-node scan adds to its reach when it picks cells); 0 for faces, whose allowance
+    # is in r_cap.
+    margin: real
     table: int  # slots, a power of two
     sorted_ids: wp.array(dtype=int)  # item ids in key order (first n of 2n: radix scratch)
     keys: wp.array(dtype=int)
@@ -55,8 +60,8 @@ class Grid:
     # tri3 face grids: the three corners of each face in key order (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
-    # Face grids: each face's centre when its key was computed, in key order (a refit keeps the
-    # keys while the faces stay near them); 1e30 before the first build.
+    # Each item's centre (a node: its position) when its key was computed, in key order (a
+    # refit keeps the keys while the items stay near them); 1e30 before the first build.
     centres: wp.array(dtype=vec3)
 
 
@@ -207,10 +212,18 @@ def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebes
 
 
 @wp.kernel
-def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), grid: Grid):
-    """Each node's record in key order (a point: lo = hi)."""
+def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), refit: int, grid: Grid,
+            rebuild: wp.array(dtype=wp.int32)):
+    """Each node's record in key order (a point: lo = hi). refit = 1: the keys are the
+    previous build's; rebuild[0] is raised unless every node is within grid.margin of where it
+    was keyed."""
     k = wp.tid()
     i = grid.sorted_ids[k]
+    if refit == 1:
+        if wp.length(x[i] - grid.centres[k]) > grid.margin:
+            rebuild[0] = 1
+    else:
+        grid.centres[k] = x[i]
     write_item(grid, k, x[i], i, x[i], world[i])
 
 
@@ -314,13 +327,13 @@ def _sort(grid: Grid, n: int):
                               end_bit=(grid.table - 1).bit_length())
 
 
-def build(grid: Grid, x, ids, world, n: int, device):
+def build(grid: Grid, x, ids, world, n: int, device, rebuild):
     """Fill `grid` with the points x[ids[:n]] (launches only: capturable)."""
     wp.launch(_clear, n, inputs=[grid], device=device)
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     _sort(grid, n)
-    wp.launch(_gather, n, inputs=[x, world, grid], device=device)
-    wp.launch(_fill_slots, n, inputs=[n, grid], device=device)
+    wp.launch(_gather, n, inputs=[x, world, 0, grid, rebuild], device=device)
+    fill(grid, n, device)
 
 
 def build_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, overflow,
@@ -334,34 +347,36 @@ def build_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world,
     _sort(grid, n)
     wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 0,
                                        real(r_cap), grid, rebuild], device=device)
+    fill(grid, n, device)
+
+
+# A refit: the records of a grid again in the previous build's key order, raising rebuild[0]
+# where an item left the allowance its cell was planned with; then `fill`, or a build when
+# raised (the caller's choice on the device: wp.capture_if).
+def refit(grid: Grid, x, world, n: int, device, rebuild):
+    wp.launch(_gather, n, inputs=[x, world, 1, grid, rebuild], device=device)
+
+
+def refit_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, device,
+                corners: bool, rebuild):
+    wp.launch(_face_gather, faces.shape[0], inputs=[points, faces, real(lebesgue), world,
+                                                    int(corners), 1, real(r_cap), grid,
+                                                    rebuild], device=device)
+
+
+def fill(grid: Grid, n: int, device):
+    """Every slot's range and box from the records in key order."""
     wp.launch(_fill_slots, n, inputs=[n, grid], device=device)
 
 
-def refit_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, overflow,
-                device, corners: bool, rebuild):
-    """`build_faces` keeping the previous build's keys and order while every face stays within
-    r_cap of the centre it was keyed by (a master that moves and deforms little): only the
-    records and the slot boxes are computed again. Otherwise (rebuild[0] = 1 after the call)
-    a build. The choice is made on the device, in a conditional node of a CUDA graph (outside
-    a capture, the CUDA device would wait for it: use `build_faces` there)."""
-    n = faces.shape[0]
-    rebuild.zero_()
-    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 1,
-                                       real(r_cap), grid, rebuild], device=device)
-    wp.capture_if(rebuild,
-                  on_true=lambda: build_faces(grid, points, faces, lebesgue, r_cap, world,
-                                              overflow, device, corners, rebuild),
-                  on_false=lambda: wp.launch(_fill_slots, n, inputs=[n, grid], device=device))
-
-
-def new_grid(n: int, cell: float, device, faces=False, corners=False) -> Grid:
+def new_grid(n: int, cell: float, device, margin=0.0, corners=False) -> Grid:
     table = max(64, 1 << int(max(2 * n, 1) - 1).bit_length())
     g = Grid()
-    g.cell, g.table = real(cell), table
+    g.cell, g.margin, g.table = real(cell), real(margin), table
     g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
     g.slots = wp.zeros(table, dtype=Slot, device=device)
     g.items = wp.zeros(max(n, 1), dtype=Item, device=device)
     g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
-    g.centres = wp.full(max(n, 1) if faces else 1, vec3(1.0e30), dtype=vec3, device=device)
+    g.centres = wp.full(max(n, 1), vec3(1.0e30), dtype=vec3, device=device)
     return g
