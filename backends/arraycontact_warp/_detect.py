@@ -342,10 +342,12 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
              # kernel 0.23 -> 0.17 ms at 2^20 on an H100, d_max the longest edge; 2 d_max:
              # 0.20 ms).
              # A refit lets the nodes move as far as the largest face may grow (r_cap less its
-             # radius), within the stencil's reach: (NODE_CELL - 1) d_max past d_max.
+             # radius), within the stencil's reach ((NODE_CELL - 1) d_max past d_max, less a
+             # tenth for rounding).
              m=m, node_grid=_grid.new_grid(
                  len(master.nodes), NODE_CELL * d_max, device,
-                 margin=min(r_cap * (1 - 1 / growth), (NODE_CELL - 1) * d_max) if refit else 0),
+                 margin=min(r_cap * (1 - 1 / growth), 0.9 * (NODE_CELL - 1) * d_max)
+                 if refit else 0),
              # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
              # stays under a cell: the cells it visits are at most 3 a side.
              face_grid=_grid.new_grid(master.n_faces,

@@ -220,7 +220,8 @@ def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), refit: int, gri
     k = wp.tid()
     i = grid.sorted_ids[k]
     if refit == 1:
-        if wp.length(x[i] - grid.centres[k]) > grid.margin:
+        # (a thousandth under the margin the scan adds: room for rounding)
+        if wp.length(x[i] - grid.centres[k]) > real(0.999) * grid.margin:
             rebuild[0] = 1
     else:
         grid.centres[k] = x[i]
