@@ -16,7 +16,7 @@ from . import _closest_node, _grid, _projection, _select
 from ._contacts import Contacts, Counts, Feature, Status
 from ._elements import get_element
 from ._prepare import Prepared, default_d_max, prepare
-from ._surface import Surface, face_bounds, face_normals, node_normals, validate_points
+from ._surface import Surface, face_boxes, face_normals, node_normals, validate_points
 from ._xp import expand, norm
 
 MODES = ("exact", "node")
@@ -34,8 +34,8 @@ class Static:
 
     element: str
     mode: str
-    node_table: int
-    face_table: int
+    node_levels: tuple  # the trees' level sizes (static shapes)
+    face_levels: tuple
     iterations: int
     passing_by: bool  # node mode on an open master: the boundary test of eqs. (12)-(13)
 
@@ -55,30 +55,26 @@ def master_topology(master: Surface, prep: Prepared):
 
 
 def master_geometry(xp, element, topo, nodes_x):
-    """What detection needs from the master's coordinates `nodes_x` (local frame): face balls,
-    node pseudo-normals, boundary normals. Computed on the host once by the NumPy back end,
-    inside the jitted step from moving coordinates by the JAX plan/detect."""
+    """What detection needs from the master's coordinates `nodes_x` (local frame): node
+    pseudo-normals, boundary normals. Computed on the host once by the NumPy back end, inside
+    the jitted step from moving coordinates by the JAX plan/detect."""
     element = get_element(element)
     xe = nodes_x[topo["faces"]]
-    centres, radii = face_bounds(element, xe, xp)
     prev_n, next_n, concave = _select.boundary_geometry(
         xp, nodes_x, topo["prev_node"], topo["next_node"], topo["prev_face"],
         topo["next_face"], face_normals(element, xe, xp))
-    return dict(nodes_x=nodes_x, centres=centres, radii=radii,
-                node_normals=node_normals(element, topo["faces"], nodes_x, xp),
+    return dict(nodes_x=nodes_x, node_normals=node_normals(element, topo["faces"], nodes_x, xp),
                 prev_normal=prev_n, next_normal=next_n, concave=concave)
 
 
 def master_arrays(master: Surface, prep: Prepared, dtype):
-    """Master topology and geometry in the local frame (float `dtype`), on the host. The face
-    balls and node normals are the Surface's cached ones (they do not depend on the frame)."""
+    """Master topology and geometry in the local frame (float `dtype`), on the host. The node
+    normals are the Surface's cached ones (they do not depend on the frame)."""
     topo = master_topology(master, prep)
-    centres, radii = master.face_bounds
     prev_n, next_n, concave = _select.boundary_geometry(
         np, master.points, topo["prev_node"], topo["next_node"], topo["prev_face"],
         topo["next_face"], master.face_normals)
     return dict(topo, nodes_x=(master.points - prep.origin).astype(dtype),
-                centres=(centres - prep.origin).astype(dtype), radii=radii.astype(dtype),
                 node_normals=master.node_normals.astype(dtype), prev_normal=prev_n.astype(dtype),
                 next_normal=next_n.astype(dtype), concave=concave)
 
@@ -86,8 +82,7 @@ def master_arrays(master: Surface, prep: Prepared, dtype):
 def scalars(prep: Prepared, master: Surface, dtype):
     eps = float(np.finfo(dtype).eps)
     tie = TIE_RTOL[np.dtype(dtype)] * master.longest_edge
-    return dict(d_max=prep.d_max, r_max=prep.r_max, node_cell=prep.node_cell,
-                face_cell=prep.face_cell, tie=tie,
+    return dict(d_max=prep.d_max, tie=tie,
                 # Rounding slack of the pruning tests (never of the answer).
                 slack=tie + 16 * eps * (prep.extent + prep.d_max + prep.r_max),
                 tol=KKT_TOL[np.dtype(dtype)])
@@ -106,14 +101,14 @@ class _Laps:
 
 
 def build_grids(xp, st: Static, sc: dict, m: dict):
-    """Stage 2: grids of master nodes (cells >= d_max) and face centres (cells >= d_max +
-    r_max), as (item ids, slot starts) with global ids."""
-    order, starts = _grid.build(xp, m["nodes_x"][m["node_ids"]], sc["node_cell"], st.node_table)
-    grids = {"node": (m["node_ids"][order], starts)}
+    """Stage 2: the trees of the master nodes (points) and, in exact mode, of the faces (their
+    boxes), over node_ids and face_ids in the Morton order `prepare` gave them."""
+    x = m["nodes_x"][m["node_ids"]]
+    grids = {"node": _grid.build(xp, m["node_ids"], x, x, x)}
     if st.mode == "exact":
-        order, starts = _grid.build(xp, m["centres"][m["face_ids"]], sc["face_cell"],
-                                    st.face_table)
-        grids["face"] = (m["face_ids"][order], starts)
+        xe = m["nodes_x"][m["faces"][m["face_ids"]]]
+        lo, hi = face_boxes(get_element(st.element), xe, xp)
+        grids["face"] = _grid.build(xp, m["face_ids"], lo, hi, xe[:, 0])
     return grids
 
 
@@ -126,20 +121,17 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
     tie = sc["tie"]
     node_grid = grids["node"]
     # 3. closest node
-    node, dn, n_node_pairs = _closest_node.closest_node(
-        xp, node_grid, m["nodes_x"], slave_x, cell=sc["node_cell"], table=st.node_table,
-        d_max=sc["d_max"], tie=tie, capacity=capacity.get("node_pairs"))
-    counts = {"node_pairs": n_node_pairs}
+    node, dn, counts = _closest_node.closest_node(
+        xp, node_grid, m["nodes_x"], slave_x, d_max=sc["d_max"], tie=tie, slack=sc["slack"],
+        capacity=capacity or None)
     lap("closest_node")
     # 4. candidate faces and projections
     if st.mode == "exact":
         face_grid = grids["face"]
         rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
-        slave, face, valid, n_pairs, n_cand = _projection.candidate_faces(
-            xp, face_grid, m["centres"], m["radii"], slave_x, rho, cell=sc["face_cell"],
-            table=st.face_table, r_max=sc["r_max"], pair_capacity=capacity.get("face_pairs"),
-            candidate_capacity=capacity.get("candidates"))
-        counts.update(face_pairs=n_pairs, candidates=n_cand)
+        slave, face, valid, n_pairs = _projection.candidate_faces(
+            xp, face_grid, slave_x, rho, slack=sc["slack"], capacity=capacity or None)
+        counts.update(n_pairs)
     else:
         # Node mode: the faces attached to the closest node (seed 000 section 2.2).
         has_node = node >= 0
@@ -283,8 +275,8 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
     t1 = time.perf_counter()
     if prep is None:  # the boxes do not meet: no grid, no contact
         return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0})
-    st = Static(element=master.element.name, mode=mode, node_table=prep.node_table,
-                face_table=prep.face_table,
+    st = Static(element=master.element.name, mode=mode, node_levels=prep.node_levels,
+                face_levels=prep.face_levels,
                 iterations=ITERATIONS.get(master.element.name, 0),
                 passing_by=mode == "node" and not master.closed)
     if backend == "numpy":

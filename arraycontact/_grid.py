@@ -1,54 +1,153 @@
-"""Stage 2: a uniform grid by sorting (seed 000 eqs. 6-10, without a dense cell array).
+"""Stage 2: a size-adaptive search structure built by one sort and segment reductions.
 
-Cell coordinates are `floor(x / cell)` in the local frame (floor, not truncation, so negative
-coordinates work). Each cell is hashed to one integer key in a table of T = 2^k slots, items are
-stably sorted by key, and the start of every slot comes from `searchsorted` on the sorted keys.
-The table has about two slots per item whatever the extent of the scene: two small patches
-10^6 box widths apart cost what two adjacent patches cost. Two cells that share a slot only add
-candidates, which the exact distance tests downstream discard.
+Why not a uniform grid: one cell size must hold the largest face, so on a graded mesh (faces
+1000x smaller at the contact than far from it) one cell holds thousands of small faces and
+every slave near them scans them all: the cost grows with the size ratio, not the answer.
+
+The structure (the same in every back end): items (master nodes as points, or faces as boxes)
+sorted by the Morton code of their centres (21 bits an axis over the scene's box), then a tree
+of fixed fan-out W over that order: entry j of level k is the box around entries W j ... W j +
+W - 1 of level k - 1 (level 0: the items). Morton order makes every run of consecutive items a
+compact cluster whatever the items' sizes, so the boxes adapt to the local face size by
+themselves; the levels are segment reductions (reshapes: the segments have a fixed length)
+and need no pointers. A moving master keeps the order and recomputes the boxes (a refit): the
+tree stays exact, only less tight, until the order is computed again.
+
+Each entry also keeps a representative point: a point of the surface inside it (the first
+item's first node). The distance to it bounds the answer from above, so a query starts with
+reach min(d_max, ...) and shrinks it as it descends ("a shrinking radius": DESIGN section 10).
+
+Query, level by level from the root (written with arrays: NumPy eagerly, JAX with planned
+capacities): every (slave, entry) pair within reach is expanded into its W children; a child
+survives when its box is within the slave's reach, and the reach shrinks to the smallest
+representative distance seen (plus the rounding and tie slack). Cost model, per slave: the
+entries within reach at each of the log_W(n) levels, times W. The reach is at most the
+distance to a surface point the slave's own neighbourhood holds, so at every level only the
+entries near the slave survive: a few near the root (boxes there are large but few) and,
+near the leaves, the entries whose size is the local face size, which is what a uniform grid
+of the local size would visit. It depends on the face sizes near the slave and on how many
+faces are within the distance of its answer, not on the ratio of the largest to the smallest
+face; a slave with nothing within d_max stops at the first level whose boxes are all farther.
+Memory is the surviving pairs of one level at a time (bounded per slave by the same count; the
+NumPy back end runs the slaves in chunks, JAX sizes each level's capacity in the plan and
+reports overflow).
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-# Large odd multipliers (Teschner et al. 2003), in int32 wrap-around arithmetic on every back end.
-_P = (73856093, 19349663, 83492791)
-STENCIL = np.array([(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)],
-                   np.int32)
+from ._xp import compact, segment_min
+
+#: Fan-out: children per entry (8 boxes of 32 bytes are two cache lines on a GPU).
+W = 8
+#: Morton bits per axis (63-bit keys).
+BITS = 21
 
 
-def table_size(n_items):
-    return int(max(64, 1 << int(np.ceil(np.log2(max(2 * n_items, 1))))))
+class Tree(NamedTuple):
+    """ids [n]: item ids in Morton order; lo, hi, rep: one array per level (level 0 the items
+    in that order, the last level a single root), [size_k, 3] each. An entry with no item has
+    lo > hi (an empty box no query reaches)."""
+
+    ids: object
+    lo: tuple
+    hi: tuple
+    rep: tuple
 
 
-def cell_coords(xp, x, cell):
-    # int64 where the float is float64: a global float64 frame may be far from the origin.
-    return xp.floor(x / cell).astype(np.int64 if x.dtype == np.float64 else np.int32)
+def level_sizes(n: int) -> tuple:
+    """Entries per level for n items: (n, ceil(n / W), ..., 1) (at least one entry)."""
+    sizes = [max(n, 1)]
+    while sizes[-1] > 1:
+        sizes.append(-(-sizes[-1] // W))
+    if len(sizes) == 1:
+        sizes.append(1)  # a root above a single item: queries always expand at least once
+    return tuple(sizes)
 
 
-def cell_key(xp, c, table):
-    h = (c[..., 0] * _P[0]) ^ (c[..., 1] * _P[1]) ^ (c[..., 2] * _P[2])
-    return (h & (table - 1)).astype(np.int32)
+def _spread(v):
+    """The low 21 bits of int64 v moved to every third bit (Morton interleaving)."""
+    v = v & 0x1FFFFF
+    v = (v | (v << 32)) & 0x1F00000000FFFF
+    v = (v | (v << 16)) & 0x1F0000FF0000FF
+    v = (v | (v << 8)) & 0x100F00F00F00F00F
+    v = (v | (v << 4)) & 0x10C30C30C30C30C3
+    v = (v | (v << 2)) & 0x1249249249249249
+    return v
 
 
-def build(xp, x, cell, table):
-    """Sort items at x [n, 3] into cells: (order [n], starts [table + 1])."""
-    keys = cell_key(xp, cell_coords(xp, x, cell), table)
-    order = xp.argsort(keys, stable=True)
-    starts = xp.searchsorted(keys[order], xp.arange(table + 1), side="left")
-    return order.astype(np.int32), starts.astype(np.int32)
+def morton_order(x: np.ndarray, lo: np.ndarray, extent: float) -> np.ndarray:
+    """Rows of x [n, 3] in Morton order of 2^21 cells an axis over the cube [lo, lo + extent]
+    (host, float64, stable: equal codes keep their row order)."""
+    scale = (1 << BITS) / max(float(extent), np.finfo(float).tiny)
+    c = np.clip(np.floor((np.asarray(x, float) - lo) * scale), 0, (1 << BITS) - 1)
+    c = c.astype(np.int64)
+    key = _spread(c[:, 0]) | (_spread(c[:, 1]) << 1) | (_spread(c[:, 2]) << 2)
+    return np.argsort(key, kind="stable")
 
 
-def stencil_counts(xp, grid, q, cell, table, reach):
-    """Items per stencil cell for queries q [n, 3]: ([n, 27] counts, [n, 27] slot starts).
+def _empty(dtype):
+    # Large enough never to be within reach, small enough that a square stays finite
+    # in differences.
+    return float(np.finfo(dtype).max) ** 0.25
 
-    A cell whose box is farther than `reach` [n] from the query contributes no item."""
-    order, starts = grid
-    c = cell_coords(xp, q, cell)[:, None, :] + xp.asarray(STENCIL)  # [n, 27, 3]
-    lo = c.astype(q.dtype) * cell
-    gap = xp.maximum(xp.maximum(lo - q[:, None], q[:, None] - (lo + cell)), 0)
-    near = xp.sum(gap * gap, -1) <= (reach * reach)[:, None]
-    key = cell_key(xp, c, table)
-    begin = starts[key]
-    return xp.where(near, starts[key + 1] - begin, 0), begin
+
+def build(xp, ids, lo, hi, rep) -> Tree:
+    """The tree over items already in Morton order: ids [n], boxes lo, hi [n, 3], points of
+    the surface inside them rep [n, 3]."""
+    n = lo.shape[0]
+    sizes = level_sizes(n)
+    big = _empty(lo.dtype)
+    if n == 0:
+        lo = xp.full((1, 3), big, lo.dtype)
+        hi, rep = -lo, xp.zeros((1, 3), lo.dtype)
+    los, his, reps = [lo], [hi], [rep]
+    for size in sizes[1:]:
+        pad = size * W - los[-1].shape[0]
+        lo_k = xp.concatenate([los[-1], xp.full((pad, 3), big, lo.dtype)])
+        hi_k = xp.concatenate([his[-1], xp.full((pad, 3), -big, lo.dtype)])
+        los.append(xp.min(lo_k.reshape(size, W, 3), 1))
+        his.append(xp.max(hi_k.reshape(size, W, 3), 1))
+        reps.append(reps[-1][::W])  # the first child's point: a point of the surface
+    return Tree(ids, tuple(los), tuple(his), tuple(reps))
+
+
+def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level"):
+    """The items whose box is within reach of each query point, reach shrunk on the way to the
+    smallest representative distance + slack (items farther than some point of the surface
+    cannot hold the closest point, nor be within the tie band of it).
+
+    q [n, 3], reach [n]. capacity: None (eager, exact sizes) or a dict of static sizes per
+    level (keys f"{name}{k}"). Returns (query row [P], item position in tree order [P], valid
+    [P], counts {key: true count}); pairs are grouped by query row in increasing order."""
+    n = q.shape[0]
+    top = len(tree.lo) - 1
+    slave = xp.arange(n)
+    entry = xp.zeros(n, dtype=np.int32)
+    valid = xp.ones(n, dtype=bool)
+    reach = reach + 0 * q[:, 0]
+    counts = {}
+    for k in range(top, 0, -1):
+        size = tree.lo[k - 1].shape[0]
+        child = (entry[:, None] * W + xp.arange(W)).reshape(-1)
+        s = xp.broadcast_to(slave[:, None], (slave.shape[0], W)).reshape(-1)
+        ok = xp.broadcast_to(valid[:, None], (slave.shape[0], W)).reshape(-1) & (child < size)
+        c = xp.where(ok, child, 0)
+        lo, hi = tree.lo[k - 1][c], tree.hi[k - 1][c]
+        qs = q[s]
+        g = xp.maximum(xp.maximum(lo - qs, qs - hi), 0)
+        gap2 = xp.sum(g * g, -1)
+        filled = ok & xp.all(lo <= hi, -1)
+        d = tree.rep[k - 1][c] - qs
+        ub = xp.where(filled, xp.sqrt(xp.sum(d * d, -1)), np.inf)
+        reach = xp.minimum(reach, segment_min(xp, ub, s, n, sorted=True) + slack)
+        keep = filled & (gap2 <= reach[s] ** 2)
+        key = f"{name}{k - 1}"
+        idx, count = compact(xp, keep, None if capacity is None else capacity[key])
+        counts[key] = count
+        slave, entry = s[idx], c[idx]
+        valid = xp.arange(idx.shape[0]) < count
+    return slave, entry, valid, counts

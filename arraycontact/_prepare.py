@@ -15,11 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._grid import table_size
-
-#: Grid cells are this much wider than strictly needed, so rounding in a float32 local frame
-#: cannot move a point out of the 3x3x3 stencil that must hold it.
-CELL_MARGIN = 1.01
+from ._grid import level_sizes, morton_order
 
 
 def default_d_max(master, displacement=None) -> float:
@@ -37,15 +33,13 @@ def default_d_max(master, displacement=None) -> float:
 @dataclass(frozen=True, eq=False)
 class Prepared:
     slave_rows: np.ndarray  # slaves inside the box
-    node_ids: np.ndarray  # master nodes inside the box
-    face_ids: np.ndarray  # master faces whose ball reaches the box
+    node_ids: np.ndarray  # master nodes inside the box, in Morton order (the node tree's)
+    face_ids: np.ndarray  # master faces whose ball reaches the box, in Morton order
     origin: np.ndarray  # local frame origin (float64)
     d_max: float
-    r_max: float
-    node_cell: float
-    face_cell: float
-    node_table: int
-    face_table: int
+    r_max: float  # the largest face radius, for rounding slack
+    node_levels: tuple  # the trees' level sizes (_grid.level_sizes)
+    face_levels: tuple
     extent: float  # largest local coordinate, for rounding slack
 
 
@@ -74,9 +68,11 @@ def prepare(slave_x, master, d_max, dtype=np.float64) -> Prepared | None:
     face_ids = np.nonzero(np.linalg.norm(outside, axis=1) <= radii + d_max)[0]
     r_max = float(radii[face_ids].max()) if len(face_ids) else 0.0
     origin = lo if np.dtype(dtype) == np.float32 else np.zeros(3)
+    extent = float((hi - lo).max())
+    node_ids = node_ids[morton_order(master.points[node_ids], lo, extent)]
+    face_ids = face_ids[morton_order(centres[face_ids], lo, extent)]
     return Prepared(
         slave_rows=slave_rows, node_ids=node_ids, face_ids=face_ids, origin=origin,
-        d_max=float(d_max), r_max=r_max, node_cell=CELL_MARGIN * d_max,
-        face_cell=CELL_MARGIN * (d_max + r_max), node_table=table_size(len(node_ids)),
-        face_table=table_size(len(face_ids)),
+        d_max=float(d_max), r_max=r_max, node_levels=level_sizes(len(node_ids)),
+        face_levels=level_sizes(len(face_ids)),
         extent=float(np.abs(np.r_[lo - origin, hi - origin]).max()))

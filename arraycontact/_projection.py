@@ -1,13 +1,12 @@
 """Stage 4: candidate faces of every slave and the closest point on each, all pairs at once.
 
-Candidates (exact mode): each face is held by a ball (centre c, radius r; see
-Surface.face_bounds), so a face can hold a point within rho of slave s only if
-|s - c| - r <= rho. Here rho = min(distance to the closest node, d_max): the closest node is a
-point of the surface, so no face farther than it can hold the closest point, and none farther
-than d_max can make the slave active. The face grid's cells are at least d_max + max r wide, so
-the 3x3x3 stencil around the slave holds every face centre within that reach. The closest face
-need not contain the closest node (seed 003 Fig. 2a): every face passing the ball test is
-projected.
+Candidates (exact mode): each face is held by a box (Surface.face_boxes, rigorous for curved
+faces), so a face can hold a point within rho of slave s only if its box is within rho. Here
+rho = min(distance to the closest node, d_max) plus rounding slack: the closest node is a point
+of the surface, so no face farther than it can hold the closest point, and none farther than
+d_max can make the slave active; the face tree (_grid) shrinks it further to the nearest
+surface point it meets. The closest face need not contain the closest node (seed 003 Fig. 2a):
+every face passing the box test is projected.
 
 Projections: tri3 in closed form (Voronoi regions); every other element by the active-set
 Newton method of seed 003 eq. (8) from start option I, with a fixed iteration budget and a
@@ -21,22 +20,16 @@ import numpy as np
 from ._elements import shape_functions
 from ._geometry import (closest_point_edges, closest_point_face, closest_point_triangle,
                         start_option_one, start_option_two)
-from ._grid import stencil_counts
-from ._xp import compact, expand, norm
+from . import _grid
 
 
-def candidate_faces(xp, grid, centres, radii, slave_x, rho, *, cell, table, r_max,
-                    pair_capacity, candidate_capacity):
-    """Candidate (slave, face) pairs: (slave [P], face [P], valid [P], pair count, candidate count)."""
-    counts, begin = stencil_counts(xp, grid, slave_x, cell, table, rho + r_max)
-    seg, rank, valid, n_pairs = expand(xp, counts.reshape(-1), pair_capacity)
-    slave = seg // 27
-    face = grid[0][xp.where(valid, begin.reshape(-1)[seg] + rank, 0)]
-    dc = norm(xp, slave_x[slave] - centres[face])
-    keep = valid & (dc - radii[face] <= rho[slave])
-    idx, n_cand = compact(xp, keep, candidate_capacity)
-    ok = xp.arange(idx.shape[0]) < n_cand
-    return slave[idx], face[idx], ok, n_pairs, n_cand
+def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity):
+    """Candidate (slave, face) pairs, the faces whose box is within rho of the slave (shrunk
+    by the tree to the nearest surface point it meets): (slave [P], face [P], valid [P],
+    pair counts per tree level)."""
+    slave, pos, valid, counts = _grid.query(xp, tree, slave_x, rho, slack, capacity,
+                                            "face_level")
+    return slave, tree.ids[pos], valid, counts
 
 
 def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, tol):

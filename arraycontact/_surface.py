@@ -39,6 +39,19 @@ def face_bounds(element, xe, xp=np):
     return c, element.lebesgue * xp.sqrt(xp.where(d2 > 0, d2, 0 * d2))
 
 
+def face_boxes(element, xe, xp=np):
+    """A box [lo, hi] holding each face with nodes xe [F, nn, 3]. Per axis, with m and w the
+    middle and half-width of the nodes' range, x(xi) - m = sum_i N_i (x_i - m), so
+    |x(xi) - m| <= lebesgue w: the nodes' box itself for linear faces (lebesgue 1), cut by the
+    ball's cube for curved ones."""
+    a, b = xp.min(xe, 1), xp.max(xe, 1)
+    if element.linear:
+        return a, b
+    m, w = 0.5 * (a + b), 0.5 * element.lebesgue * (b - a)
+    c, r = face_bounds(element, xe, xp)
+    return xp.maximum(m - w, c - r[:, None]), xp.minimum(m + w, c + r[:, None])
+
+
 def corner_normal(element, dx, corner, xp=np):
     """A face's unit normal times its interior angle at a corner, from the tangents dx
     [..., 3, 2] at that corner (`corner`: an int or int array over the leading axes): the

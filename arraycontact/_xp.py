@@ -20,16 +20,21 @@ def norm(xp, v):
     return xp.sqrt(xp.sum(v * v, -1))
 
 
-def segment_min(xp, data, ids, n):
-    """Minimum of `data` per segment id (the dtype's largest value for an empty segment)."""
+def segment_min(xp, data, ids, n, sorted=False):
+    """Minimum of `data` per segment id (the dtype's largest value for an empty segment).
+    sorted: the ids are non-decreasing (a reduce over runs on NumPy, a hint on JAX)."""
     if is_numpy(xp):
         big = np.inf if data.dtype.kind == "f" else np.iinfo(data.dtype).max
         out = np.full(n, big, data.dtype)
-        np.minimum.at(out, ids, data)
+        if sorted and len(ids):
+            starts = np.r_[0, np.nonzero(np.diff(ids))[0] + 1]
+            out[ids[starts]] = np.minimum.reduceat(data, starts)
+        else:
+            np.minimum.at(out, ids, data)
         return out
     import jax
 
-    return jax.ops.segment_min(data, ids, num_segments=n)
+    return jax.ops.segment_min(data, ids, num_segments=n, indices_are_sorted=sorted)
 
 
 def segment_sum(xp, data, ids, n):

@@ -14,7 +14,8 @@ import numpy as np
 from ._surface import Surface
 
 __all__ = ["Scene", "grid_surface", "rough_field", "rough_surfaces", "rough_layers",
-           "sphere_on_plane", "cylinder_on_road", "curved_patch"]
+           "sphere_on_plane", "cylinder_on_road", "curved_patch", "graded_surfaces",
+           "fine_patch", "steep_rough_surfaces"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,6 +117,72 @@ def rough_surfaces(n_nodes=2**12, *, gap=1.0, rms=0.5, hurst=0.8, curvature=0.0,
     return Scene("rough_surfaces", master, slave, slave_surface,
                  dict(n_nodes=nx * ny, gap=gap, rms=rms, hurst=hurst, curvature=curvature,
                       element=element, seed=seed))
+
+
+def _graded_axis(spacing):
+    """Node coordinates (centred on 0) from the element spacings along one axis."""
+    x = np.r_[0.0, np.cumsum(spacing)]
+    return x - 0.5 * x[-1]
+
+
+def graded_surfaces(n_nodes=2**12, *, ratio=100.0, gap=1.0, rms=0.5, element="tri3",
+                    seed=0) -> Scene:
+    """`rough_surfaces` on graded grids: element size 1 at the centre growing geometrically to
+    `ratio` at the border along each axis (so faces of every size between, stretched up to
+    `ratio`:1 where a fine row crosses a coarse column), with the same node count for every
+    ratio (the grading family of the benchmarks). Roughness and gap scale with the local
+    element size, so that every part of the scene looks like the uniform one (ratio 1)."""
+    nx, ny = _grid_shape(n_nodes)
+
+    def spacing(n):
+        u = np.abs(np.linspace(-1.0, 1.0, n - 1))
+        return float(ratio) ** u
+
+    hx, hy = spacing(nx), spacing(ny)
+    x, y = np.meshgrid(_graded_axis(hx), _graded_axis(hy), indexing="ij")
+    # The local element size at each node: the smaller of the adjacent spacings' means.
+    lx = np.r_[hx[0], 0.5 * (hx[1:] + hx[:-1]), hx[-1]]
+    ly = np.r_[hy[0], 0.5 * (hy[1:] + hy[:-1]), hy[-1]]
+    h = np.minimum(lx[:, None], ly[None, :])
+    z1 = h * rough_field(nx, ny, rms=rms, seed=seed)
+    z2 = h * (gap + rough_field(nx, ny, rms=rms, seed=seed + 1))
+    master = grid_surface(x, y, z1, element)
+    slave_surface = grid_surface(x, y, z2, element, flip=True)
+    return Scene("graded_surfaces", master, slave_surface.points[slave_surface.nodes],
+                 slave_surface, dict(n_nodes=nx * ny, ratio=ratio, gap=gap, rms=rms,
+                                     element=element, seed=seed))
+
+
+def fine_patch(n_fine=64, *, ratio=1000.0, growth=1.5, n_slaves=None, gap=0.5, rms=0.3,
+               element="tri3", seed=0) -> Scene:
+    """A fine patch (n_fine x n_fine elements of size 1) inside a coarse plate (elements of size
+    `ratio`), joined by rows growing by `growth` per element, and a rough slave punch of
+    `n_slaves` nodes (default n_fine^2) over the patch at mean height `gap`: the contact zone
+    meshed 1000x finer than the rest of the body, as finite-element users mesh it."""
+    n_grow = int(np.ceil(np.log(ratio) / np.log(growth)))
+    grow = np.minimum(growth ** np.arange(1, n_grow + 1), ratio)
+    side = np.r_[grow, np.full(max(n_fine // 4, 4), float(ratio))]
+    spacing = np.r_[side[::-1], np.ones(n_fine), side]
+    x, y = np.meshgrid(_graded_axis(spacing), _graded_axis(spacing), indexing="ij")
+    master = grid_surface(x, y, np.zeros_like(x), element)
+    n = n_slaves or n_fine * n_fine
+    ns = int(np.sqrt(n))
+    u = np.linspace(-0.45, 0.45, ns) * n_fine
+    sx, sy = np.meshgrid(u, u, indexing="ij")
+    sz = gap + rough_field(ns, ns, rms=rms, seed=seed)
+    slave = np.stack([sx, sy, sz], -1).reshape(-1, 3)
+    return Scene("fine_patch", master, slave, None,
+                 dict(n_fine=n_fine, ratio=ratio, growth=growth, n_slaves=len(slave), gap=gap,
+                      rms=rms, element=element, seed=seed))
+
+
+def steep_rough_surfaces(n_nodes=2**12, *, rms=4.0, gap=4.0, seed=0) -> Scene:
+    """`rough_surfaces` with a steep roughness (RMS 4 element sizes and a cutoff at 4 spacings:
+    faces several times longer than their in-plane spacing), a uniform mesh whose faces are
+    long needles for any structure sized by the longest edge."""
+    s = rough_surfaces(n_nodes, gap=gap, rms=rms, seed=seed)
+    return Scene("steep_rough_surfaces", s.master, s.slave, s.slave_surface,
+                 dict(n_nodes=len(s.slave), rms=rms, gap=gap, seed=seed))
 
 
 def rough_layers(n_nodes=2**12, *, quadratic=False, rms=0.5, seed=0) -> Scene:

@@ -91,14 +91,17 @@ def test_jax_kernel_flags_overflow():
 
     with jax.enable_x64(True):
         prep = prepare(SLAVE, MASTER, MASTER.longest_edge)
-        st = Static("tri3", "exact", prep.node_table, prep.face_table, 0, False)
+        st = Static("tri3", "exact", prep.node_levels, prep.face_levels, 0, False)
         m = master_arrays(MASTER, prep, np.float64)
         sc = scalars(prep, MASTER, np.float64)
-        cap = (("candidates", 8), ("face_pairs", 8), ("node_pairs", 8))
+        cap = tuple((f"{t}_level{k}", 8) for t, levels in
+                    (("node", prep.node_levels), ("face", prep.face_levels))
+                    for k in range(len(levels) - 1))
         _, counts = jd._kernel(sc, m, SLAVE[prep.slave_rows], st=st, capacity=cap)
-    # Pair counts are true counts; the candidate count comes from the truncated pairs, but
-    # the overflow of the pairs is already on record.
-    assert int(counts["node_pairs"]) > 8 and int(counts["face_pairs"]) > 8
+    # Each level's count is the true count of what it kept from the (truncated) level above:
+    # the first level to overflow is on record.
+    assert int(counts[f"node_level{len(prep.node_levels) - 2}"]) > 8
+    assert int(counts[f"face_level{len(prep.face_levels) - 2}"]) > 8
 
 
 def test_contacts_summary_and_status():

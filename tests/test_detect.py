@@ -99,8 +99,8 @@ def test_far_apart_returns_before_any_grid(backend, monkeypatch):
 
 
 def test_far_apart_patches_cost_what_adjacent_ones_cost():
-    # Two patches 1e6 box widths apart: the grid tables are sized by the item counts, not by
-    # the extent, and the answer is the reference's.
+    # Two patches 1e6 box widths apart: the trees are sized by the item counts, not by the
+    # extent, and the answer is the reference's.
     master, slave = random_scene(5, "tri3", n=4)
     far = np.array([1e6 * 6.0, 0, 0])
     m2 = ac.Surface(np.r_[master.points, master.points + far],
@@ -114,13 +114,15 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
 
     p2 = prepare(s2, m2, m2.longest_edge)
     p3 = prepare(s3, m3, m3.longest_edge)
-    assert (p2.node_table, p2.face_table) == (p3.node_table, p3.face_table)
+    assert (p2.node_levels, p2.face_levels) == (p3.node_levels, p3.face_levels)
     c2 = ac.detect(s2, m2)
     c3 = ac.detect(s3, m3)
-    # Pair counts differ only by which cells happen to share hash slots, and candidate counts
-    # by the rounding slack of the pruning test (proportional to the coordinates).
-    for k in ("node_pairs", "face_pairs", "candidates"):
-        assert 0.8 < c2.counts.count[k] / c3.counts.count[k] < 1.25
+    # The pairs each tree level keeps differ only by the rounding slack of the pruning test
+    # (proportional to the coordinates).
+    for tree in ("node_level", "face_level"):
+        n2, n3 = (sum(v for k, v in c.counts.count.items() if k.startswith(tree))
+                  for c in (c2, c3))
+        assert 0.8 < n2 / n3 < 1.25
     assert_matches_reference(c2, s2, m2)
 
 

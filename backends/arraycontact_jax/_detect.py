@@ -12,17 +12,17 @@ Two entry points share the stages:
   intersection, only the nodes and faces that can matter), then grows the capacities and runs
   again until nothing overflows.
 
-Besides the buffer counts, the plan fixes the face grid's cell size for faces up to the radius
-seen at plan time times the growth factor; a master deformed beyond that reports the count
-"face_radius" above its capacity, like any other overflow.
+The plan fixes the Morton order of the master's nodes and faces (the trees of _grid); each
+detect computes the trees' boxes from the current coordinates in that order (a refit: exact
+for any motion, less tight as the master deforms, which shows as higher counts; update_plan
+orders them again).
 
 `plan(..., search="warp")` (exact mode) runs the discrete search (stages 1-5 without
 gradients) as the Warp back end's kernels inside the jitted `detect`, through Warp's JAX FFI
 (`wp.jax_callable`, on the device of the JAX arrays; on a GPU a CUDA graph captured by Warp
 on staging buffers); the differentiable
 outputs are computed from its answer by the same `smooth` as the JAX search's. It has no pair
-buffers: its one overflow is the Warp search's face radius flag (count "face_radius_overflow",
-capacity 0).
+buffers and nothing to overflow.
 """
 
 from __future__ import annotations
@@ -34,12 +34,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arraycontact import _closest_node, _grid, _projection
+from arraycontact import _closest_node, _projection
 from arraycontact._contacts import Contacts, Counts, Feature, Status
 from arraycontact._elements import get_element
 from arraycontact._detect import (ITERATIONS, Static, build_grids, check_options, master_arrays,
                                   master_geometry, master_topology, run_stages, scalars)
-from arraycontact._prepare import CELL_MARGIN, Prepared
+from arraycontact._grid import level_sizes, morton_order
+from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, validate_points
 
 from ._gradients import padded_node_faces, smooth
@@ -55,27 +56,27 @@ def _kernel(sc, m, slave_x, *, st, capacity):
 
 
 def _estimate(slave_x, m, sc, st, chunk=1 << 15):
-    """The pair counts of the data, from stages 3-4 on the host (no projections)."""
+    """The pair counts of every tree level, from stages 3-4 on the host (no projections)."""
     grids = build_grids(np, st, sc, m)
-    cap = {"node_pairs": 0, **({"face_pairs": 0, "candidates": 0} if st.mode == "exact" else
-                               {"attached": 0})}
+    cap = {}
+
+    def add(counts):
+        for k, v in counts.items():
+            cap[k] = cap.get(k, 0) + int(v)
+
     for i in range(0, len(slave_x), chunk):
         x = slave_x[i:i + chunk]
-        node, dn, n_node = _closest_node.closest_node(
-            np, grids["node"], m["nodes_x"], x, cell=sc["node_cell"], table=st.node_table,
-            d_max=sc["d_max"], tie=sc["tie"], capacity=None)
-        cap["node_pairs"] += int(n_node)
+        node, dn, counts = _closest_node.closest_node(
+            np, grids["node"], m["nodes_x"], x, d_max=sc["d_max"], tie=sc["tie"],
+            slack=sc["slack"], capacity=None)
+        add(counts)
         if st.mode == "exact":
             rho = np.minimum(dn, sc["d_max"]) + sc["slack"]
-            *_, n_pairs, n_cand = _projection.candidate_faces(
-                np, grids["face"], m["centres"], m["radii"], x, rho, cell=sc["face_cell"],
-                table=st.face_table, r_max=sc["r_max"], pair_capacity=None,
-                candidate_capacity=None)
-            cap["face_pairs"] += int(n_pairs)
-            cap["candidates"] += int(n_cand)
+            add(_projection.candidate_faces(np, grids["face"], x, rho, slack=sc["slack"],
+                                            capacity=None)[3])
         else:
             deg = np.diff(m["nf_offsets"])[np.maximum(node, 0)]
-            cap["attached"] += int(np.where(node >= 0, deg, 0).sum())
+            add({"attached": int(np.where(node >= 0, deg, 0).sum())})
     return cap
 
 
@@ -170,26 +171,24 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
     lo, hi = x_all.min(0) - d_max, x_all.max(0) + d_max
     # float32 computes in a frame at the scene's corner (DESIGN section 7); float64 globally.
     origin = lo if dtype == np.float32 else np.zeros(3)
-    _, radii = master.face_bounds
-    r_cap = float(radii.max()) * growth
+    centres, radii = master.face_bounds
+    extent = float((hi - lo).max())
     prep = Prepared(
-        slave_rows=np.arange(len(slave_x)), node_ids=master.nodes,
-        face_ids=np.arange(master.n_faces), origin=origin, d_max=d_max, r_max=r_cap,
-        node_cell=CELL_MARGIN * d_max, face_cell=CELL_MARGIN * (d_max + r_cap),
-        node_table=_grid.table_size(len(master.nodes)),
-        face_table=_grid.table_size(master.n_faces),
+        slave_rows=np.arange(len(slave_x)),
+        node_ids=master.nodes[morton_order(master.points[master.nodes], lo, extent)],
+        face_ids=morton_order(centres, lo, extent), origin=origin, d_max=d_max,
+        r_max=float(radii.max()) * growth, node_levels=level_sizes(len(master.nodes)),
+        face_levels=level_sizes(master.n_faces),
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()))
-    st = Static(element=master.element.name, mode=mode, node_table=prep.node_table,
-                face_table=prep.face_table, iterations=ITERATIONS.get(master.element.name, 0),
+    st = Static(element=master.element.name, mode=mode, node_levels=prep.node_levels,
+                face_levels=prep.face_levels, iterations=ITERATIONS.get(master.element.name, 0),
                 passing_by=mode == "node" and not master.closed)
     sc = scalars(prep, master, dtype)
     if search == "warp":
         # No pair counts to size: only the topology that the smooth outputs read.
         engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin)
-        sc.pop("r_max")
         topo = _topology(master, prep)
-        # The Warp search's flag: a face outgrew the radius its grid was planned for.
-        return Plan(topo, master, st, (("face_radius_overflow", 0),), tuple(sorted(sc.items())),
+        return Plan(topo, master, st, (), tuple(sorted(sc.items())),
                     tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
                     engine)
     m = master_arrays(master, prep, dtype)
@@ -197,8 +196,6 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
     for k, v in (minimum or {}).items():
         if k in cap:
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
-    cap["face_radius"] = r_cap
-    sc.pop("r_max")  # computed from the coordinates at every detect
     return Plan(_topology(master, prep), master, st, tuple(sorted(cap.items())),
                 tuple(sorted(sc.items())), tuple(float(v) for v in origin), np.dtype(dtype).name,
                 len(slave_x), growth)
@@ -238,13 +235,11 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     cap = dict(p.capacity)
     if p.search is not None:
         out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
-        counts = {"face_radius_overflow": out.pop("overflow")[0]}
+        counts = {}
     else:
         m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
-        sc["r_max"] = jnp.max(m["radii"][topo["face_ids"]])
         grids = build_grids(jnp, st, sc, m)
         out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap)
-        counts["face_radius"] = sc["r_max"]
     keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
     face = jnp.where(keep, out["face"], -1)
     feature = jnp.where(keep, out["feature"], int(Feature.NONE))
@@ -339,7 +334,7 @@ def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Pla
     master = p.master.with_points(np.asarray(master_points, np.float64))
     return plan(master, np.asarray(slave_points, np.float64), mode=p.static.mode,
                 d_max=p.d_max, dtype=p.dtype, growth=p.growth,
-                minimum={k: v for k, v in count.items() if k != "face_radius"},
+                minimum=count,
                 search="jax" if p.search is None else "warp")
 
 
