@@ -2,18 +2,19 @@
 kernels (no allocation, no host synchronisation), so a CUDA graph can capture and replay it.
 
 Stages, one module each (the names of the other back ends): _prepare (master geometry from
-the current coordinates), _grid (hashed keys with the world id, radix sort, slot ranges),
-_closest_node, _projection (candidates and projections), _select (gap, normal). Three kernels,
-each slave one thread: the closest node (the 27 grid cells around the slave); in exact mode the
-closest face (the cells within reach, their items' balls, the faces within reach collected and
-projected together, the tie rule applied as they come, a second scan only when that was
-unsure); then the chosen face's projection, or in node mode the projections on the faces
-attached to the closest node, and every output. The two scans take the slaves in Morton order,
-so that the threads of a GPU warp read the same cells. There is no pair buffer to overflow;
-the one planned quantity that motion can outgrow is the largest face radius the face grid's
-cells were sized for, reported in the device flag `plan.overflow`. Inside a CUDA graph the
-master's grids are refitted (the previous keys and order kept) while the master stays within
-that margin, and built again when it does not: a conditional node decides on the device.
+the current coordinates), _grid (the size-adaptive tree: Morton keys with the world id, one
+radix sort, a reduction launch per level), _closest_node, _projection (candidates and
+projections), _select (gap, normal). Three kernels, each slave one thread: the closest node
+(the node tree depth first from the bound of its nearest leaf); in exact mode the closest face
+(the face tree depth first within the reach, each leaf's faces within reach projected, the tie
+rule applied as they come, a second scan only when that was unsure); then the chosen face's
+projection, or in node mode the projections on the faces attached to the closest node, and
+every output. The two scans take the slaves in Morton order, so that the threads of a GPU warp
+walk the same entries. There is no pair buffer and no planned size that motion can outgrow.
+Inside a CUDA graph the master's trees are refitted (the previous order kept, the boxes
+recomputed: exact for any motion) while every item stays within the plan's margin of where it
+was sorted, and sorted again when one does not (the tree would grow loose): a conditional
+node decides on the device.
 
 Many worlds: a world id per slave and per master node enters every key and every comparison;
 results per world equal running each world alone. A master without world ids is shared by all
@@ -31,7 +32,6 @@ import numpy as np
 import warp as wp
 
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, TIE_RTOL
-from arraycontact._prepare import CELL_MARGIN
 from arraycontact._select import boundary_topology
 from arraycontact._surface import Surface, validate_points
 
@@ -47,7 +47,6 @@ from ._select import classify, proximal
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
-NODE_CELL = 1.5 * CELL_MARGIN
 
 
 @wp.kernel
@@ -65,13 +64,12 @@ def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.
 
 
 # Three kernels rather than one: the face scan alone spills fewer registers. 64 registers a
-# thread, from a sweep at 2^20 on an H200 (benchmarks/gpu_registers.py): no cap 1.03 ms (111
-# registers), 48: 0.83, 64: 0.82, 80: 0.88, 96: 1.02 ms; more threads in flight hide the
-# grid reads' latency.
+# thread (a sweep on the uniform grid this tree replaced, benchmarks/gpu_registers.py: more
+# threads in flight hide the reads' latency).
 @wp.kernel(cuda_max_registers=64)
 def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
                  order: wp.array(dtype=int), slave_world: wp.array(dtype=int), shared: int,
-                 origin: vec3, d_max: real, tie: real, slack: real, r_cap: real,
+                 origin: vec3, d_max: real, tie: real, slack: real,
                  iterations: int, tol: real, dist: wp.array(dtype=real),
                  face_out: wp.array(dtype=int), item: wp.array(dtype=int)):
     """Stage 4, exact mode: the smallest distance (into `dist`, replacing the closest node's),
@@ -92,8 +90,8 @@ def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dty
     k = int(-1)
     for scan in range(2):
         if scan == 0 or (dmin <= d_max and unsure == 1):
-            d, f, k, unsure = scan_faces(el, m, face_grid, s, w, shared, rho, r_cap, tie, limit,
-                                         slack, iterations, tol)
+            d, f, k, unsure = scan_faces(el, m, face_grid, s, w, shared, rho, tie, limit, slack,
+                                         iterations, tol)
             if scan == 0:
                 dmin = d
                 limit = dmin + tie
@@ -195,8 +193,7 @@ OUTPUTS = (("active", wp.int32), ("face", int), ("xi", vec2), ("point", vec3),
 
 @dataclass(eq=False)
 class Plan:
-    """Every buffer of a Warp detection (see `plan`). `overflow` is a device int array [1]:
-    nonzero when a master face outgrew the radius its grid was planned for."""
+    """Every buffer of a Warp detection (see `plan`)."""
 
     device: object
     master: Surface
@@ -213,8 +210,8 @@ class Plan:
     constants: dict
     slave_in: wp.array
     master_in: wp.array
-    overflow: wp.array
-    rebuild: wp.array  # int32 [1]: the last refit found the grids' keys stale and rebuilt
+    rebuild: wp.array  # int32 [1]: the last refit found the trees' order stale and rebuilt
+    world_bits: int  # the key bits above the Morton code that hold the world id
     out: dict
     dtype: np.dtype  # what the kernels compute in
     order: wp.array  # [2 n]: the slaves in the order the threads take them (Morton or identity)
@@ -252,7 +249,8 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
 
     slave_world [n] and master_world [n_points]: world ids (non-negative ints). Without
     master_world the master is shared by all worlds. d_max: default the longest master edge.
-    growth: how much larger than now the master's faces may become before `overflow`.
+    growth: how far an item may move before a refit sorts the trees again: (growth - 1)
+    times a small face's radius (the tenth percentile at plan time).
     sort_slaves: the order the threads take the slaves in, so that the threads of a GPU warp
     take neighbouring slaves and scan the same cells (results are the same in any order):
     "plan" (default), the Morton order of slave_points, once (the slaves of a body keep their
@@ -263,12 +261,11 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     staged into the plan's own) replays the previous call's launches as a CUDA graph, captured
     then: the same kernels without Python's launch overhead.
     refit: where the device can choose without the host (in a CUDA graph, detect's own or the
-    caller's, with conditional nodes: CUDA 12.4+; on the CPU), the master's grids keep their
-    keys and order while every face stays within r_cap (growth times the plan's largest face
-    radius) of the centre it was keyed by and every node within r_cap less that radius of
-    where it was, and are built again when one does not; `rebuild[0]` says which the last call
-    did. The results are the same; a refit skips the keys and the sorts (at 2^20 on an H100,
-    1.61 -> 1.37 ms). False: builds in every call."""
+    caller's, with conditional nodes: CUDA 12.4+; on the CPU), the master's trees keep their
+    order (their boxes recomputed: exact for any motion) while every face centre and node
+    stays within that margin of where it was sorted, and are sorted again when one does not;
+    `rebuild[0]` says which the last call did. The results are the same either way; a refit
+    skips the keys and the sorts. False: sorts in every call."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(master, slave_points, slave_world=slave_world,
@@ -304,15 +301,15 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
         raise ValueError(f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}")
     e = master.element
     _, radii = master.face_bounds
-    r_cap = float(radii.max()) * growth
+    r_max = float(radii.max())
     pts = master.points[master.nodes]
     lo = np.minimum(x.min(0), pts.min(0)) - d_max
     hi = np.maximum(x.max(0), pts.max(0)) + d_max
     extent = 2 * float((hi - lo).max())
     eps = float(np.finfo(NP_REAL).eps)
     tie = TIE_RTOL[NP_REAL] * master.longest_edge
-    consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_cap),
-                  r_cap=r_cap, tol=KKT_TOL[NP_REAL],
+    consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_max),
+                  tol=KKT_TOL[NP_REAL],
                   iterations=ITERATIONS.get(e.name, 0), lebesgue=float(e.lebesgue),
                   quantum=float((hi - lo).max()) / 1024)
 
@@ -336,28 +333,20 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
     element = element_data(e.name, device)
+    # Morton keys over the plan's box in the local frame; worlds above them in the key.
+    margin = (growth - 1) * float(np.quantile(radii, 0.1))
+    n_worlds = 1 if shared else int(nw.max()) + 1
+    node_grid, world_bits = _grid.new_grid(len(master.nodes), float((hi - lo).max()), device,
+                                           margin, n_worlds)
+    face_grid, _ = _grid.new_grid(master.n_faces, float((hi - lo).max()), device, margin,
+                                  n_worlds, corners=e.name == "tri3")
     p = Plan(device=device, master=master, n_slaves=len(x), element=element,
              kernel_element=triangle_data(device) if e.name == "tri3" else element,
-             # Node cells of 1.5 d_max: fewer empty cells read around a surface (closest-node
-             # kernel 0.23 -> 0.17 ms at 2^20 on an H100, d_max the longest edge; 2 d_max:
-             # 0.20 ms).
-             # A refit lets the nodes move as far as the largest face may grow (r_cap less its
-             # radius), within the stencil's reach ((NODE_CELL - 1) d_max past d_max, less a
-             # tenth for rounding).
-             m=m, node_grid=_grid.new_grid(
-                 len(master.nodes), NODE_CELL * d_max, device,
-                 margin=min(r_cap * (1 - 1 / growth), 0.9 * (NODE_CELL - 1) * d_max)
-                 if refit else 0),
-             # The face scan's reach plus the largest radius (at most d_max + slack + r_cap)
-             # stays under a cell: the cells it visits are at most 3 a side.
-             face_grid=_grid.new_grid(master.n_faces,
-                                      CELL_MARGIN * (d_max + r_cap) + consts["slack"], device,
-                                      corners=e.name == "tri3"),
+             m=m, node_grid=node_grid, face_grid=face_grid, world_bits=world_bits,
              node_ids=arr(master.nodes.astype(np.int32), int),
              slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
              slave_in=wp.zeros(len(x), dtype=vec3, device=device),
              master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
-             overflow=wp.zeros(1, dtype=int, device=device),
              rebuild=wp.zeros(1, dtype=wp.int32, device=device), out=out,
              dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
                  np.int32), int),
@@ -404,16 +393,15 @@ def _input(p: Plan, a, staging, what, n):
 
 
 def _build(p: Plan):
-    """The master's grids from its localised points."""
+    """The master's trees from its localised points."""
     c = p.constants
     dev = p.device
     m = p.m
     _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev,
-                p.rebuild)
+                p.rebuild, p.world_bits)
     if p.mode == 0:  # node mode reads no face grid
-        _grid.build_faces(p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"],
-                          m.face_world, p.overflow, dev, p.master.element.name == "tri3",
-                          p.rebuild)
+        _grid.build_faces(p.face_grid, m.points, m.faces, c["lebesgue"], m.face_world, dev,
+                          p.master.element.name == "tri3", p.rebuild, p.world_bits)
 
 
 def _master_stages(p: Plan, xm, m_origin):
@@ -422,11 +410,6 @@ def _master_stages(p: Plan, xm, m_origin):
     m = p.m
     wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
               device=dev)
-    p.overflow.zero_()
-    if p.mode == 1:  # the overflow flag, which the face grid's build raises in exact mode
-        wp.launch(_prepare.radius_check, p.master.n_faces,
-                  inputs=[m.points, m.faces, real(c["lebesgue"]), real(c["r_cap"])],
-                  outputs=[p.overflow], device=dev)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
     if p.refit and (dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())):
@@ -434,7 +417,7 @@ def _master_stages(p: Plan, xm, m_origin):
         p.rebuild.zero_()
         _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild)
         if p.mode == 0:
-            _grid.refit_faces(p.face_grid, m.points, m.faces, c["lebesgue"], c["r_cap"],
+            _grid.refit_faces(p.face_grid, m.points, m.faces, c["lebesgue"],
                               m.face_world, dev, p.master.element.name == "tri3", p.rebuild)
 
         def fill():
@@ -467,7 +450,7 @@ def _launch(p: Plan, xs, s_origin, master):
         wp.launch(_face_kernel, n,
                   inputs=[p.kernel_element, p.m, p.face_grid, xs, p.order, p.slave_world,
                           p.shared, s_origin, real(c["d_max"]), real(c["tie"]),
-                          real(c["slack"]), real(c["r_cap"]), c["iterations"], real(c["tol"])],
+                          real(c["slack"]), c["iterations"], real(c["tol"])],
                   outputs=[p.dist, o["face"], p.item], device=dev)
     wp.launch(_finish_kernel, n,
               inputs=[p.kernel_element, p.m, p.face_grid, xs, s_origin,
@@ -536,8 +519,7 @@ def run_one_shot(slave_x, master, prep, st, dtype):
     out = detect(p, x, master.points)
     out["active"] = out["active"].astype(bool)
     out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back
-    flag = int(p.overflow.numpy()[0])
-    return out, {"face_radius_overflow": flag}, {"face_radius_overflow": 0}
+    return out, {}, {}
 
 
 __all__ = ["Plan", "plan", "detect", "run_one_shot"]

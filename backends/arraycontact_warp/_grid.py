@@ -1,40 +1,53 @@
-"""Stage 2 in Warp: one hashed key per item (cell and world), a radix sort of the keys' table
-bits, and the range of every table slot from the sorted keys (adjacent differences) with the
-box around its items. No dense cell array. An item is a box (a point for a node) with its id
-and world, in key order. A refit computes the items and slot boxes again in the previous
-build's order, and says when an item moved farther than its cell allows."""
+"""Stage 2 in Warp: the size-adaptive tree of arraycontact._grid (read its docstring for the
+structure and the cost model), built by one radix sort and one reduction launch per level.
+
+Items (master nodes as points, faces as boxes) are sorted by a 63-bit key, the world id in the
+high bits and the Morton code of the item's centre below (21 bits an axis with one world), so
+each world's items are contiguous and every run of consecutive items is a compact cluster.
+Entry j of level k >= 1 is the box around entries W j ... W j + W - 1 of level k - 1 (level 0:
+the items) with the range of world ids under it. The scans walk the tree depth first without
+a stack (the next entry of an implicit complete tree is arithmetic: `next_entry`), entering
+an entry only when its box is within the reach, which shrinks as answers come. A refit keeps
+the order and recomputes the boxes (always exact); a build sorts again, which a refit asks
+for when an item moved farther than the plan's margin from where it was sorted (the tree
+would stay exact, but grow loose).
+"""
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from ._prepare import face_bounds
 from ._real import real, vec3
 
-# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
-# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+# Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
+# the kernel: minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
+
+#: Fan-out (the NumPy tree's): the 8 children of an entry are 256 contiguous bytes.
+W = 8
+MAX_LEVELS = 16
+_levels = wp.types.vector(length=MAX_LEVELS, dtype=int)
 
 
 @wp.struct
-class Slot:
-    """One table slot: its items' range in key order and the box around their balls (a scan
-    skips a cell whose items are all out of reach without reading them: on a surface most of
-    a cell is empty space). One 32-byte record, so one memory transaction reads it."""
+class Box:
+    """One tree entry: the box around the items under it and the range of their world ids
+    (an empty entry: lo > hi, wmin > wmax). One 32-byte record, so one memory transaction
+    reads it."""
 
     lo: vec3
-    begin: int
+    wmin: int
     hi: vec3
-    end: int
+    wmax: int
 
 
 @wp.struct
 class Item:
     """One item in key order: the box around it (lo = hi for a node), its id and world. One
-    32-byte record in float32: a scan's one read per item. A face's box rejects far more
-    faces of a surface than its ball (which bounds the face's extent in every direction).
-    `id` repeats sorted_ids[k] to fill the first half; the scans read sorted_ids, only for
-    the items they keep."""
+    32-byte record in float32: a scan's one read per item. `id` repeats sorted_ids[k] to fill
+    the first half; the scans read sorted_ids, only for the items they keep."""
 
     lo: vec3
     id: int
@@ -44,28 +57,26 @@ class Item:
 
 @wp.struct
 class Grid:
-    cell: real
-    # How far a node may be from the cell it was keyed in (a refit's allowance, which the
-    # closest-node scan adds to its reach when it picks cells); 0 for faces, whose allowance
-    # is in r_cap.
+    n: int  # items
+    top: int  # the root's level (>= 1)
+    offsets: _levels  # where level k >= 1 starts in `boxes` (levels padded to multiples of W)
+    quantum: real  # the Morton cell: 2^bits of them a side over the plan's box
+    bits: int  # Morton bits an axis (fewer when world ids take the key's high bits)
+    # A build sorts again when a refit finds an item farther than this from where it was
+    # sorted (a tree's refit is always exact: only its tightness is at stake).
     margin: real
-    table: int  # slots, a power of two
     sorted_ids: wp.array(dtype=int)  # item ids in key order (first n of 2n: radix scratch)
-    keys: wp.array(dtype=int)
-    # [table]; a slot no item of the current build hashes to has begin = end (its box is stale
-    # and unread).
-    slots: wp.array(dtype=Slot)
-    # In key order, so the scans read each cell's items contiguously.
-    items: wp.array(dtype=Item)
-    # tri3 face grids: the three corners of each face in key order (the projection's only
+    keys: wp.array(dtype=wp.int64)
+    boxes: wp.array(dtype=Box)
+    items: wp.array(dtype=Item)  # in key order: a leaf's items are contiguous
+    # tri3 face trees: the three corners of each face in key order (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
-    # Each item's centre (a node: its position) when its key was computed, in key order (a
-    # refit keeps the keys while the items stay near them); 1e30 before the first build.
+    # Each item's centre (a node: its position) when it was sorted, in key order.
     centres: wp.array(dtype=vec3)
 
 
-# Item and Slot are records of two 16-byte halves (a vec3 and an int each). Warp moves a struct
+# Item and Box are records of two 16-byte halves (a vec3 and an int each). Warp moves a struct
 # a component at a time, and a scan's scattered reads (or a gather's strided writes) pay one
 # cache request per access: in float32 each half moves in one 16-byte access on a GPU
 # (whole detection 1.88 -> 1.72 ms at 2^20 on an H100, with the graphs). float64 records take
@@ -106,13 +117,13 @@ if real is wp.float32:
     def _store_item(a: wp.array(dtype=Item), k: int, lo: vec3, i: int, hi: vec3, j: int): ...
 
     @wp.func_native(_HALF)
-    def _slot_vec(a: wp.array(dtype=Slot), k: int, h: int) -> vec3: ...
+    def _box_vec(a: wp.array(dtype=Box), k: int, h: int) -> vec3: ...
 
     @wp.func_native(_HALF_INT)
-    def _slot_int(a: wp.array(dtype=Slot), k: int, h: int) -> int: ...
+    def _box_int(a: wp.array(dtype=Box), k: int, h: int) -> int: ...
 
     @wp.func_native(_STORE)
-    def _store_slot(a: wp.array(dtype=Slot), k: int, lo: vec3, i: int, hi: vec3, j: int): ...
+    def _store_box(a: wp.array(dtype=Box), k: int, lo: vec3, i: int, hi: vec3, j: int): ...
 
     @wp.func
     def item_lo(grid: Grid, k: int):
@@ -122,22 +133,29 @@ if real is wp.float32:
     def item_hi(grid: Grid, k: int):
         return _item_vec(grid.items, k, 1)
 
+    @wp.func_native(_HALF_INT)
+    def _item_int(a: wp.array(dtype=Item), k: int, h: int) -> int: ...
+
     @wp.func
-    def read_slot(grid: Grid, key: int):
-        slot = Slot()
-        slot.lo = _slot_vec(grid.slots, key, 0)
-        slot.hi = _slot_vec(grid.slots, key, 1)
-        slot.begin = _slot_int(grid.slots, key, 0)
-        slot.end = _slot_int(grid.slots, key, 1)
-        return slot
+    def item_world(grid: Grid, k: int):
+        return _item_int(grid.items, k, 1)
+
+    @wp.func
+    def read_box(grid: Grid, key: int):
+        box = Box()
+        box.lo = _box_vec(grid.boxes, key, 0)
+        box.hi = _box_vec(grid.boxes, key, 1)
+        box.wmin = _box_int(grid.boxes, key, 0)
+        box.wmax = _box_int(grid.boxes, key, 1)
+        return box
 
     @wp.func
     def write_item(grid: Grid, k: int, lo: vec3, i: int, hi: vec3, world: int):
         _store_item(grid.items, k, lo, i, hi, world)
 
     @wp.func
-    def write_slot(grid: Grid, key: int, slot: Slot):
-        _store_slot(grid.slots, key, slot.lo, slot.begin, slot.hi, slot.end)
+    def write_box(grid: Grid, key: int, box: Box):
+        _store_box(grid.boxes, key, box.lo, box.wmin, box.hi, box.wmax)
 else:
     @wp.func
     def item_lo(grid: Grid, k: int):
@@ -148,8 +166,12 @@ else:
         return grid.items[k].hi
 
     @wp.func
-    def read_slot(grid: Grid, key: int):
-        return grid.slots[key]
+    def item_world(grid: Grid, k: int):
+        return grid.items[k].world
+
+    @wp.func
+    def read_box(grid: Grid, key: int):
+        return grid.boxes[key]
 
     @wp.func
     def write_item(grid: Grid, k: int, lo: vec3, i: int, hi: vec3, world: int):
@@ -161,125 +183,31 @@ else:
         grid.items[k] = item
 
     @wp.func
-    def write_slot(grid: Grid, key: int, slot: Slot):
-        grid.slots[key] = slot
+    def write_box(grid: Grid, key: int, box: Box):
+        grid.boxes[key] = box
+
+
 
 
 @wp.func
-def cell_of(x: vec3, cell: real):
-    return wp.vec3i(int(wp.floor(x[0] / cell)), int(wp.floor(x[1] / cell)),
-                    int(wp.floor(x[2] / cell)))
+def entry(grid: Grid, k: int, j: int):
+    """Entry j of level k >= 1."""
+    return read_box(grid, grid.offsets[k] + j)
 
 
 @wp.func
-def cell_key(c: wp.vec3i, world: int, table: int):
-    # Large odd multipliers (Teschner et al. 2003) in wrap-around unsigned arithmetic.
-    h = (wp.uint32(c[0]) * wp.uint32(73856093)) ^ (wp.uint32(c[1]) * wp.uint32(19349663))
-    h = h ^ (wp.uint32(c[2]) * wp.uint32(83492791)) ^ (wp.uint32(world) * wp.uint32(16777619))
-    return int(h & wp.uint32(table - 1))
-
-
-@wp.kernel
-def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int),
-          grid: Grid):
-    k = wp.tid()
-    i = ids[k]
-    grid.keys[k] = cell_key(cell_of(x[i], grid.cell), world[i], grid.table)
-    grid.sorted_ids[k] = i
-
-
-@wp.kernel
-def _clear(grid: Grid):
-    """Empty the slots the previous build filled (the keys still hold its items)."""
-    k = wp.tid()
-    key = grid.keys[k]
-    if k == 0 or grid.keys[k - 1] != key:
-        write_slot(grid, key, Slot())
-
-
-@wp.kernel
-def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
-               r_cap: real, world: wp.array(dtype=int), grid: Grid,
-               overflow: wp.array(dtype=int)):
-    """The face grid's keys (the cells of the faces' centres); a face whose radius outgrew
-    the one the grid was planned for raises `overflow`."""
-    f = wp.tid()
-    c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
-    grid.keys[f] = cell_key(cell_of(c, grid.cell), world[f], grid.table)
-    grid.sorted_ids[f] = f
-    if r > r_cap:
-        wp.atomic_max(overflow, 0, 1)
-
-
-@wp.kernel
-def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), refit: int, grid: Grid,
-            rebuild: wp.array(dtype=wp.int32)):
-    """Each node's record in key order (a point: lo = hi). refit = 1: the keys are the
-    previous build's; rebuild[0] is raised unless every node is within grid.margin of where it
-    was keyed."""
-    k = wp.tid()
-    i = grid.sorted_ids[k]
-    if refit == 1:
-        # (a thousandth under the margin the scan adds: room for rounding)
-        if wp.length(x[i] - grid.centres[k]) > real(0.999) * grid.margin:
-            rebuild[0] = 1
-    else:
-        grid.centres[k] = x[i]
-    write_item(grid, k, x[i], i, x[i], world[i])
-
-
-@wp.kernel
-def _face_gather(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
-                 world: wp.array(dtype=int), corners: int, refit: int, r_cap: real, grid: Grid,
-                 rebuild: wp.array(dtype=wp.int32)):
-    """Each face's record in key order, and (corners = 1, tri3) its corners. refit = 1: the
-    keys are the previous build's; rebuild[0] is raised unless every face still lies within
-    r_cap of the centre it was keyed by (the scans' assumption, which a build checks as
-    radius <= r_cap)."""
-    k = wp.tid()
-    i = grid.sorted_ids[k]
-    c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
-    if refit == 1:
-        if r + wp.length(c - grid.centres[k]) > r_cap:
-            rebuild[0] = 1
-    else:
-        grid.centres[k] = c
-    write_item(grid, k, lo, i, hi, world[i])
-    if corners == 1:
-        for j in range(3):
-            grid.corners[k, j] = points[faces[i, j]]
-
-
-@wp.kernel
-def _fill_slots(n: int, grid: Grid):
-    """The first item of each slot walks the slot's items (about ten, contiguous in key order)
-    for its range and box."""
-    k = wp.tid()
-    key = grid.keys[k]
-    if k == 0 or grid.keys[k - 1] != key:
-        slot = Slot()
-        slot.lo = item_lo(grid, k)
-        slot.hi = item_hi(grid, k)
-        slot.begin = k
-        j = k + 1
-        while j < n and grid.keys[j] == key:
-            slot.lo = wp.min(slot.lo, item_lo(grid, j))
-            slot.hi = wp.max(slot.hi, item_hi(grid, j))
-            j += 1
-        slot.end = j
-        write_slot(grid, key, slot)
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __ffs(x) - 1;
-#else
-return __builtin_ffs(x) - 1;
-#endif
-""")
-def lowest_bit(x: int) -> int:
-    """The index of x's lowest set bit (-1 for 0)."""
-    ...
+def next_entry(grid: Grid, k: int, j: int):
+    """The entry after (k, j) in depth-first order once (k, j) and what is under it are done:
+    its next sibling, else its parent's next sibling, and so on; (top + 1, 0) at the end.
+    (Levels are padded to whole groups of W, so a sibling always exists, empty or not.)"""
+    kk = k
+    jj = j
+    while kk < grid.top and jj % W == W - 1:
+        jj = jj // W
+        kk += 1
+    if kk >= grid.top:
+        return grid.top + 1, 0
+    return kk, jj + 1
 
 
 @wp.func
@@ -289,9 +217,239 @@ def box_gap_sq(s: vec3, lo: vec3, hi: vec3):
 
 
 @wp.func
-def box_near(s: vec3, slot: Slot, reach: real):
-    """Whether the box of a slot's items is within reach of s."""
-    return box_gap_sq(s, slot.lo, slot.hi) <= reach * reach
+def enters(s: vec3, world: int, shared: int, box: Box, reach: real):
+    """Whether a scan enters an entry: its box is within reach of s and (a master with world
+    ids) it holds items of the slave's world."""
+    ok = box_gap_sq(s, box.lo, box.hi) <= reach * reach
+    if ok and shared == 0:
+        ok = box.wmin <= world and world <= box.wmax
+    return ok
+
+
+@wp.func
+def nearest_leaf_distance(s: vec3, world: int, shared: int, grid: Grid):
+    """The distance from s to the closest item of the leaf reached by always entering the
+    child with the nearest box: an upper bound on the distance to the closest item (of the
+    slave's world), which starts a scan's reach near its final value. 3e38 when none."""
+    k = grid.top
+    j = int(0)
+    while k > 1:
+        best = real(3.0e38)
+        pick = int(-1)
+        for c in range(W):
+            box = entry(grid, k - 1, W * j + c)
+            d2 = box_gap_sq(s, box.lo, box.hi)
+            ok = d2 < best
+            if ok and shared == 0:
+                ok = box.wmin <= world and world <= box.wmax
+            if ok:
+                best = d2
+                pick = W * j + c
+        if pick < 0:
+            return real(3.0e38)
+        j = pick
+        k -= 1
+    best = real(3.0e38)
+    for t in range(W):
+        kk = W * j + t
+        if kk < grid.n:
+            ok = shared == 1
+            if not ok:
+                ok = item_world(grid, kk) == world
+            if ok:
+                best = wp.min(best, wp.length_sq(item_lo(grid, kk) - s))
+    if best >= real(3.0e38):
+        return best
+    return wp.sqrt(best)
+
+
+@wp.func
+def morton_key(c: vec3, world: int, quantum: real, bits: int):
+    """The world id above the Morton code of c's cell (bits an axis, clamped to the box)."""
+    top = (1 << bits) - 1
+    key = wp.int64(world) << wp.int64(3 * bits)
+    for a in range(3):
+        v = wp.int64(wp.clamp(int(wp.floor(c[a] / quantum)), 0, top))
+        for b in range(bits):
+            key = key | (((v >> wp.int64(b)) & wp.int64(1)) << wp.int64(3 * b + a))
+    return key
+
+
+@wp.kernel
+def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int),
+          grid: Grid):
+    k = wp.tid()
+    i = ids[k]
+    grid.keys[k] = morton_key(x[i], world[i], grid.quantum, grid.bits)
+    grid.sorted_ids[k] = i
+
+
+@wp.kernel
+def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
+               world: wp.array(dtype=int), grid: Grid):
+    f = wp.tid()
+    c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
+    grid.keys[f] = morton_key(c, world[f], grid.quantum, grid.bits)
+    grid.sorted_ids[f] = f
+
+
+@wp.kernel
+def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), refit: int, grid: Grid,
+            rebuild: wp.array(dtype=wp.int32)):
+    """Each node's record in key order (a point: lo = hi). refit = 1: the order is the
+    previous build's; rebuild[0] is raised when a node moved farther than grid.margin."""
+    k = wp.tid()
+    i = grid.sorted_ids[k]
+    if refit == 1:
+        if wp.length(x[i] - grid.centres[k]) > grid.margin:
+            rebuild[0] = 1
+    else:
+        grid.centres[k] = x[i]
+    write_item(grid, k, x[i], i, x[i], world[i])
+
+
+@wp.kernel
+def _face_gather(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
+                 world: wp.array(dtype=int), corners: int, refit: int, grid: Grid,
+                 rebuild: wp.array(dtype=wp.int32)):
+    """Each face's record (its box) in key order, and (corners = 1, tri3) its corners.
+    refit = 1: as _gather, for the faces' centres."""
+    k = wp.tid()
+    i = grid.sorted_ids[k]
+    c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
+    if refit == 1:
+        if wp.length(c - grid.centres[k]) > grid.margin:
+            rebuild[0] = 1
+    else:
+        grid.centres[k] = c
+    write_item(grid, k, lo, i, hi, world[i])
+    if corners == 1:
+        for j in range(3):
+            grid.corners[k, j] = points[faces[i, j]]
+
+
+@wp.func
+def _empty_box():
+    box = Box()
+    box.lo = vec3(real(1.0e30))
+    box.hi = vec3(real(-1.0e30))
+    box.wmin = int(2147483647)
+    box.wmax = int(-1)
+    return box
+
+
+@wp.kernel
+def _leaves(grid: Grid):
+    """Level 1: each entry's box and world range over its W items (empty past the last)."""
+    j = wp.tid()
+    box = _empty_box()
+    for t in range(W):
+        k = W * j + t
+        if k < grid.n:
+            box.lo = wp.min(box.lo, item_lo(grid, k))
+            box.hi = wp.max(box.hi, item_hi(grid, k))
+            w = item_world(grid, k)
+            box.wmin = wp.min(box.wmin, w)
+            box.wmax = wp.max(box.wmax, w)
+    write_box(grid, grid.offsets[1] + j, box)
+
+
+@wp.kernel
+def _level(grid: Grid, k: int):
+    """Level k >= 2: each entry's box and world range over its W children."""
+    j = wp.tid()
+    box = _empty_box()
+    for c in range(W):
+        b = entry(grid, k - 1, W * j + c)
+        box.lo = wp.min(box.lo, b.lo)
+        box.hi = wp.max(box.hi, b.hi)
+        box.wmin = wp.min(box.wmin, b.wmin)
+        box.wmax = wp.max(box.wmax, b.wmax)
+    write_box(grid, grid.offsets[k] + j, box)
+
+
+def level_sizes(n: int):
+    """Entries of levels 1 .. top (the NumPy tree's level_sizes without level 0), each padded
+    to a whole group of W in the allocation."""
+    sizes = [max(n, 1)]
+    while sizes[-1] > 1 or len(sizes) < 2:
+        sizes.append(-(-sizes[-1] // W))
+    return sizes[1:]
+
+
+def fill(grid: Grid, n: int, device):
+    """Every level's boxes from the items in key order: one launch a level, leaves first."""
+    sizes = level_sizes(n)
+    wp.launch(_leaves, sizes[0] + (-sizes[0]) % W, inputs=[grid], device=device)
+    for k, size in enumerate(sizes[1:], start=2):
+        wp.launch(_level, size + (-size) % W, inputs=[grid, k], device=device)
+
+
+def _sort(grid: Grid, n: int, world_bits: int):
+    wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
+                              end_bit=3 * int(grid.bits) + world_bits)
+
+
+def build(grid: Grid, x, ids, world, n: int, device, rebuild, world_bits: int):
+    """Fill `grid` with the points x[ids[:n]] (launches only: capturable)."""
+    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+    _sort(grid, n, world_bits)
+    wp.launch(_gather, n, inputs=[x, world, 0, grid, rebuild], device=device)
+    fill(grid, n, device)
+
+
+def build_faces(grid: Grid, points, faces, lebesgue: float, world, device, corners: bool,
+                rebuild, world_bits: int):
+    """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
+    corners in key order."""
+    n = faces.shape[0]
+    wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), world, grid], device=device)
+    _sort(grid, n, world_bits)
+    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 0,
+                                       grid, rebuild], device=device)
+    fill(grid, n, device)
+
+
+# A refit: the records again in the previous build's key order, raising rebuild[0] where an
+# item left the margin; then `fill`, or a build when raised (the caller's choice on the
+# device: wp.capture_if).
+def refit(grid: Grid, x, world, n: int, device, rebuild):
+    wp.launch(_gather, n, inputs=[x, world, 1, grid, rebuild], device=device)
+
+
+def refit_faces(grid: Grid, points, faces, lebesgue: float, world, device, corners: bool,
+                rebuild):
+    wp.launch(_face_gather, faces.shape[0], inputs=[points, faces, real(lebesgue), world,
+                                                    int(corners), 1, grid, rebuild],
+              device=device)
+
+
+def new_grid(n: int, extent: float, device, margin: float, n_worlds: int = 1,
+             corners=False):
+    """A tree for n items in a box of side `extent` (the local frame's), with `margin` the
+    distance an item may move before a refit asks for a build. Returns (grid, world bits)."""
+    world_bits = max(int(n_worlds - 1).bit_length(), 0)
+    sizes = level_sizes(n)
+    if len(sizes) >= MAX_LEVELS:
+        raise ValueError(f"{n} items need more than {MAX_LEVELS} tree levels")
+    g = Grid()
+    g.n, g.top = max(n, 0), len(sizes)
+    offsets = np.zeros(MAX_LEVELS, np.int32)
+    total = 0
+    for k, size in enumerate(sizes, start=1):
+        offsets[k] = total
+        total += size + (-size) % W
+    g.offsets = _levels(*[int(v) for v in offsets])
+    g.bits = min(21, (63 - world_bits) // 3)
+    g.quantum = real(max(float(extent), 1e-30) / (1 << g.bits))
+    g.margin = real(margin)
+    g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
+    g.keys = wp.zeros(2 * max(n, 1), dtype=wp.int64, device=device)
+    g.boxes = wp.zeros(total, dtype=Box, device=device)
+    g.items = wp.zeros(max(n, 1), dtype=Item, device=device)
+    g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
+    g.centres = wp.full(max(n, 1), vec3(1.0e30), dtype=vec3, device=device)
+    return g, world_bits
 
 
 @wp.func
@@ -309,8 +467,11 @@ def _spread(v: int):
 def _morton(x: wp.array(dtype=vec3), origin: vec3, quantum: real, keys: wp.array(dtype=int),
             order: wp.array(dtype=int)):
     i = wp.tid()
-    c = cell_of(x[i] - origin, quantum)
-    keys[i] = int(_spread(c[0]) | (_spread(c[1]) << wp.uint32(1)) | (_spread(c[2]) << wp.uint32(2)))
+    c = x[i] - origin
+    cx = int(wp.floor(c[0] / quantum))
+    cy = int(wp.floor(c[1] / quantum))
+    cz = int(wp.floor(c[2] / quantum))
+    keys[i] = int(_spread(cx) | (_spread(cy) << wp.uint32(1)) | (_spread(cz) << wp.uint32(2)))
     order[i] = i
 
 
@@ -320,64 +481,3 @@ def spatial_order(x, origin, quantum, keys, order, n: int, device):
     same grid cells (launches only: capturable; keys and order hold 2n for the radix sort)."""
     wp.launch(_morton, n, inputs=[x, origin, quantum, keys, order], device=device)
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=30)
-
-
-def _sort(grid: Grid, n: int):
-    # Only the key bits the table uses (fewer radix passes).
-    wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
-                              end_bit=(grid.table - 1).bit_length())
-
-
-def build(grid: Grid, x, ids, world, n: int, device, rebuild):
-    """Fill `grid` with the points x[ids[:n]] (launches only: capturable)."""
-    wp.launch(_clear, n, inputs=[grid], device=device)
-    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
-    _sort(grid, n)
-    wp.launch(_gather, n, inputs=[x, world, 0, grid, rebuild], device=device)
-    fill(grid, n, device)
-
-
-def build_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, overflow,
-                device, corners: bool, rebuild):
-    """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
-    corners in key order. overflow[0] is raised when a face's radius exceeds r_cap."""
-    n = faces.shape[0]
-    wp.launch(_clear, n, inputs=[grid], device=device)
-    wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), real(r_cap), world, grid,
-                                     overflow], device=device)
-    _sort(grid, n)
-    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 0,
-                                       real(r_cap), grid, rebuild], device=device)
-    fill(grid, n, device)
-
-
-# A refit: the records of a grid again in the previous build's key order, raising rebuild[0]
-# where an item left the allowance its cell was planned with; then `fill`, or a build when
-# raised (the caller's choice on the device: wp.capture_if).
-def refit(grid: Grid, x, world, n: int, device, rebuild):
-    wp.launch(_gather, n, inputs=[x, world, 1, grid, rebuild], device=device)
-
-
-def refit_faces(grid: Grid, points, faces, lebesgue: float, r_cap: float, world, device,
-                corners: bool, rebuild):
-    wp.launch(_face_gather, faces.shape[0], inputs=[points, faces, real(lebesgue), world,
-                                                    int(corners), 1, real(r_cap), grid,
-                                                    rebuild], device=device)
-
-
-def fill(grid: Grid, n: int, device):
-    """Every slot's range and box from the records in key order."""
-    wp.launch(_fill_slots, n, inputs=[n, grid], device=device)
-
-
-def new_grid(n: int, cell: float, device, margin=0.0, corners=False) -> Grid:
-    table = max(64, 1 << int(max(2 * n, 1) - 1).bit_length())
-    g = Grid()
-    g.cell, g.margin, g.table = real(cell), real(margin), table
-    g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
-    g.keys = wp.zeros(2 * max(n, 1), dtype=int, device=device)
-    g.slots = wp.zeros(table, dtype=Slot, device=device)
-    g.items = wp.zeros(max(n, 1), dtype=Item, device=device)
-    g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
-    g.centres = wp.full(max(n, 1), vec3(1.0e30), dtype=vec3, device=device)
-    return g

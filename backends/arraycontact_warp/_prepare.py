@@ -1,5 +1,5 @@
 """Stage 1 in Warp: the master's geometry from its current coordinates (local frame), every
-step: face balls (centre, Lebesgue radius) and boxes, computed where the face grid's kernels
+step: face balls (centre, Lebesgue radius) and boxes, computed where the face tree's kernels
 need them (reading the nodes, which stay in the cache, costs less than writing and gathering
 per-face arrays). Node pseudo-normals are computed where a slave ends on a vertex
 (_select.node_normal), not for every node."""
@@ -48,13 +48,4 @@ def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: i
     return c, r, wp.max(m - w, c - vec3(r)), wp.min(m + w, c + vec3(r))
 
 
-@wp.kernel
-def radius_check(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
-                 r_cap: real, overflow: wp.array(dtype=int)):
-    """overflow[0] raised when a face's radius exceeds r_cap (node mode: no face grid does it)."""
-    c, r, lo, hi = face_bounds(points, faces, wp.tid(), lebesgue)
-    if r > r_cap:
-        wp.atomic_max(overflow, 0, 1)
-
-
-__all__ = ["localise", "face_bounds", "radius_check"]
+__all__ = ["localise", "face_bounds"]

@@ -1,5 +1,5 @@
-"""Stage 4 in Warp: candidate faces by their balls within min(closest-node distance, d_max)
-through the 3x3x3 stencil of the face grid, and the closest point on each (tri3 in closed form,
+"""Stage 4 in Warp: candidate faces by their boxes within min(closest-node distance, d_max)
+through the face tree, and the closest point on each (tri3 in closed form,
 other elements by the active-set method from start I and, on curved faces, also from the
 centre, the mid-edge nodes and a lattice start, then the exact edges: as the NumPy back end).
 Each slave scans its candidates once, keeping the smallest distance and applying the tie rule
@@ -15,13 +15,10 @@ import warp as wp
 from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
-from ._closest_node import _cell_near
-from ._grid import (Grid, box_gap_sq, box_near, cell_key, cell_of, item_hi, item_lo,
-                    lowest_bit, read_slot)
+from ._grid import W, Grid, box_gap_sq, enters, entry, item_hi, item_lo, item_world, next_entry
 from ._real import real, vec2, vec3
 
-# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
-# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+# Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
@@ -160,23 +157,22 @@ def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
-CANDIDATES = 16  # faces a thread collects before projecting them (about 10 on a surface)
-_candidates = wp.types.vector(length=CANDIDATES, dtype=int)
+_candidates = wp.types.vector(length=W, dtype=int)
 
 
 @wp.func
 def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int, rho: real,
-               r_max: real, tie: real, limit: real, slack: real, iterations: int, tol: real):
-    """Over the faces whose ball is within rho of s: the smallest distance, and the face of the
-    tie rule (smallest id within `tie` of it) with its grid item (its projection is computed
+               tie: real, limit: real, slack: real, iterations: int, tol: real):
+    """Over the faces whose box is within rho of s: the smallest distance, and the face of the
+    tie rule (smallest id within `tie` of it) with its tree item (its projection is computed
     again by the caller: keeping it through the scan costs registers that all threads pay).
     shared = 1: every item is of this world.
 
-    In three flat loops, so that the threads of a GPU warp, each with its own cells and
-    candidates, diverge little: the slots of the 27 stencil cells within reach; their items'
-    balls, collecting the faces within reach (CANDIDATES at a time); the projections of the
-    collected faces. The reach shrinks to the running minimum (plus rounding slack) after each
-    batch: no farther face can hold the answer.
+    The face tree depth first (_grid), entering the entries within the reach; at a leaf, its
+    faces within reach are collected, the nearest box's projected first, the others tested
+    again against the reach of the running minimum (which rejects most before their
+    projection). The reach shrinks to the running minimum (plus rounding slack) after each
+    projection: no farther face can hold the answer.
 
     limit < 0, the first scan: the tie rule applied as the faces come, from the face at the
     running minimum, the smallest distance of any other face seen and the chosen face. When a
@@ -186,25 +182,8 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far."""
     reach = rho
-    # The cells meeting the cube of half-side reach + r_max around s (at most 3 a side, as the
-    # cell is wider than that reach; mostly 2): bit q of `cells` marks the cell a + (q % 3,
-    # q // 3 % 3, q // 9) as within reach with items in reach. A mask, not a list of ranges:
-    # a thread's state stays small enough for the cache (lists spilled to local memory
-    # evicted the grid's data from it).
-    a = cell_of(s - vec3(reach + r_max), grid.cell)
-    b = cell_of(s + vec3(reach + r_max), grid.cell)
-    cells = int(0)
-    for cz in range(a[2], b[2] + 1):
-        for cy in range(a[1], b[1] + 1):
-            for cx in range(a[0], b[0] + 1):
-                c = wp.vec3i(cx, cy, cz)
-                if _cell_near(s, c, grid.cell, reach + r_max):
-                    slot = read_slot(grid, cell_key(c, world, grid.table))
-                    if slot.begin < slot.end:
-                        if box_near(s, slot, reach):
-                            cells = cells | (1 << ((cz - a[2]) * 9 + (cy - a[1]) * 3 + cx - a[0]))
     dmin = real(3.0e38)
-    f_min = int(-1)  # the face at dmin and its grid item
+    f_min = int(-1)  # the face at dmin and its tree item
     k_min = int(-1)
     second = real(3.0e38)  # the smallest distance of the other faces
     best = int(-1)
@@ -212,75 +191,73 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     b_k = int(-1)
     unsure = int(0)
     found = _candidates(0)
-    k = int(0)  # the item the collection goes on from, and its slot's end
-    end = int(0)
-    while k < end or cells != 0:
-        n = int(0)
-        first = int(0)  # the collected face with the nearest box: projected first
-        first_d2 = real(3.0e38)
-        while n < CANDIDATES and (k < end or cells != 0):
-            if k < end:
-                d2 = box_gap_sq(s, item_lo(grid, k), item_hi(grid, k))
-                near = d2 <= reach * reach
-                if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                    near = grid.items[k].world == world
-                if near:
-                    if d2 < first_d2:
-                        first = n
-                        first_d2 = d2
-                    found[n] = k
-                    n += 1
-                k += 1
-            else:  # the next marked cell's slot
-                q = lowest_bit(cells)
-                cells = cells & (cells - 1)
-                slot = read_slot(grid, cell_key(a + wp.vec3i(q % 3, (q // 3) % 3, q // 9),
-                                                world, grid.table))
-                k = slot.begin
-                end = slot.end
-        for t in range(n):
-            # The nearest box first (swapped with the first collected): its face is mostly the
-            # closest or nearly, and the faces after it are tested again against the reach of
-            # the running minimum, which rejects most of them before their projection.
-            tt = t
-            if t == 0:
-                tt = first
-            elif t == first:
-                tt = 0
-            kt = found[tt]
-            f = grid.sorted_ids[kt]
-            cut = wp.min(reach, wp.max(dmin, limit) + slack)
-            near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
-            # The second scan skips ids above the best so far.
-            if near and (limit < real(0.0) or best < 0 or f < best):
-                xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
-                d = wp.length(diff)
-                top = limit
-                if limit < real(0.0):
-                    if d < dmin:
-                        top = d + tie
-                        if best >= 0 and b_d > top:
-                            best = int(-1)
-                            if dmin <= top:
-                                best = f_min
-                                b_d = dmin
-                                b_k = k_min
-                                if second <= top:
-                                    unsure = 1
-                        second = wp.min(second, dmin)
-                        dmin = d
-                        f_min = f
-                        k_min = kt
+    lv = grid.top
+    j = int(0)
+    while lv <= grid.top:
+        go = enters(s, world, shared, entry(grid, lv, j), reach)
+        if go and lv > 1:
+            lv -= 1
+            j = W * j
+        else:
+            n = int(0)
+            first = int(0)  # the collected face with the nearest box: projected first
+            first_d2 = real(3.0e38)
+            if go:
+                for t in range(W):
+                    k = W * j + t
+                    if k < grid.n:
+                        d2 = box_gap_sq(s, item_lo(grid, k), item_hi(grid, k))
+                        near = d2 <= reach * reach
+                        if near and shared == 0:  # (Warp evaluates both sides of `or`)
+                            near = item_world(grid, k) == world
+                        if near:
+                            if d2 < first_d2:
+                                first = n
+                                first_d2 = d2
+                            found[n] = k
+                            n += 1
+            for t in range(n):
+                tt = t
+                if t == 0:
+                    tt = first
+                elif t == first:
+                    tt = 0
+                kt = found[tt]
+                f = grid.sorted_ids[kt]
+                cut = wp.min(reach, wp.max(dmin, limit) + slack)
+                near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
+                # The second scan skips ids above the best so far.
+                if near and (limit < real(0.0) or best < 0 or f < best):
+                    xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations,
+                                                             tol)
+                    d = wp.length(diff)
+                    top = limit
+                    if limit < real(0.0):
+                        if d < dmin:
+                            top = d + tie
+                            if best >= 0 and b_d > top:
+                                best = int(-1)
+                                if dmin <= top:
+                                    best = f_min
+                                    b_d = dmin
+                                    b_k = k_min
+                                    if second <= top:
+                                        unsure = 1
+                            second = wp.min(second, dmin)
+                            dmin = d
+                            f_min = f
+                            k_min = kt
+                        else:
+                            second = wp.min(second, d)
+                        top = dmin + tie
                     else:
-                        second = wp.min(second, d)
-                    top = dmin + tie
-                else:
-                    dmin = wp.min(dmin, d)
-                if d <= top and (best < 0 or f < best):
-                    best = f
-                    b_d = d
-                    b_k = kt
-        reach = wp.min(reach, wp.max(dmin, limit) + slack)
+                        dmin = wp.min(dmin, d)
+                    if d <= top and (best < 0 or f < best):
+                        best = f
+                        b_d = d
+                        b_k = kt
+                    reach = wp.min(reach, wp.max(dmin, limit) + slack)
+            lv, j = next_entry(grid, lv, j)
     return dmin, best, b_k, unsure
 
 
