@@ -41,6 +41,10 @@ SCENES = {
     "curved_quad8": lambda: scenes.curved_patch(4, element="quad8", n_slaves=200),
     "curved_quad9": lambda: scenes.curved_patch(5, element="quad9", n_slaves=300),
     "layers_tri6": lambda: scenes.rough_layers(2**8, quadratic=True),
+    # Graded meshes: element sizes 1 .. 1000 in one surface, and a fine patch in a coarse
+    # plate (the size-adaptive tree's cases).
+    "graded_tri3": lambda: scenes.graded_surfaces(2**10, ratio=1000.0),
+    "fine_patch_quad4": lambda: scenes.fine_patch(12, ratio=1000.0, element="quad4"),
 }
 
 
@@ -124,6 +128,26 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
                   for c in (c2, c3))
         assert 0.8 < n2 / n3 < 1.25
     assert_matches_reference(c2, s2, m2)
+
+
+def _pairs_per_slave(scene):
+    c = ac.detect(scene.slave, scene.master)
+    return sum(c.counts.count.values()) / len(scene.slave)
+
+
+def test_work_per_slave_does_not_grow_with_grading():
+    # The tree's cost model (arraycontact._grid): the pairs each level keeps depend on the
+    # local face size, not on the ratio of the largest to the smallest face. A uniform grid
+    # sized by the longest edge kept ~ratio^2 more faces per slave on the graded members.
+    uniform = _pairs_per_slave(scenes.graded_surfaces(2**12, ratio=1.0))
+    for ratio in (10.0, 100.0, 1000.0):
+        graded = _pairs_per_slave(scenes.graded_surfaces(2**12, ratio=ratio))
+        assert graded <= 2.0 * uniform, (ratio, graded, uniform)
+    # Nor with d_max beyond the answers it adds: 10x the default on the same slaves.
+    s = scenes.rough_surfaces(2**12)
+    c1 = ac.detect(s.slave, s.master)
+    c10 = ac.detect(s.slave, s.master, d_max=10 * s.master.longest_edge)
+    assert sum(c10.counts.count.values()) <= 1.5 * sum(c1.counts.count.values())
 
 
 def test_displacement_raises_d_max():

@@ -1,0 +1,275 @@
+"""The scene suite: every scene against the peers a user would pick instead, in the same run.
+
+    python benchmarks/suite.py scenes                 # gmsh scenes -> benchmarks/scenes/*.npz
+    python benchmarks/suite.py gpu --log2 20          # CUDA machine with Warp: ours vs wp.Mesh
+    python benchmarks/suite.py cpu --log2 16          # CPU: ours vs fcpw and libigl
+
+Scenes (sizes from --log2 k, 2^k nodes per surface where the scene has two surfaces):
+- uniform: two rough surfaces facing each other (the README's scene);
+- steep: rough surfaces with RMS 4 element sizes (faces much longer than their spacing);
+- graded_r: the grading family, the same node count with element sizes 1 .. r, r = 1, 10,
+  100, 1000 (roughness and gap scale with the local size);
+- fine_patch: a patch 1000x finer than the plate around it, a rough punch on the patch;
+- tyre: a cylinder pressed into a rough road;
+- apart: the rough surfaces 50 element sizes apart (nothing within d_max);
+- dmax_f: the uniform scene with d_max = f x the default (0.25, 4, 10);
+- ball_block_N: gmsh, a ball pressed into a block, both refined around the contact to 1/N of
+  the coarse size (made here by `scenes`, carried to the GPU machine as .npz: it has no gmsh).
+
+Every record: run id, date, commit, command, device, scene, sizes, d_max, our time (plan,
+first call, steady state), the peers' times, and the error against the brute-force reference
+on a random subset of slaves (miss rate, wrong-face rate, largest gap error / longest edge).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import arraycontact as ac
+
+HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE))
+from run import errors  # noqa: E402
+
+SCENE_DIR = HERE / "scenes"
+
+
+def suite(k: int):
+    """(label, scene factory, d_max factor) for 2^k nodes a surface."""
+    n = 2**k
+    s = ac.scenes
+    out = [("uniform", lambda: s.rough_surfaces(n), 1.0),
+           ("steep", lambda: s.steep_rough_surfaces(n), 1.0)]
+    for r in (1, 10, 100, 1000):
+        out.append((f"graded_{r}", lambda r=r: s.graded_surfaces(n, ratio=float(r)), 1.0))
+    out += [("fine_patch", lambda: s.fine_patch(2 ** ((k - 2) // 2)), 1.0),
+            ("tyre", lambda: s.cylinder_on_road(n, radius=40.0), 1.0),
+            ("apart", lambda: s.rough_surfaces(n, gap=50.0), 1.0)]
+    for f in (0.25, 4.0, 10.0):
+        out.append((f"dmax_{f:g}", lambda: s.rough_surfaces(n), f))
+    for path in sorted(SCENE_DIR.glob("ball_block_*.npz")):
+        out.append((path.stem, lambda path=path: load_scene(path), 1.0))
+    return out
+
+
+def load_scene(path):
+    d = np.load(path)
+    master = ac.Surface(d["points"], d["faces"], "tri3")
+    return ac.scenes.Scene(Path(path).stem, master, d["slave"])
+
+
+def ball_block(refine: float, coarse=1.0, radius=2.0, depth=0.05):
+    """gmsh: a ball of `radius` pressed `depth` into a 10 x 10 x 4 block; both volumes meshed
+    with tetrahedra of size `coarse`, refined to coarse / refine within a radius of the
+    contact point. Master: the block's exterior surface; slaves: the ball's surface nodes."""
+    import gmsh
+
+    gmsh.initialize()
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.model.add("ball_block")
+    occ = gmsh.model.occ
+    block = occ.addBox(-5, -5, -4, 10, 10, 4)
+    ball = occ.addSphere(0, 0, radius - depth, radius)
+    occ.synchronize()
+    fine = coarse / refine
+    f = gmsh.model.mesh.field
+    pt = f.add("MathEval")
+    # Size: fine at the contact point, growing linearly to coarse.
+    f.setString(pt, "F", f"Min({coarse}, {fine} + 0.02 * Sqrt(x^2 + y^2 + z^2))")
+    f.setAsBackgroundMesh(pt)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    gmsh.model.mesh.generate(2)
+    nodes, coords, _ = gmsh.model.mesh.getNodes()
+    x = np.zeros((int(nodes.max()) + 1, 3))
+    x[nodes.astype(int)] = coords.reshape(-1, 3)
+
+    def surface_of(volume):
+        tris = []
+        for dim, tag in gmsh.model.getBoundary([(3, volume)], oriented=True):
+            types, _, conn = gmsh.model.mesh.getElements(2, abs(tag))
+            t = conn[list(types).index(2)].reshape(-1, 3).astype(int)
+            tris.append(t if tag > 0 else t[:, ::-1])
+        return np.concatenate(tris)
+
+    faces_block, faces_ball = surface_of(block), surface_of(ball)
+    gmsh.finalize()
+    used = np.unique(faces_ball)
+    return x, faces_block, x[used]
+
+
+def make_scenes(refines=(100, 300, 1000)):
+    SCENE_DIR.mkdir(exist_ok=True)
+    for r in refines:
+        x, faces, slave = ball_block(r)
+        # Outward: the enclosed volume, a sum over the faces, is positive.
+        t = x[faces]
+        if np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() < 0:
+            faces = faces[:, ::-1]
+        np.savez_compressed(SCENE_DIR / f"ball_block_{r}.npz", points=x, faces=faces,
+                            slave=slave)
+        print(f"ball_block_{r}: {len(faces)} master faces, {len(slave)} slaves")
+
+
+def _meta(a):
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True, cwd=HERE).stdout.strip()
+    return dict(run=a.run or datetime.datetime.now().strftime("%Y%m%d-%H%M%S"),
+                date=datetime.date.today().isoformat(), commit=commit,
+                command="python benchmarks/suite.py " + " ".join(sys.argv[1:]),
+                host=platform.node())
+
+
+def _median_time(fn, repeats, sync=lambda: None):
+    fn()
+    sync()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def run_gpu(a):
+    import warp as wp
+
+    import arraycontact_warp as acw
+    from peers_warp import mesh_peers
+
+    wp.config.quiet = True
+    dev = "cuda"
+    meta = dict(_meta(a), device=wp.get_device(dev).name)
+    for label, make, f in suite(a.log2):
+        if a.only and not any(label.startswith(o) for o in a.only):
+            continue
+        scene = make()
+        d_max = f * scene.master.longest_edge
+        t0 = time.perf_counter()
+        p = acw.plan(scene.master, scene.slave, d_max=d_max, device=dev)
+        xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=dev)
+        xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
+                      device=dev)
+        p.origin = np.zeros(3)
+        wp.synchronize_device(dev)
+        plan_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        acw.detect(p, xs, xm)
+        wp.synchronize_device(dev)
+        first_s = time.perf_counter() - t0
+        steady = _median_time(lambda: acw.detect(p, xs, xm), a.repeats,
+                              lambda: wp.synchronize_device(dev))
+        out = {k: v.numpy() for k, v in p.out.items()}
+        c = ac.Contacts(active=out["active"].astype(bool), face=out["face"], xi=out["xi"],
+                        point=out["point"], gap=out["gap"], distance=out["distance"],
+                        normal=out["normal"], feature=out["feature"],
+                        master_node=out["master_node"], status=out["status"],
+                        slave_ids=np.arange(len(scene.slave)), d_max=d_max)
+        err = errors(c, scene, a.check, "float32")
+        peers = mesh_peers(scene.master, scene.slave, d_max, repeats=a.repeats, device=dev)
+        rec = dict(meta, scene=label, log2=a.log2, n_slaves=len(scene.slave),
+                   n_faces=scene.master.n_faces, d_max=d_max, ours="warp float32 exact",
+                   plan_s=plan_s, first_s=first_s, steady_s=steady, errors=err,
+                   mesh_build_query_s=peers["build_query"][1],
+                   mesh_refit_query_s=peers["refit_query"][1],
+                   mesh_refit_query_graph_s=peers.get("refit_query_graph", (0, None))[1],
+                   active=int(c.active.sum()))
+        rec["vs_refit"] = steady / rec["mesh_refit_query_s"]
+        rec["vs_build"] = steady / rec["mesh_build_query_s"]
+        _write(a, rec)
+        del p, xs, xm
+
+
+def run_cpu(a):
+    import fcpw
+    import igl
+    import warp as wp
+
+    import arraycontact_warp as acw
+
+    wp.config.quiet = True
+    meta = dict(_meta(a), device=platform.processor() or platform.machine())
+    for label, make, f in suite(a.log2):
+        if a.only and not any(label.startswith(o) for o in a.only):
+            continue
+        scene = make()
+        m = scene.master
+        d_max = f * m.longest_edge
+        q32 = np.ascontiguousarray(scene.slave, np.float32)
+
+        def fcpw_run():
+            sc = fcpw.scene_3D()
+            sc.set_object_count(1)
+            sc.set_object_vertices(np.ascontiguousarray(m.points, np.float32), 0)
+            sc.set_object_triangles(np.ascontiguousarray(m.faces, np.int32), 0)
+            sc.build(fcpw.aggregate_type.bvh_surface_area, True)
+            hits = fcpw.interaction_3D_list()
+            sc.find_closest_points(q32, np.full(len(q32), d_max * d_max, np.float32), hits)
+
+        def igl_run():
+            igl.point_mesh_squared_distance(scene.slave, m.points, m.faces.astype(np.int64))
+
+        t_fcpw = _median_time(fcpw_run, a.repeats)
+        t_igl = _median_time(igl_run, max(a.repeats // 2, 1))
+        ours = {}
+        for dtype in ("float32", "float64"):
+            # The one-shot call a user makes: plan (Morton order, trees) and detect.
+            fn = lambda dtype=dtype: ac.detect(scene.slave, m, backend="warp", d_max=d_max,
+                                               dtype=dtype)
+            ours[f"warp_cpu_{dtype}_s"] = _median_time(fn, a.repeats)
+            p = acw.plan(m, scene.slave, d_max=d_max, device="cpu", dtype=dtype)
+            acw.detect(p, scene.slave, m.points)
+            ours[f"warp_cpu_{dtype}_detect_s"] = _median_time(
+                lambda p=p: acw.detect(p, scene.slave, m.points), a.repeats)
+        if not a.no_numpy:
+            ours["numpy_float64_s"] = _median_time(
+                lambda: ac.detect(scene.slave, m, d_max=d_max), 1)
+        c = ac.detect(scene.slave, m, backend="warp", d_max=d_max, dtype="float32")
+        rec = dict(meta, scene=label, log2=a.log2, n_slaves=len(scene.slave),
+                   n_faces=m.n_faces, d_max=d_max, **ours, fcpw_s=t_fcpw, libigl_s=t_igl,
+                   errors=errors(c, scene, a.check, "float32"), active=int(c.active.sum()))
+        best = min(v for k, v in ours.items() if not k.endswith("detect_s"))
+        rec["vs_fcpw"] = best / t_fcpw
+        _write(a, rec)
+
+
+def _write(a, rec):
+    out = Path(a.out or HERE / "results")
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / f"suite_{a.mode}.jsonl", "a") as fh:
+        fh.write(json.dumps(rec) + "\n")
+    keys = [k for k in rec if k.endswith("_s") or k.startswith("vs_")]
+    print(rec["scene"], rec["n_faces"], rec["n_slaves"],
+          " ".join(f"{k}={rec[k]:.4g}" for k in keys if rec[k] is not None),
+          "errors", {k: v for k, v in rec["errors"].items() if k != "checked"}, flush=True)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mode", choices=("scenes", "gpu", "cpu"))
+    ap.add_argument("--log2", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--check", type=int, default=64, help="slaves checked against the reference")
+    ap.add_argument("--only", nargs="*", help="scene labels (prefixes) to run")
+    ap.add_argument("--no-numpy", action="store_true")
+    ap.add_argument("--run", help="run id recorded with every record")
+    ap.add_argument("--out", help="folder for suite_<mode>.jsonl (default benchmarks/results)")
+    a = ap.parse_args()
+    {"scenes": lambda a: make_scenes(), "gpu": run_gpu, "cpu": run_cpu}[a.mode](a)
+
+
+if __name__ == "__main__":
+    main()
