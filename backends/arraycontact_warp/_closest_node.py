@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._grid import W, Grid, enters, entry, item_lo, item_world, nearest_leaf_distance, next_entry
+from ._grid import (W, Grid, children, enters, entry, item_lo, item_world,
+                    lowest_bit, pending, with_pending)
 from ._real import real, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy their body many times).
@@ -13,27 +14,26 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
 @wp.func
-def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, limit: real,
-          bound: real):
+def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, limit: real):
     """Within d_max: the smallest distance, the second smallest (of another node) and the
     smallest node id at distance <= limit (limit < 0: the id at the smallest distance), over
-    the tree depth first, entering only entries within the reach: d_max, cut to the running
-    minimum plus the tie band (or the tie limit) and at first to `bound` (a node's distance).
-    shared = 1: every item is of this world (a master shared by all worlds)."""
+    the tree depth first (_grid: a visit tests an entry's W children, goes on with the
+    nearest, keeps the others in `stack`), within the reach: d_max, cut to the running
+    minimum plus the tie band (or the tie limit). shared = 1: every item is of this world (a
+    master shared by all worlds)."""
     dmin = real(3.0e38)
     second = real(3.0e38)
     best = int(-1)
-    reach = wp.min(d_max, wp.max(bound + tie, limit))
+    reach = wp.min(d_max, wp.max(real(3.0e38), limit))
     wide = reach * real(1.0001)
+    stack = wp.uint64(0)  # level k's W bits: its children still to visit
     k = grid.top
     j = int(0)
-    while k <= grid.top:
-        go = enters(s, world, shared, entry(grid, k, j), wide)
-        if go and k > 1:
-            k -= 1
-            j = W * j
-        else:
-            if go:
+    visit = int(1)
+    while visit == 1:
+        visit = 0
+        if enters(s, world, shared, entry(grid, k, j), wide):
+            if k == 1:
                 for t in range(W):
                     kk = W * j + t
                     if kk < grid.n:
@@ -57,19 +57,34 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
                                     best = i
                                 reach = wp.min(reach, wp.max(dmin + tie, limit))
                                 wide = reach * real(1.0001)
-            k, j = next_entry(grid, k, j)
+            else:
+                mask, near_c = children(grid, s, world, shared, k, j, wide)
+                if mask != 0:
+                    stack = with_pending(stack, k - 1, mask & ~(1 << near_c))
+                    k -= 1
+                    j = W * j + near_c
+                    visit = 1
+        if visit == 0:
+            # The next sibling still to visit, here or on a level above.
+            while k < grid.top and pending(stack, k) == 0:
+                k += 1
+                j = j // W
+            if k < grid.top:
+                left = pending(stack, k)
+                c = lowest_bit(left)
+                stack = with_pending(stack, k, left & (left - 1))
+                j = W * (j // W) + c
+                visit = 1
     return dmin, second, best
 
 
 @wp.func
 def closest_node(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real):
-    """(node id or -1, distance or 3e38). One scan from the bound of the nearest leaf; the tie
-    rule needs a second only when another node is within `tie` of the closest (a slave
-    equidistant from two nodes)."""
-    bound = nearest_leaf_distance(s, world, shared, grid)
-    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0), bound)
+    """(node id or -1, distance or 3e38). One scan; the tie rule needs a second only when
+    another node is within `tie` of the closest (a slave equidistant from two nodes)."""
+    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0))
     if dmin <= d_max and second <= dmin + tie:
-        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, dmin + tie, dmin)
+        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, dmin + tie)
     return best, dmin
 
 

@@ -63,10 +63,10 @@ def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.
     dist[i] = dn
 
 
-# Three kernels rather than one: the face scan alone spills fewer registers. 64 registers a
-# thread (a sweep on the uniform grid this tree replaced, benchmarks/gpu_registers.py: more
-# threads in flight hide the reads' latency).
-@wp.kernel(cuda_max_registers=64)
+# Three kernels rather than one: the face scan alone spills fewer registers. No register cap:
+# the tree scan's state spilled under the 64 that suited the uniform grid it replaced (face
+# kernel 3.18 -> 2.36 ms at 2^20 on an H100, benchmarks/gpu_stages.py).
+@wp.kernel
 def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
                  order: wp.array(dtype=int), slave_world: wp.array(dtype=int), shared: int,
                  origin: vec3, d_max: real, tie: real, slack: real,
@@ -306,6 +306,9 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     lo = np.minimum(x.min(0), pts.min(0)) - d_max
     hi = np.maximum(x.max(0), pts.max(0)) + d_max
     extent = 2 * float((hi - lo).max())
+    # The local frame at the slaves' box (less d_max): float32 keeps its precision where the
+    # contacts are, however large the master is around them (a fine patch in a coarse plate).
+    origin = x.min(0) - d_max
     eps = float(np.finfo(NP_REAL).eps)
     tie = TIE_RTOL[NP_REAL] * master.longest_edge
     consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_max),
@@ -336,15 +339,15 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     # Morton keys over the plan's box in the local frame; worlds above them in the key.
     margin = (growth - 1) * float(np.quantile(radii, 0.1))
     n_worlds = 1 if shared else int(nw.max()) + 1
-    node_grid, world_bits = _grid.new_grid(len(master.nodes), float((hi - lo).max()), device,
-                                           margin, n_worlds)
-    face_grid, _ = _grid.new_grid(master.n_faces, float((hi - lo).max()), device, margin,
-                                  n_worlds, corners=e.name == "tri3")
+    node_grid, world_bits = _grid.new_grid(len(master.nodes), lo - origin,
+                                           float((hi - lo).max()), device, margin, n_worlds)
+    face_grid, _ = _grid.new_grid(master.n_faces, lo - origin, float((hi - lo).max()), device,
+                                  margin, n_worlds, corners=e.name == "tri3")
     p = Plan(device=device, master=master, n_slaves=len(x), element=element,
              kernel_element=triangle_data(device) if e.name == "tri3" else element,
              m=m, node_grid=node_grid, face_grid=face_grid, world_bits=world_bits,
              node_ids=arr(master.nodes.astype(np.int32), int),
-             slave_world=arr(sw, int), shared=int(shared), origin=lo, constants=consts,
+             slave_world=arr(sw, int), shared=int(shared), origin=origin, constants=consts,
              slave_in=wp.zeros(len(x), dtype=vec3, device=device),
              master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
              rebuild=wp.zeros(1, dtype=wp.int32, device=device), out=out,
@@ -357,7 +360,7 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
              passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs),
              refit=bool(refit))
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
-        p.slave_in.assign((x - lo).astype(NP_REAL))
+        p.slave_in.assign((x - origin).astype(NP_REAL))
         _grid.spatial_order(p.slave_in, vec3(0.0, 0.0, 0.0), real(consts["quantum"]),
                             wp.zeros(2 * len(x), dtype=int, device=device), p.order, len(x),
                             device)

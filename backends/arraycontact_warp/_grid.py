@@ -5,9 +5,12 @@ Items (master nodes as points, faces as boxes) are sorted by a 63-bit key, the w
 high bits and the Morton code of the item's centre below (21 bits an axis with one world), so
 each world's items are contiguous and every run of consecutive items is a compact cluster.
 Entry j of level k >= 1 is the box around entries W j ... W j + W - 1 of level k - 1 (level 0:
-the items) with the range of world ids under it. The scans walk the tree depth first without
-a stack (the next entry of an implicit complete tree is arithmetic: `next_entry`), entering
-an entry only when its box is within the reach, which shrinks as answers come. A refit keeps
+the items) with the range of world ids under it. The scans walk the tree depth first; a visit
+of an entry tests its W children at once (one 256-byte read, the same work for every thread
+of a GPU warp), goes on with the nearest child and keeps the others as a bit mask per level
+(the whole stack: a thread's state stays in registers), each tested again against the reach
+when its turn comes: the reach shrinks as answers come, and the nearest-first path finds a
+close answer at once. A refit keeps
 the order and recomputes the boxes (always exact); a build sorts again, which a refit asks
 for when an item moved farther than the plan's margin from where it was sorted (the tree
 would stay exact, but grow loose).
@@ -27,8 +30,9 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 #: Fan-out (the NumPy tree's): the 8 children of an entry are 256 contiguous bytes.
 W = 8
-MAX_LEVELS = 16
-_levels = wp.types.vector(length=MAX_LEVELS, dtype=int)
+#: Levels above the items: a scan keeps W bits of pending children per level in one 64-bit
+#: word (up to 8^9 items).
+MAX_LEVELS = 9
 
 
 @wp.struct
@@ -59,7 +63,12 @@ class Item:
 class Grid:
     n: int  # items
     top: int  # the root's level (>= 1)
-    offsets: _levels  # where level k >= 1 starts in `boxes` (levels padded to multiples of W)
+    # Where level k >= 1 starts in `boxes` (levels padded to multiples of W), and the entries
+    # of level k (sizes[0] = n; the padding past them is empty): arrays, read by every thread
+    # alike (a vector indexed at run time would be copied to each thread's local memory).
+    offsets: wp.array(dtype=int)
+    sizes: wp.array(dtype=int)
+    corner: vec3  # the lower corner of the plan's box (local frame): the Morton cells' origin
     quantum: real  # the Morton cell: 2^bits of them a side over the plan's box
     bits: int  # Morton bits an axis (fewer when world ids take the key's high bits)
     # A build sorts again when a refit finds an item farther than this from where it was
@@ -196,21 +205,6 @@ def entry(grid: Grid, k: int, j: int):
 
 
 @wp.func
-def next_entry(grid: Grid, k: int, j: int):
-    """The entry after (k, j) in depth-first order once (k, j) and what is under it are done:
-    its next sibling, else its parent's next sibling, and so on; (top + 1, 0) at the end.
-    (Levels are padded to whole groups of W, so a sibling always exists, empty or not.)"""
-    kk = k
-    jj = j
-    while kk < grid.top and jj % W == W - 1:
-        jj = jj // W
-        kk += 1
-    if kk >= grid.top:
-        return grid.top + 1, 0
-    return kk, jj + 1
-
-
-@wp.func
 def box_gap_sq(s: vec3, lo: vec3, hi: vec3):
     """The squared distance from s to the box [lo, hi]."""
     return wp.length_sq(wp.max(wp.max(lo - s, s - hi), vec3(0.0)))
@@ -227,40 +221,49 @@ def enters(s: vec3, world: int, shared: int, box: Box, reach: real):
 
 
 @wp.func
-def nearest_leaf_distance(s: vec3, world: int, shared: int, grid: Grid):
-    """The distance from s to the closest item of the leaf reached by always entering the
-    child with the nearest box: an upper bound on the distance to the closest item (of the
-    slave's world), which starts a scan's reach near its final value. 3e38 when none."""
-    k = grid.top
-    j = int(0)
-    while k > 1:
-        best = real(3.0e38)
-        pick = int(-1)
-        for c in range(W):
-            box = entry(grid, k - 1, W * j + c)
-            d2 = box_gap_sq(s, box.lo, box.hi)
-            ok = d2 < best
-            if ok and shared == 0:
-                ok = box.wmin <= world and world <= box.wmax
-            if ok:
-                best = d2
-                pick = W * j + c
-        if pick < 0:
-            return real(3.0e38)
-        j = pick
-        k -= 1
-    best = real(3.0e38)
-    for t in range(W):
-        kk = W * j + t
-        if kk < grid.n:
-            ok = shared == 1
-            if not ok:
-                ok = item_world(grid, kk) == world
-            if ok:
-                best = wp.min(best, wp.length_sq(item_lo(grid, kk) - s))
-    if best >= real(3.0e38):
-        return best
-    return wp.sqrt(best)
+def children(grid: Grid, s: vec3, world: int, shared: int, k: int, j: int, reach: real):
+    """Which children (level k - 1 >= 1) of entry j of level k a scan enters: a bit mask, and
+    the child with the nearest box (-1 when none), which the scan visits first."""
+    mask = int(0)
+    near = int(-1)
+    near_d2 = real(3.0e38)
+    for c in range(W):
+        box = entry(grid, k - 1, W * j + c)
+        d2 = box_gap_sq(s, box.lo, box.hi)
+        ok = d2 <= reach * reach
+        if ok and shared == 0:
+            ok = box.wmin <= world and world <= box.wmax
+        if ok:
+            mask = mask | (1 << c)
+            if d2 < near_d2:
+                near_d2 = d2
+                near = c
+    return mask, near
+
+
+@wp.func
+def pending(stack: wp.uint64, k: int):
+    """The children of level k still to visit (level k's W bits of the scan's stack)."""
+    return int((stack >> wp.uint64(W * (k - 1))) & wp.uint64(255))
+
+
+@wp.func
+def with_pending(stack: wp.uint64, k: int, mask: int):
+    """The stack with level k's bits replaced by mask."""
+    shift = wp.uint64(W * (k - 1))
+    return (stack & ~(wp.uint64(255) << shift)) | (wp.uint64(mask) << shift)
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __ffs(x) - 1;
+#else
+return __builtin_ffs(x) - 1;
+#endif
+""")
+def lowest_bit(x: int) -> int:
+    """The index of x's lowest set bit (-1 for 0)."""
+    ...
 
 
 @wp.func
@@ -280,7 +283,7 @@ def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dty
           grid: Grid):
     k = wp.tid()
     i = ids[k]
-    grid.keys[k] = morton_key(x[i], world[i], grid.quantum, grid.bits)
+    grid.keys[k] = morton_key(x[i] - grid.corner, world[i], grid.quantum, grid.bits)
     grid.sorted_ids[k] = i
 
 
@@ -289,7 +292,7 @@ def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebes
                world: wp.array(dtype=int), grid: Grid):
     f = wp.tid()
     c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
-    grid.keys[f] = morton_key(c, world[f], grid.quantum, grid.bits)
+    grid.keys[f] = morton_key(c - grid.corner, world[f], grid.quantum, grid.bits)
     grid.sorted_ids[f] = f
 
 
@@ -356,15 +359,17 @@ def _leaves(grid: Grid):
 
 @wp.kernel
 def _level(grid: Grid, k: int):
-    """Level k >= 2: each entry's box and world range over its W children."""
+    """Level k >= 2: each entry's box and world range over its W children (empty past the
+    last: the padding of a level has no children)."""
     j = wp.tid()
     box = _empty_box()
     for c in range(W):
-        b = entry(grid, k - 1, W * j + c)
-        box.lo = wp.min(box.lo, b.lo)
-        box.hi = wp.max(box.hi, b.hi)
-        box.wmin = wp.min(box.wmin, b.wmin)
-        box.wmax = wp.max(box.wmax, b.wmax)
+        if W * j + c < grid.sizes[k - 1]:
+            b = entry(grid, k - 1, W * j + c)
+            box.lo = wp.min(box.lo, b.lo)
+            box.hi = wp.max(box.hi, b.hi)
+            box.wmin = wp.min(box.wmin, b.wmin)
+            box.wmax = wp.max(box.wmax, b.wmax)
     write_box(grid, grid.offsets[k] + j, box)
 
 
@@ -424,23 +429,28 @@ def refit_faces(grid: Grid, points, faces, lebesgue: float, world, device, corne
               device=device)
 
 
-def new_grid(n: int, extent: float, device, margin: float, n_worlds: int = 1,
+def new_grid(n: int, corner, extent: float, device, margin: float, n_worlds: int = 1,
              corners=False):
-    """A tree for n items in a box of side `extent` (the local frame's), with `margin` the
-    distance an item may move before a refit asks for a build. Returns (grid, world bits)."""
+    """A tree for n items in the cube of side `extent` at `corner` (local frame), with
+    `margin` the distance an item may move before a refit asks for a build. Returns (grid,
+    world bits)."""
     world_bits = max(int(n_worlds - 1).bit_length(), 0)
     sizes = level_sizes(n)
-    if len(sizes) >= MAX_LEVELS:
+    if len(sizes) > MAX_LEVELS:
         raise ValueError(f"{n} items need more than {MAX_LEVELS} tree levels")
     g = Grid()
     g.n, g.top = max(n, 0), len(sizes)
-    offsets = np.zeros(MAX_LEVELS, np.int32)
+    offsets = np.zeros(MAX_LEVELS + 1, np.int32)
+    counts = np.zeros(MAX_LEVELS + 1, np.int32)
+    counts[0] = n
     total = 0
     for k, size in enumerate(sizes, start=1):
-        offsets[k] = total
+        offsets[k], counts[k] = total, size
         total += size + (-size) % W
-    g.offsets = _levels(*[int(v) for v in offsets])
+    g.offsets = wp.array(offsets, dtype=int, device=device)
+    g.sizes = wp.array(counts, dtype=int, device=device)
     g.bits = min(21, (63 - world_bits) // 3)
+    g.corner = vec3(*[float(v) for v in corner])
     g.quantum = real(max(float(extent), 1e-30) / (1 << g.bits))
     g.margin = real(margin)
     g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)

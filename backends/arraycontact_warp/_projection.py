@@ -15,7 +15,8 @@ import warp as wp
 from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
-from ._grid import W, Grid, box_gap_sq, enters, entry, item_hi, item_lo, item_world, next_entry
+from ._grid import (W, Grid, box_gap_sq, children, enters, entry, item_hi, item_lo,
+                    item_world, lowest_bit, pending, with_pending)
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times).
@@ -168,10 +169,10 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     again by the caller: keeping it through the scan costs registers that all threads pay).
     shared = 1: every item is of this world.
 
-    The face tree depth first (_grid), entering the entries within the reach; at a leaf, its
-    faces within reach are collected, the nearest box's projected first, the others tested
-    again against the reach of the running minimum (which rejects most before their
-    projection). The reach shrinks to the running minimum (plus rounding slack) after each
+    The face tree depth first (_grid: a visit tests an entry's W children, goes on with the
+    nearest, keeps the others in `stack`), within the reach; at a leaf, its faces within
+    reach are collected, the nearest box's projected first, the others tested again against
+    the reach of the running minimum (which rejects most before their projection). The reach shrinks to the running minimum (plus rounding slack) after each
     projection: no farther face can hold the answer.
 
     limit < 0, the first scan: the tie rule applied as the faces come, from the face at the
@@ -191,18 +192,17 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     b_k = int(-1)
     unsure = int(0)
     found = _candidates(0)
+    stack = wp.uint64(0)  # level k's W bits: its children still to visit
     lv = grid.top
     j = int(0)
-    while lv <= grid.top:
-        go = enters(s, world, shared, entry(grid, lv, j), reach)
-        if go and lv > 1:
-            lv -= 1
-            j = W * j
-        else:
-            n = int(0)
-            first = int(0)  # the collected face with the nearest box: projected first
-            first_d2 = real(3.0e38)
-            if go:
+    visit = int(1)
+    while visit == 1:
+        visit = 0
+        n = int(0)
+        first = int(0)  # the collected face with the nearest box: projected first
+        if enters(s, world, shared, entry(grid, lv, j), reach):
+            if lv == 1:
+                first_d2 = real(3.0e38)
                 for t in range(W):
                     k = W * j + t
                     if k < grid.n:
@@ -216,48 +216,64 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
                                 first_d2 = d2
                             found[n] = k
                             n += 1
-            for t in range(n):
-                tt = t
-                if t == 0:
-                    tt = first
-                elif t == first:
-                    tt = 0
-                kt = found[tt]
-                f = grid.sorted_ids[kt]
-                cut = wp.min(reach, wp.max(dmin, limit) + slack)
-                near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
-                # The second scan skips ids above the best so far.
-                if near and (limit < real(0.0) or best < 0 or f < best):
-                    xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations,
-                                                             tol)
-                    d = wp.length(diff)
-                    top = limit
-                    if limit < real(0.0):
-                        if d < dmin:
-                            top = d + tie
-                            if best >= 0 and b_d > top:
-                                best = int(-1)
-                                if dmin <= top:
-                                    best = f_min
-                                    b_d = dmin
-                                    b_k = k_min
-                                    if second <= top:
-                                        unsure = 1
-                            second = wp.min(second, dmin)
-                            dmin = d
-                            f_min = f
-                            k_min = kt
-                        else:
-                            second = wp.min(second, d)
-                        top = dmin + tie
+            else:
+                mask, near_c = children(grid, s, world, shared, lv, j, reach)
+                if mask != 0:
+                    stack = with_pending(stack, lv - 1, mask & ~(1 << near_c))
+                    lv -= 1
+                    j = W * j + near_c
+                    visit = 1
+        for t in range(n):
+            tt = t
+            if t == 0:
+                tt = first
+            elif t == first:
+                tt = 0
+            kt = found[tt]
+            f = grid.sorted_ids[kt]
+            cut = wp.min(reach, wp.max(dmin, limit) + slack)
+            near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
+            # The second scan skips ids above the best so far.
+            if near and (limit < real(0.0) or best < 0 or f < best):
+                xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
+                d = wp.length(diff)
+                top = limit
+                if limit < real(0.0):
+                    if d < dmin:
+                        top = d + tie
+                        if best >= 0 and b_d > top:
+                            best = int(-1)
+                            if dmin <= top:
+                                best = f_min
+                                b_d = dmin
+                                b_k = k_min
+                                if second <= top:
+                                    unsure = 1
+                        second = wp.min(second, dmin)
+                        dmin = d
+                        f_min = f
+                        k_min = kt
                     else:
-                        dmin = wp.min(dmin, d)
-                    if d <= top and (best < 0 or f < best):
-                        best = f
-                        b_d = d
-                        b_k = kt
-                    reach = wp.min(reach, wp.max(dmin, limit) + slack)
-            lv, j = next_entry(grid, lv, j)
+                        second = wp.min(second, d)
+                    top = dmin + tie
+                else:
+                    dmin = wp.min(dmin, d)
+                if d <= top and (best < 0 or f < best):
+                    best = f
+                    b_d = d
+                    b_k = kt
+                reach = wp.min(reach, wp.max(dmin, limit) + slack)
+        if visit == 0:
+            # The next sibling still to visit, here or on a level above.
+            while lv < grid.top and pending(stack, lv) == 0:
+                lv += 1
+                j = j // W
+            if lv < grid.top:
+                left = pending(stack, lv)
+                c = lowest_bit(left)
+                stack = with_pending(stack, lv, left & (left - 1))
+                j = W * (j // W) + c
+                visit = 1
     return dmin, best, b_k, unsure
 
 
