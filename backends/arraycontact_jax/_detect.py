@@ -82,8 +82,10 @@ def _estimate(slave_x, m, sc, st, chunk=1 << 15):
     return cap
 
 
-def _grown(cap, growth):
-    return {k: max(int(np.ceil(v * growth)), 1) for k, v in cap.items()}
+def _grown(cap, growth, n_slaves):
+    """Capacities from counts: times growth, and at least 64 + 2 per slave (a level's count
+    is a few entries per slave; on a small scene a new configuration can double it)."""
+    return {k: max(int(np.ceil(v * growth)), 64 + 2 * n_slaves) for k, v in cap.items()}
 
 
 def run_one_shot(slave_x, master, prep, st, dtype):
@@ -93,7 +95,7 @@ def run_one_shot(slave_x, master, prep, st, dtype):
         m = master_arrays(master, prep, dtype)
         sc = scalars(prep, master, dtype)
         x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
-        cap = _grown(_estimate(x, m, sc, st), GROWTH)
+        cap = _grown(_estimate(x, m, sc, st), GROWTH, len(x))
         m_dev = {k: jnp.asarray(v) for k, v in m.items()}
         sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
         x_dev = jnp.asarray(x)
@@ -103,7 +105,7 @@ def run_one_shot(slave_x, master, prep, st, dtype):
             over = {k: v for k, v in counts.items() if v > cap[k]}
             if not over:
                 break
-            cap.update(_grown(over, GROWTH))
+            cap.update(_grown(over, GROWTH, len(x)))
         out = {k: np.asarray(v) for k, v in out.items()}
     return out, counts, cap
 
@@ -194,7 +196,7 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
                     tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
                     engine)
     m = master_arrays(master, prep, dtype)
-    cap = _grown(_estimate((slave_x - origin).astype(dtype), m, sc, st), growth)
+    cap = _grown(_estimate((slave_x - origin).astype(dtype), m, sc, st), growth, len(slave_x))
     for k, v in (minimum or {}).items():
         if k in cap:
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
@@ -265,8 +267,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
 class _WarpSearch:
     """The Warp back end's detection as a JAX primitive (wp.jax_callable): called in `detect`
     with the slave and master coordinates in the plan's frame, returns the search's answer
-    (active, face, feature, local, xi, gap, master_node, status) and its face radius overflow
-    flag [1] as JAX arrays."""
+    (active, face, feature, local, xi, gap, master_node, status) as JAX arrays."""
 
     def __init__(self, master, slave_x, d_max, dtype, growth, origin):
         import warp as wp
@@ -280,14 +281,13 @@ class _WarpSearch:
         self.plan.origin = self.plan.origin - np.asarray(origin)
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
-        self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status",
-                      "overflow")
+        self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
         kinds = dict(active=wp.int32, face=int, feature=int, local=int, xi=vec2, gap=real,
-                     master_node=int, status=int, overflow=int)
+                     master_node=int, status=int)
         plan = self.plan
 
         def search(slaves, master_points, *outs):
-            o = dict(acw.detect(plan, slaves, master_points), overflow=plan.overflow)
+            o = acw.detect(plan, slaves, master_points)
             for name, a in zip(self.names, outs):
                 wp.copy(a, o[name])
 
@@ -309,8 +309,7 @@ class _WarpSearch:
 
     def __call__(self, s, xm):
         n = s.shape[0]
-        outs = self.call(s, xm, output_dims={f"o_{k}": 1 if k == "overflow" else n
-                                             for k in self.names})
+        outs = self.call(s, xm, output_dims={f"o_{k}": n for k in self.names})
         out = dict(zip(self.names, outs))
         out["active"] = out["active"].astype(bool)
         ok = out["active"]
