@@ -121,7 +121,9 @@ def test_tie_rule_when_the_chosen_face_leaves_the_band():
     so the first scan cannot apply the tie rule alone; the answer is the second (id 1), as
     NumPy's global selection says."""
     tri = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [-0.5, 0.5, 0.0]]) + [0.2, 0.2, 0]
-    x, tie = 0.5, 1e-5 * np.sqrt(2)  # float32 tie: 1e-5 of the longest edge
+    from arraycontact._detect import TIE_RTOL
+
+    x, tie = 0.5, TIE_RTOL[np.dtype(np.float32)] * np.sqrt(2)  # float32 tie, longest edge
     pts = np.concatenate([tri + [0, 0, -z] for z in (x + 0.9 * tie, x, x - 0.2 * tie)])
     master = ac.Surface(pts, np.arange(9).reshape(3, 3), "tri3")
     slave = np.zeros((1, 3))

@@ -63,10 +63,10 @@ def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.
     dist[i] = dn
 
 
-# Three kernels rather than one: the face scan alone spills fewer registers. No register cap:
-# the tree scan's state spilled under the 64 that suited the uniform grid it replaced (face
-# kernel 3.18 -> 2.36 ms at 2^20 on an H100, benchmarks/gpu_stages.py).
-@wp.kernel
+# Three kernels rather than one: the face scan alone spills fewer registers. 128 registers a
+# thread (face kernel at 2^20 on an H100, benchmarks/gpu_stages.py: 64: 3.18 ms, 80: 1.99,
+# 96: 1.49, 128: 1.47, no cap: 2.36 ms).
+@wp.kernel(cuda_max_registers=128)
 def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
                  order: wp.array(dtype=int), slave_world: wp.array(dtype=int), shared: int,
                  origin: vec3, d_max: real, tie: real, slack: real,
