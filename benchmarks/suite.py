@@ -3,6 +3,7 @@
     python benchmarks/suite.py scenes                 # gmsh scenes -> benchmarks/scenes/*.npz
     python benchmarks/suite.py gpu --log2 20          # CUDA machine with Warp: ours vs wp.Mesh
     python benchmarks/suite.py cpu --log2 16          # CPU: ours vs fcpw and libigl
+    python benchmarks/suite.py table [--run ID]       # markdown tables from results/suite_*
 
 Scenes (sizes from --log2 k, 2^k nodes per surface where the scene has two surfaces):
 - uniform: two rough surfaces facing each other (the README's scene);
@@ -256,10 +257,50 @@ def _write(a, rec):
           "errors", {k: v for k, v in rec["errors"].items() if k != "checked"}, flush=True)
 
 
+def table(a):
+    """Markdown tables of the newest run (or --run) of results/suite_gpu.jsonl and
+    suite_cpu.jsonl, one row per scene, times as ratios to the peers of the same run."""
+    for mode in ("gpu", "cpu"):
+        path = Path(a.out or HERE / "results") / f"suite_{mode}.jsonl"
+        if not path.exists():
+            continue
+        recs = [json.loads(line) for line in open(path)]
+        run = a.run or recs[-1]["run"]
+        recs = [r for r in recs if r["run"] == run]
+        if not recs:
+            continue
+        r0 = recs[0]
+        print(f"\n{mode.upper()} run {run} ({r0['device']}, {r0['date']}, commit {r0['commit']}): "
+              f"`{r0['command']}`\n")
+        if mode == "gpu":
+            print("| scene | faces | slaves | ours (Warp, graph) | wp.Mesh refit + query | "
+                  "build + query | ours / refit | ours / build | misses | wrong faces | "
+                  "gap error / edge |")
+            print("|---|---|---|---|---|---|---|---|---|---|---|")
+            for r in recs:
+                e = r["errors"]
+                print(f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | "
+                      f"{1e3 * r['steady_s']:.2f} ms | {1e3 * r['mesh_refit_query_s']:.2f} ms | "
+                      f"{1e3 * r['mesh_build_query_s']:.2f} ms | {r['vs_refit']:.2f} | "
+                      f"{r['vs_build']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} "
+                      f"| {e['max_gap_error_rel']:.1e} |")
+        else:
+            print("| scene | faces | slaves | ours (Warp CPU, one call) | fcpw build + query | "
+                  "libigl | ours / fcpw | misses | wrong faces |")
+            print("|---|---|---|---|---|---|---|---|---|")
+            for r in recs:
+                best = min(v for k, v in r.items() if k.endswith("_s") and
+                           k.startswith(("warp_cpu", "numpy")) and not k.endswith("detect_s"))
+                e = r["errors"]
+                print(f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | {1e3 * best:.1f} ms | "
+                      f"{1e3 * r['fcpw_s']:.1f} ms | {1e3 * r['libigl_s']:.1f} ms | "
+                      f"{r['vs_fcpw']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("scenes", "gpu", "cpu"))
+    ap.add_argument("mode", choices=("scenes", "gpu", "cpu", "table"))
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--check", type=int, default=64, help="slaves checked against the reference")
@@ -268,7 +309,7 @@ def main():
     ap.add_argument("--run", help="run id recorded with every record")
     ap.add_argument("--out", help="folder for suite_<mode>.jsonl (default benchmarks/results)")
     a = ap.parse_args()
-    {"scenes": lambda a: make_scenes(), "gpu": run_gpu, "cpu": run_cpu}[a.mode](a)
+    {"scenes": lambda a: make_scenes(), "gpu": run_gpu, "cpu": run_cpu, "table": table}[a.mode](a)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,19 @@ from arraycontact.reference import _closest_on_faces
 BACKENDS = ["numpy", "jax"]
 
 
+def pytest_sessionstart(session):
+    """Warp's CPU kernels compiled in a child process first (tests/warp_warmup.py says why)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    here = Path(__file__).parent
+    r = subprocess.run([sys.executable, str(here / "warp_warmup.py")], cwd=here.parent,
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError("compiling the Warp kernels failed:\n" + r.stderr[-4000:])
+
+
 @pytest.fixture(params=BACKENDS)
 def backend(request):
     return request.param
