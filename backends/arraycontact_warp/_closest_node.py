@@ -58,7 +58,7 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
                                 reach = wp.min(reach, wp.max(dmin + tie, limit))
                                 wide = reach * real(1.0001)
             else:
-                mask, near_c = children(grid, s, world, shared, k, j, wide)
+                mask, near_c = children(grid, s, world, shared, k, j, wide, 1)
                 if mask != 0:
                     stack = with_pending(stack, k - 1, mask & ~(1 << near_c))
                     k -= 1

@@ -221,9 +221,13 @@ def enters(s: vec3, world: int, shared: int, box: Box, reach: real):
 
 
 @wp.func
-def children(grid: Grid, s: vec3, world: int, shared: int, k: int, j: int, reach: real):
+def children(grid: Grid, s: vec3, world: int, shared: int, k: int, j: int, reach: real,
+             centred: int):
     """Which children (level k - 1 >= 1) of entry j of level k a scan enters: a bit mask, and
-    the child with the nearest box (-1 when none), which the scan visits first."""
+    the child with the nearest box (-1 when none), which the scan visits first. centred = 1:
+    among boxes that hold s (near the root, several), the one whose centre is nearest (node
+    scan at 2^20 on an H100: 0.68 -> 0.58 ms uniform, 4.67 -> 3.53 ms graded_1000; the face
+    scan, which starts from the closest node's distance, runs slower with it)."""
     mask = int(0)
     near = int(-1)
     near_d2 = real(3.0e38)
@@ -235,6 +239,9 @@ def children(grid: Grid, s: vec3, world: int, shared: int, k: int, j: int, reach
             ok = box.wmin <= world and world <= box.wmax
         if ok:
             mask = mask | (1 << c)
+            if centred == 1 and d2 == real(0.0):
+                # Inside: rank by the centre's distance, below every box outside.
+                d2 = -real(1.0) / (real(1.0) + wp.length_sq(real(0.5) * (box.lo + box.hi) - s))
             if d2 < near_d2:
                 near_d2 = d2
                 near = c

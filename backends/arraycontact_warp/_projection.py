@@ -217,7 +217,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
                             found[n] = k
                             n += 1
             else:
-                mask, near_c = children(grid, s, world, shared, lv, j, reach)
+                mask, near_c = children(grid, s, world, shared, lv, j, reach, 0)
                 if mask != 0:
                     stack = with_pending(stack, lv - 1, mask & ~(1 << near_c))
                     lv -= 1
