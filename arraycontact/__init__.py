@@ -12,9 +12,10 @@ from ._contacts import Status as Status
 from ._detect import detect as detect
 from ._elements import ELEMENTS as ELEMENTS
 from ._io import read_surface as read_surface
+from ._io import surface_from_meshio as surface_from_meshio
 from ._prepare import default_d_max as default_d_max
 from ._surface import Surface as Surface
 
 __version__ = "0.1.0"
 __all__ = ["Contacts", "Counts", "Feature", "Status", "Surface", "detect", "default_d_max",
-           "read_surface", "reference", "scenes", "ELEMENTS"]
+           "read_surface", "surface_from_meshio", "reference", "scenes", "ELEMENTS"]

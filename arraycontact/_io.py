@@ -143,6 +143,14 @@ def _selected_blocks(mesh, cell_blocks, cell_set, physical):
 
 
 def surface_from_meshio(mesh, *, cell_blocks=None, cell_set=None, physical=None, element=None):
+    """Contact surface of a meshio mesh.
+
+    Surface cells (triangle, quad, triangle6, quad8, quad9) are used as they are; volume cells
+    (tetra, tetra10, hexahedron, hexahedron20, hexahedron27, wedge) give their exterior faces,
+    oriented outward. Select cells by `cell_blocks` (indices or cell types), `cell_set` (a
+    meshio cell set name) or `physical` (a gmsh physical group name or tag). Where the
+    selection gives several face types (a wedge mesh has triangles and quads), `element` picks
+    one. Node ids stay the mesh's."""
     groups = {}
     for cell_type, data in _selected_blocks(mesh, cell_blocks, cell_set, physical):
         if cell_type in _SURFACE_CELLS:
@@ -167,9 +175,33 @@ def surface_from_meshio(mesh, *, cell_blocks=None, cell_set=None, physical=None,
 
 def read_surface(path, *, cell_blocks=None, cell_set=None, physical=None, element=None,
                  file_format=None):
-    """Read a mesh file with meshio and return its contact surface (see Surface.from_meshio)."""
+    """Read a mesh file with meshio and return its contact surface (see surface_from_meshio).
+    A missing, unreadable or unknown file raises a ValueError that names it."""
+    import contextlib
+    import io
+    import os
+
     import meshio
 
-    mesh = meshio.read(path, file_format=file_format)
-    return surface_from_meshio(mesh, cell_blocks=cell_blocks, cell_set=cell_set,
-                               physical=physical, element=element)
+    if not os.path.isfile(path):
+        raise ValueError(f"{path}: no such file")
+    try:
+        # meshio prints its own message and exits on some unreadable files: keep both.
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            mesh = meshio.read(path, file_format=file_format)
+    except SystemExit:
+        raise ValueError(f"{path}: cannot read it as "
+                         f"{file_format or 'the format its extension names'}") from None
+    except meshio.ReadError as e:
+        if "format" in str(e).lower() and file_format is None:
+            raise ValueError(f"{path}: unknown mesh format; name it with file_format (the "
+                             f"command line's --format), one of meshio's formats such as "
+                             f"vtu, vtk, msh, xdmf, med, inp, obj, ply, stl") from None
+        raise ValueError(f"{path}: cannot read it ({e})") from None
+    except Exception as e:  # a parser failing inside meshio: the file is not what it claims
+        raise ValueError(f"{path}: cannot read it as a mesh ({type(e).__name__}: {e})") from None
+    try:
+        return surface_from_meshio(mesh, cell_blocks=cell_blocks, cell_set=cell_set,
+                                   physical=physical, element=element)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None

@@ -157,22 +157,6 @@ class Surface:
         return (f"Surface({self.element.name}, {self.n_faces} faces, {len(self.nodes)} nodes, "
                 f"{'closed' if self.closed else 'open'})")
 
-    @staticmethod
-    def from_meshio(mesh, *, cell_blocks=None, cell_set=None, physical=None,
-                    element=None) -> "Surface":
-        """Contact surface of a meshio mesh.
-
-        Surface cells (triangle, quad, triangle6, quad8, quad9) are used as they are; volume
-        cells (tetra, tetra10, hexahedron, hexahedron20, hexahedron27, wedge) give their
-        exterior faces, oriented outward. Select cells by `cell_blocks` (indices or cell types),
-        `cell_set` (a meshio cell set name) or `physical` (a gmsh physical group name or tag).
-        Where the selection gives several face types (a wedge mesh has triangles and quads),
-        `element` picks one. Node ids stay the mesh's."""
-        from ._io import surface_from_meshio
-
-        return surface_from_meshio(mesh, cell_blocks=cell_blocks, cell_set=cell_set,
-                                   physical=physical, element=element)
-
     def with_points(self, points) -> "Surface":
         """The same connectivity on new coordinates (a deformed configuration)."""
         return Surface(points, self.faces, self.element)

@@ -107,8 +107,8 @@ def demo(args):
 def detect_files(args):
     import arraycontact as ac
 
-    master = ac.read_surface(args.master)
-    slave = ac.read_surface(args.slave)
+    master = ac.read_surface(args.master, file_format=args.format)
+    slave = ac.read_surface(args.slave, file_format=args.format)
     with progress("detecting"):
         c = ac.detect(slave, master, backend=args.backend, mode=args.mode, d_max=args.d_max,
                       dtype=args.dtype)
@@ -140,12 +140,14 @@ def main(argv=None):
     f.add_argument("slave")
     f.add_argument("-o", "--output", required=True, help="output .vtu")
     f.add_argument("--d-max", type=float, default=None)
+    f.add_argument("--format", default=None,
+                   help="meshio's name of the files' format, when the extension does not tell")
     common(f)
     f.set_defaults(func=detect_files)
     args = p.parse_args(argv)
     try:
         return args.func(args)
-    except ValueError as e:
+    except (ValueError, OSError) as e:  # bad input or an output that cannot be written
         print(f"arraycontact: error: {e}", file=sys.stderr)
         return 2
 

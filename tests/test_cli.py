@@ -40,3 +40,26 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys):
     assert main(["detect", str(path), str(path), "-o", str(tmp_path / "o.vtu"),
                  "--d-max", "-1"]) == 2
     assert "d_max must be a positive" in capsys.readouterr().err
+
+
+def test_file_errors_are_one_line_and_status_2(tmp_path, capsys):
+    s = ac.scenes.rough_surfaces(2**6)
+    good = tmp_path / "m.vtu"
+    meshio.write(good, meshio.Mesh(s.master.points, [("triangle", s.master.faces)]))
+    garbage = tmp_path / "g.vtu"
+    garbage.write_text("not a mesh")
+    unknown = tmp_path / "m.xyz123"
+    unknown.write_text("1 2 3")
+    lines = meshio.Mesh(s.master.points, [("line", s.master.faces[:, :2])])
+    no_faces = tmp_path / "lines.vtu"
+    meshio.write(no_faces, lines)
+    out = str(tmp_path / "o.vtu")
+    cases = [(tmp_path / "missing.vtu", "no such file"), (garbage, "cannot read"),
+             (unknown, "unknown mesh format"), (no_faces, str(no_faces))]
+    for path, words in cases:
+        assert main(["detect", str(good), str(path), "-o", out]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(path) in err and words in err, err
+    # An output that cannot be written is one line too.
+    assert main(["detect", str(good), str(good), "-o", str(tmp_path / "no" / "o.vtu")]) == 2
+    assert capsys.readouterr().err.startswith("arraycontact: error:")

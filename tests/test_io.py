@@ -96,7 +96,7 @@ def check_mid_nodes(s):
 ])
 def test_exterior_of_volume_meshes(cell_type, make, element, n_faces):
     pts, cells = make()
-    s = ac.Surface.from_meshio(meshio.Mesh(pts, [(cell_type, cells)]))
+    s = ac.surface_from_meshio(meshio.Mesh(pts, [(cell_type, cells)]))
     assert s.element.name == element and s.n_faces == n_faces and s.closed
     area, vol = area_and_volume(s)
     assert area == pytest.approx(24.0) and vol == pytest.approx(8.0)  # outward everywhere
@@ -113,9 +113,9 @@ def test_wedges_need_an_element_choice():
     w = np.r_[hexes[:, [0, 1, 2, 4, 5, 6]], hexes[:, [0, 2, 3, 4, 6, 7]]]
     mesh = meshio.Mesh(pts, [("wedge", w)])
     with pytest.raises(ValueError, match="mixes face types"):
-        ac.Surface.from_meshio(mesh)
-    tri = ac.Surface.from_meshio(mesh, element="tri3")
-    quad = ac.Surface.from_meshio(mesh, element="quad4")
+        ac.surface_from_meshio(mesh)
+    tri = ac.surface_from_meshio(mesh, element="tri3")
+    quad = ac.surface_from_meshio(mesh, element="quad4")
     assert tri.n_faces == 16 and quad.n_faces == 16
     assert (tri.face_normals[:, 2] ** 2 == 1).all()  # top and bottom
     a1, v1 = area_and_volume(tri)
@@ -129,18 +129,18 @@ def test_surface_cells_and_selection():
     mesh = meshio.Mesh(pts, [("hexahedron", hexes), ("triangle", tris)],
                        cell_sets={"top": [np.array([1, 3]), np.array([], int)],
                                   "skin": [np.array([], int), np.array([0])]})
-    assert ac.Surface.from_meshio(mesh, cell_blocks="triangle").n_faces == 1
-    assert ac.Surface.from_meshio(mesh, cell_blocks=[0]).n_faces == 24
-    assert ac.Surface.from_meshio(mesh, cell_set="skin").element.name == "tri3"
-    assert ac.Surface.from_meshio(mesh, cell_set="top").n_faces == 10  # 2 hexes: 12 - 2 shared
+    assert ac.surface_from_meshio(mesh, cell_blocks="triangle").n_faces == 1
+    assert ac.surface_from_meshio(mesh, cell_blocks=[0]).n_faces == 24
+    assert ac.surface_from_meshio(mesh, cell_set="skin").element.name == "tri3"
+    assert ac.surface_from_meshio(mesh, cell_set="top").n_faces == 10  # 2 hexes: 12 - 2 shared
     with pytest.raises(ValueError, match="mixes face types"):
-        ac.Surface.from_meshio(mesh)
+        ac.surface_from_meshio(mesh)
     with pytest.raises(ValueError, match="no cell set"):
-        ac.Surface.from_meshio(mesh, cell_set="nope")
+        ac.surface_from_meshio(mesh, cell_set="nope")
     with pytest.raises(ValueError, match="no gmsh physical"):
-        ac.Surface.from_meshio(mesh, physical="x")
+        ac.surface_from_meshio(mesh, physical="x")
     with pytest.raises(ValueError, match="out of range"):
-        ac.Surface.from_meshio(mesh, cell_blocks=[5])
+        ac.surface_from_meshio(mesh, cell_blocks=[5])
 
 
 def _two_bodies():
