@@ -10,7 +10,10 @@ BACKENDS = ["numpy", "jax"]
 
 
 def pytest_sessionstart(session):
-    """Warp's CPU kernels compiled in a child process first (tests/warp_warmup.py says why)."""
+    """Warp's CPU kernels compiled in a child process first (tests/warp_warmup.py says why),
+    once: by pytest-xdist's controller, not by each worker."""
+    if hasattr(session.config, "workerinput"):
+        return
     import subprocess
     import sys
     from pathlib import Path
