@@ -86,19 +86,16 @@ def _pairs(scene):
     """Candidate pairs (slave, face) of the exact detection: the distance computations."""
     master = scene.master
     prep = prepare(scene.slave, master, master.longest_edge)
-    st = Static(master.element.name, "exact", prep.node_table, prep.face_table, 20, False)
+    st = Static(master.element.name, "exact", prep.node_levels, prep.face_levels, 20, False)
     m = master_arrays(master, prep, np.float64)
     sc = scalars(prep, master, np.float64)
     x = scene.slave[prep.slave_rows]
     grids = build_grids(np, st, sc, m)
-    _, dn, _ = closest_node(np, grids["node"], m["nodes_x"], x, cell=sc["node_cell"],
-                            table=st.node_table, d_max=sc["d_max"], tie=sc["tie"],
-                            capacity=None)
+    _, dn, _ = closest_node(np, grids["node"], m["nodes_x"], x, d_max=sc["d_max"],
+                            tie=sc["tie"], slack=sc["slack"], capacity=None)
     rho = np.minimum(dn, sc["d_max"]) + sc["slack"]
-    slave, face, ok, _, _ = candidate_faces(np, grids["face"], m["centres"], m["radii"], x, rho,
-                                            cell=sc["face_cell"], table=st.face_table,
-                                            r_max=sc["r_max"], pair_capacity=None,
-                                            candidate_capacity=None)
+    slave, face, ok, _ = candidate_faces(np, grids["face"], x, rho, slack=sc["slack"],
+                                         capacity=None)
     return x[slave], master.points[master.faces[face]], len(x)
 
 

@@ -56,8 +56,8 @@ def passing_by(n=2**14):
     prep = _detect.prepare(slave, sphere, d_max, np.float64)
 
     def run(flag):
-        st = _detect.Static(element="quad4", mode="node", node_table=prep.node_table,
-                            face_table=prep.face_table, iterations=_detect.ITERATIONS["quad4"],
+        st = _detect.Static(element="quad4", mode="node", node_levels=prep.node_levels,
+                            face_levels=prep.face_levels, iterations=_detect.ITERATIONS["quad4"],
                             passing_by=flag)
         return lambda: _detect._run_numpy(slave, sphere, prep, st, np.float64)
 
