@@ -10,8 +10,8 @@ BACKENDS = ["numpy", "jax"]
 
 
 def pytest_sessionstart(session):
-    """Warp's CPU kernels compiled in a child process first (tests/warp_warmup.py says why),
-    once: by pytest-xdist's controller, not by each worker."""
+    """Warp's CPU kernels compiled in a child process first (tests/warp_warmup.py), once: by
+    pytest-xdist's controller, not by each worker."""
     if hasattr(session.config, "workerinput"):
         return
     import subprocess

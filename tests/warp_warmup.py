@@ -1,8 +1,8 @@
-"""Compile every Warp CPU kernel the tests use, in a process of its own (conftest runs it
-before the suite): the tests then load compiled kernels instead of compiling them beside
-XLA's compilations. Warp compiles CPU kernels with an LLVM of its own; in one process with the
-suite's many XLA compilations (another LLVM), a later XLA compilation crashed (segfault or
-abort in backend_compile, in test_stress) after Warp had compiled there."""
+"""Compile every Warp CPU kernel the tests use, once, in a process of its own (conftest runs it
+before the suite): the two pytest-xdist workers then load compiled kernels instead of both
+compiling them. (It does not prevent the late XLA crash that one process running the whole
+suite met in test_stress, segfault or abort in backend_compile; the two workers, each
+compiling half the suite's XLA programs, avoid that one. Its cause is not found.)"""
 
 import numpy as np
 import warp as wp
