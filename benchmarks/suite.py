@@ -190,7 +190,6 @@ def run_gpu(a):
         rec["vs_refit"] = steady / rec["mesh_refit_query_s"]
         rec["vs_build"] = steady / rec["mesh_build_query_s"]
         _write(a, rec)
-        del p, xs, xm
 
 
 def run_cpu(a):
