@@ -6,7 +6,7 @@ from __future__ import annotations
 import warp as wp
 
 from ._grid import (W, Grid, children, enters, entry, item_lo, item_world,
-                    lowest_bit, pending, with_pending)
+                    descend, next_pending)
 from ._real import real, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy their body many times).
@@ -60,21 +60,10 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
             else:
                 mask, near_c = children(grid, s, world, shared, k, j, wide, 1)
                 if mask != 0:
-                    stack = with_pending(stack, k - 1, mask & ~(1 << near_c))
-                    k -= 1
-                    j = W * j + near_c
+                    stack, k, j = descend(stack, k, j, mask, near_c)
                     visit = 1
         if visit == 0:
-            # The next sibling still to visit, here or on a level above.
-            while k < grid.top and pending(stack, k) == 0:
-                k += 1
-                j = j // W
-            if k < grid.top:
-                left = pending(stack, k)
-                c = lowest_bit(left)
-                stack = with_pending(stack, k, left & (left - 1))
-                j = W * (j // W) + c
-                visit = 1
+            stack, k, j, visit = next_pending(grid, stack, k, j)
     return dmin, second, best
 
 

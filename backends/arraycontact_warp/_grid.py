@@ -274,6 +274,28 @@ def lowest_bit(x: int) -> int:
 
 
 @wp.func
+def descend(stack: wp.uint64, k: int, j: int, mask: int, near: int):
+    """Go on with child `near` of entry j of level k, keeping the other children of `mask`
+    pending: (stack, level, entry)."""
+    return with_pending(stack, k - 1, mask & ~(1 << near)), k - 1, W * j + near
+
+
+@wp.func
+def next_pending(grid: Grid, stack: wp.uint64, k: int, j: int):
+    """The entry to visit after (k, j) and what is under it: the next pending sibling, here or
+    on a level above. Returns (stack, level, entry, 1), or (..., 0) when none is left."""
+    kk = k
+    jj = j
+    while kk < grid.top and pending(stack, kk) == 0:
+        kk += 1
+        jj = jj // W
+    if kk >= grid.top:
+        return stack, kk, jj, 0
+    left = pending(stack, kk)
+    return with_pending(stack, kk, left & (left - 1)), kk, W * (jj // W) + lowest_bit(left), 1
+
+
+@wp.func
 def morton_key(c: vec3, world: int, quantum: real, bits: int):
     """The world id above the Morton code of c's cell (bits an axis, clamped to the box)."""
     top = (1 << bits) - 1

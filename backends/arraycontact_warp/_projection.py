@@ -16,7 +16,7 @@ from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, close
                         closest_point_face, closest_point_triangle, edge_xi, face_nodes,
                         face_point, start_option_one)
 from ._grid import (W, Grid, box_gap_sq, children, enters, entry, item_hi, item_lo,
-                    item_world, lowest_bit, pending, with_pending)
+                    item_world, descend, next_pending)
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times).
@@ -219,9 +219,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
             else:
                 mask, near_c = children(grid, s, world, shared, lv, j, reach, 0)
                 if mask != 0:
-                    stack = with_pending(stack, lv - 1, mask & ~(1 << near_c))
-                    lv -= 1
-                    j = W * j + near_c
+                    stack, lv, j = descend(stack, lv, j, mask, near_c)
                     visit = 1
         for t in range(n):
             tt = t
@@ -264,16 +262,7 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
                     b_k = kt
                 reach = wp.min(reach, wp.max(dmin, limit) + slack)
         if visit == 0:
-            # The next sibling still to visit, here or on a level above.
-            while lv < grid.top and pending(stack, lv) == 0:
-                lv += 1
-                j = j // W
-            if lv < grid.top:
-                left = pending(stack, lv)
-                c = lowest_bit(left)
-                stack = with_pending(stack, lv, left & (left - 1))
-                j = W * (j // W) + c
-                visit = 1
+            stack, lv, j, visit = next_pending(grid, stack, lv, j)
     return dmin, best, b_k, unsure
 
 
