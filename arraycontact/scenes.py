@@ -132,6 +132,8 @@ def graded_surfaces(n_nodes=2**12, *, ratio=100.0, gap=1.0, rms=0.5, element="tr
     `ratio`:1 where a fine row crosses a coarse column), with the same node count for every
     ratio (the grading family of the benchmarks). Roughness and gap scale with the local
     element size, so that every part of the scene looks like the uniform one (ratio 1)."""
+    if not (np.isfinite(ratio) and ratio >= 1):
+        raise ValueError(f"ratio must be a finite number >= 1, got {ratio}")
     nx, ny = _grid_shape(n_nodes)
 
     def spacing(n):
@@ -159,6 +161,12 @@ def fine_patch(n_fine=64, *, ratio=1000.0, growth=1.5, n_slaves=None, gap=0.5, r
     `ratio`), joined by rows growing by `growth` per element, and a rough slave punch of
     `n_slaves` nodes (default n_fine^2) over the patch at mean height `gap`: the contact zone
     meshed 1000x finer than the rest of the body, as finite-element users mesh it."""
+    if not (isinstance(n_fine, (int, np.integer)) and n_fine >= 2):
+        raise ValueError(f"n_fine must be an integer >= 2, got {n_fine}")
+    if not (np.isfinite(ratio) and ratio >= 1):
+        raise ValueError(f"ratio must be a finite number >= 1, got {ratio}")
+    if not (np.isfinite(growth) and growth > 1):
+        raise ValueError(f"growth must be a finite number > 1, got {growth}")
     n_grow = int(np.ceil(np.log(ratio) / np.log(growth)))
     grow = np.minimum(growth ** np.arange(1, n_grow + 1), ratio)
     side = np.r_[grow, np.full(max(n_fine // 4, 4), float(ratio))]

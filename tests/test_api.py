@@ -131,3 +131,14 @@ def test_rough_surface_sizes_and_roughness():
     assert np.std(s.master.points[:, 2]) == pytest.approx(0.5)
     assert np.mean(s.slave[:, 2]) == pytest.approx(3.0, abs=1e-9)
     assert (s.slave_surface.face_normals[:, 2] < 0).all()
+
+
+def test_graded_scenes_reject_bad_parameters():
+    with pytest.raises(ValueError, match="ratio"):
+        scenes.graded_surfaces(2**8, ratio=0.5)
+    with pytest.raises(ValueError, match="n_fine"):
+        scenes.fine_patch(1)
+    with pytest.raises(ValueError, match="growth"):
+        scenes.fine_patch(8, growth=1.0)
+    with pytest.raises(ValueError, match="ratio"):
+        scenes.fine_patch(8, ratio=float("nan"))
