@@ -42,8 +42,8 @@ from ._real import NP_REAL, real, precision, vec2, vec3
 from ._projection import Master, project, scan_attached, scan_faces
 from ._select import classify, proximal
 
-# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
-# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+# Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
+# the kernel: minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
@@ -252,7 +252,7 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     growth: how far an item may move before a refit sorts the trees again: (growth - 1)
     times a small face's radius (the tenth percentile at plan time).
     sort_slaves: the order the threads take the slaves in, so that the threads of a GPU warp
-    take neighbouring slaves and scan the same cells (results are the same in any order):
+    take neighbouring slaves and walk the same tree entries (results are the same in any order):
     "plan" (default), the Morton order of slave_points, once (the slaves of a body keep their
     neighbours as it moves and deforms); "detect" (or True), each detect sorts them again
     first (slaves that mix, like particles: about 0.08 ms at 2^20 on an H100); False, the

@@ -23,8 +23,8 @@ from arraycontact._elements import get_element
 
 from ._real import ACTIVE_TOL, EPS, NP_REAL, mat22, real, vec2, vec3
 
-# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
-# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+# Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
+# the kernel: minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 FACE = wp.constant(0)

@@ -516,7 +516,7 @@ def _morton(x: wp.array(dtype=vec3), origin: vec3, quantum: real, keys: wp.array
 
 def spatial_order(x, origin, quantum, keys, order, n: int, device):
     """order[:n]: the rows of x in Morton order of cells of size `quantum` (1024 per axis over
-    the plan's box), so that the threads of a GPU warp work on neighbouring slaves and scan the
-    same grid cells (launches only: capturable; keys and order hold 2n for the radix sort)."""
+    the plan's box), so that the threads of a GPU warp work on neighbouring slaves and walk the
+    same tree entries (launches only: capturable; keys and order hold 2n for the radix sort)."""
     wp.launch(_morton, n, inputs=[x, origin, quantum, keys, order], device=device)
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=30)

@@ -12,8 +12,8 @@ from ._geometry import EDGE, FACE, Element, Triangles, face_nodes, face_tangents
 from ._projection import Master
 from ._real import real, vec2, vec3
 
-# Forward only, no loop unrolling: the 27-cell stencil unrolled would copy the whole
-# projection 27 times into the kernel (minutes of CUDA compilation for no speed).
+# Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
+# the kernel: minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
