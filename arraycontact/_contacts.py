@@ -54,7 +54,8 @@ class Contacts:
     `face` is -1 and the geometric fields are NaN where `active` is false (except in node mode,
     where a passing-by slave keeps its closest geometry for inspection). `gap` is the signed
     distance along `normal` (negative: penetration), `distance` = |gap|. `slave_ids` are the
-    slaves' node ids when the slaves came from a Surface, else 0..n-1."""
+    slaves' node ids when the slaves came from a Surface, else 0..n-1. `backend`, `device` and
+    `dtype` say what answered (with `backend="auto"`, the back end it chose)."""
 
     active: np.ndarray
     face: np.ndarray
@@ -70,6 +71,9 @@ class Contacts:
     d_max: float
     counts: Counts = field(default_factory=Counts)
     timings: dict = field(default_factory=dict)
+    backend: str = ""  # the back end that answered ("numpy", "jax", "warp")
+    device: str = ""  # where it ran ("cpu", "cuda:0", ...)
+    dtype: str = ""  # the precision it computed in ("float64", "float32")
 
     @property
     def overflow(self) -> bool:
@@ -86,7 +90,8 @@ class Contacts:
     def summary(self) -> str:
         a = np.asarray(self.active)
         gap = np.asarray(self.gap)[a]
-        lines = [f"slaves: {len(a)}  active: {int(a.sum())}  contact elements: {len(self.pairs())}",
+        lines = [f"backend: {self.backend or '?'} on {self.device or '?'}, {self.dtype or '?'}"]
+        lines += [f"slaves: {len(a)}  active: {int(a.sum())}  contact elements: {len(self.pairs())}",
                  f"d_max: {self.d_max:.6g}  min gap: {gap.min() if len(gap) else float('nan'):.6g}"]
         st = np.bincount(np.asarray(self.status), minlength=len(Status))
         lines.append("status: " + ", ".join(f"{s.name.lower()} {st[s]}" for s in Status if st[s]))

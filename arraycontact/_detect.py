@@ -192,17 +192,17 @@ def _slaves(slave):
     return x, np.arange(len(x))
 
 
-def _empty(n, ids, d_max, counts=None, timings=None) -> Contacts:
+def _empty(n, ids, d_max, counts=None, timings=None, **answered) -> Contacts:
     return Contacts(
         active=np.zeros(n, bool), face=np.full(n, -1, np.int64), xi=np.full((n, 2), np.nan),
         point=np.full((n, 3), np.nan), gap=np.full(n, np.nan), distance=np.full(n, np.nan),
         normal=np.full((n, 3), np.nan), feature=np.full(n, int(Feature.NONE), np.int32),
         master_node=np.full(n, -1, np.int64), status=np.full(n, int(Status.OUT_OF_RANGE), np.int32),
         slave_ids=np.asarray(ids), d_max=float(d_max), counts=counts or Counts(),
-        timings=timings or {})
+        timings=timings or {}, **answered)
 
 
-def assemble(n, ids, prep, out, d_max, counts, timings) -> Contacts:
+def assemble(n, ids, prep, out, d_max, counts, timings, answered) -> Contacts:
     """Scatter per-in-box-slave outputs (global frame, float64) into a full Contacts record."""
     c = _empty(n, ids, d_max)
     rows = prep.slave_rows
@@ -220,7 +220,7 @@ def assemble(n, ids, prep, out, d_max, counts, timings) -> Contacts:
     c.distance[r] = np.asarray(out["distance"], float)[keep]
     c.normal[r] = np.asarray(out["normal"], float)[keep]
     c.feature[r] = np.asarray(out["feature"])[keep]
-    return Contacts(**{**c.__dict__, "counts": counts, "timings": timings})
+    return Contacts(**{**c.__dict__, "counts": counts, "timings": timings, **answered})
 
 
 def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
@@ -256,7 +256,7 @@ def check_options(master, mode, d_max, displacement, dtype):
     return float(d_max), dtype
 
 
-def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displacement=None,
+def detect(slave, master, *, backend="auto", mode="exact", d_max=None, displacement=None,
            dtype=None) -> Contacts:
     """Closest point on `master` of every slave node.
 
@@ -264,34 +264,38 @@ def detect(slave, master, *, backend="numpy", mode="exact", d_max=None, displace
     mode: "exact" (the exact closest point over faces, edges and vertices within d_max) or
     "node" (seed 000: closest node, projections on its faces, blind spots, passing-by nodes).
     d_max: search radius; default: the longest master edge, raised to 2 max|displacement|.
-    dtype: float64 (default; float32 on "warp", a GPU's fast precision) or float32 for the
-    computation (inputs are always read in float64 and moved to a local frame first)."""
+    backend: "auto" (default: Warp, on a visible CUDA GPU or else on the CPU, when it imports;
+    else NumPy), "numpy", "jax" or "warp". The answer's `backend`, `device` and `dtype` say
+    which ran. dtype: float64 (default, on every back end) or float32 for the computation
+    (inputs are always read in float64 and moved to a local frame first)."""
+    from ._backends import load, resolve
+
     t0 = time.perf_counter()
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "warp" and dtype is None:
-        dtype = np.float32  # the Warp kernels' default (float64 when asked)
+    if backend not in BACKENDS + ("auto",):
+        raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {backend!r}")
+    backend = resolve(backend)
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
     slave_x, ids = _slaves(slave)
     n = len(slave_x)
     prep = prepare(slave_x, master, float(d_max), dtype)
     t1 = time.perf_counter()
+    answered = dict(backend=backend, dtype=dtype.name)
     if prep is None:  # the boxes do not meet: no grid, no contact
-        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0})
+        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0},
+                      **answered)
     st = Static(element=master.element.name, mode=mode, node_levels=prep.node_levels,
                 face_levels=prep.face_levels,
                 iterations=ITERATIONS.get(master.element.name, 0),
                 passing_by=mode == "node" and not master.closed)
     if backend == "numpy":
         out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype)
+        answered["device"] = "cpu"
     else:
-        from ._backends import load
-
-        out, count, cap = load(backend).run_one_shot(slave_x, master, prep, st, dtype)
+        out, count, cap, answered["device"] = load(backend).run_one_shot(slave_x, master, prep,
+                                                                          st, dtype)
         laps = {}
     t2 = time.perf_counter()
     counts = Counts(slaves_in_box=len(prep.slave_rows), master_nodes_in_box=len(prep.node_ids),
                     master_faces_in_box=len(prep.face_ids), count=count, capacity=cap)
-    res = assemble(n, ids, prep, out, d_max, counts,
-                   {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0})
-    return res
+    return assemble(n, ids, prep, out, d_max, counts,
+                    {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0}, answered)

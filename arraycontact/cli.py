@@ -92,8 +92,7 @@ def demo(args):
 
     scene = ac.scenes.rough_surfaces(args.nodes, gap=args.gap, element=args.element)
     label = (f"rough surfaces (seed 000 Fig. 10): {len(scene.slave)} slave nodes, "
-             f"{scene.master.n_faces} {args.element} master faces, backend {args.backend}, "
-             f"mode {args.mode}, {args.dtype}")
+             f"{scene.master.n_faces} {args.element} master faces, mode {args.mode}")
     with progress("detecting"):
         c = ac.detect(scene.slave_surface, scene.master, backend=args.backend, mode=args.mode,
                       dtype=args.dtype)
@@ -123,7 +122,8 @@ def main(argv=None):
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(q):
-        q.add_argument("--backend", default="numpy", choices=["numpy", "jax", "warp"])
+        q.add_argument("--backend", default="auto", choices=["auto", "numpy", "jax", "warp"],
+                       help="auto: Warp (GPU, else CPU) when it imports, else NumPy")
         q.add_argument("--mode", default="exact", choices=["exact", "node"])
         q.add_argument("--dtype", default="float64", choices=["float64", "float32"])
 

@@ -8,6 +8,7 @@ import pytest
 
 import arraycontact as ac
 from arraycontact import scenes
+from conftest import assert_matches_reference
 from test_detect import random_scene
 
 
@@ -30,7 +31,7 @@ MASTER, SLAVE = random_scene(0, n=4)
 
 @pytest.mark.parametrize("kwargs, match", [
     (dict(mode="fast"), "mode must be one of"),
-    (dict(backend="torch"), "backend must be one of"),
+    (dict(backend="torch"), "backend must be .auto. or one of"),
     (dict(d_max=0.0), "d_max must be a positive"),
     (dict(d_max=np.nan), "d_max must be a positive"),
     (dict(dtype=np.float16), "dtype must be float32 or float64"),
@@ -75,7 +76,7 @@ def test_jax_overflow_is_reported_and_replanned(monkeypatch):
     real = jd._estimate
     monkeypatch.setattr(jd, "_estimate", lambda *a: {k: 1 for k in real(*a)})
     c = ac.detect(SLAVE, MASTER, backend="jax")
-    ref = ac.detect(SLAVE, MASTER)
+    ref = ac.detect(SLAVE, MASTER, backend="numpy")
     assert not c.overflow
     assert all(c.counts.count[k] <= c.counts.capacity[k] for k in c.counts.count)
     assert np.array_equal(c.face, ref.face) and np.allclose(c.gap[c.active], ref.gap[c.active])
@@ -105,7 +106,7 @@ def test_jax_kernel_flags_overflow():
 
 
 def test_contacts_summary_and_status():
-    c = ac.detect(SLAVE, MASTER)
+    c = ac.detect(SLAVE, MASTER, backend="numpy")
     text = c.summary()
     assert f"active: {c.active.sum()}" in text
     assert set(np.unique(c.status)) <= {int(s) for s in ac.Status}
@@ -142,3 +143,18 @@ def test_graded_scenes_reject_bad_parameters():
         scenes.fine_patch(8, growth=1.0)
     with pytest.raises(ValueError, match="ratio"):
         scenes.fine_patch(8, ratio=float("nan"))
+
+
+def test_default_contract_is_float64_on_every_backend():
+    """`ac.detect(slave, master)` computes in float64 whichever back end answers, and the
+    answer says which one did; "auto" picks Warp (here on the CPU device) since it imports."""
+    for backend in ("auto", "numpy", "jax", "warp"):
+        c = ac.detect(SLAVE, MASTER, backend=backend)
+        assert c.dtype == "float64" and c.gap.dtype == np.float64
+        assert c.backend == ("warp" if backend == "auto" else backend)
+        assert c.device.startswith("cpu")
+        assert f"backend: {c.backend} on {c.device}, float64" in c.summary()
+        # float64 agreement, not float32's (the Warp back end once defaulted to float32)
+        assert_matches_reference(c, SLAVE, MASTER, dtype=np.float64)
+    c32 = ac.detect(SLAVE, MASTER, dtype="float32")
+    assert c32.dtype == "float32"

@@ -28,7 +28,7 @@ def test_detect_files(tmp_path, capsys):
     out = tmp_path / "contacts.vtu"
     assert main(["detect", str(mpath), str(spath), "-o", str(out), "--mode", "node"]) == 0
     mesh = meshio.read(out)
-    c = ac.detect(s.slave_surface, s.master, mode="node")
+    c = ac.detect(s.slave_surface, s.master, mode="node", backend="numpy")
     assert len(mesh.cells_dict["line"]) == c.active.sum()
     assert np.allclose(mesh.point_data["gap"][:256][c.active], c.gap[c.active])
 

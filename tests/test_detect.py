@@ -119,8 +119,8 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
     p2 = prepare(s2, m2, m2.longest_edge)
     p3 = prepare(s3, m3, m3.longest_edge)
     assert (p2.node_levels, p2.face_levels) == (p3.node_levels, p3.face_levels)
-    c2 = ac.detect(s2, m2)
-    c3 = ac.detect(s3, m3)
+    c2 = ac.detect(s2, m2, backend="numpy")
+    c3 = ac.detect(s3, m3, backend="numpy")
     # The pairs each tree level keeps differ only by the rounding slack of the pruning test
     # (proportional to the coordinates).
     for tree in ("node_level", "face_level"):
@@ -131,7 +131,7 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
 
 
 def _pairs_per_slave(scene):
-    c = ac.detect(scene.slave, scene.master)
+    c = ac.detect(scene.slave, scene.master, backend="numpy")
     return sum(c.counts.count.values()) / len(scene.slave)
 
 
@@ -145,8 +145,8 @@ def test_work_per_slave_does_not_grow_with_grading():
         assert graded <= 2.0 * uniform, (ratio, graded, uniform)
     # Nor with d_max beyond the answers it adds: 10x the default on the same slaves.
     s = scenes.rough_surfaces(2**12)
-    c1 = ac.detect(s.slave, s.master)
-    c10 = ac.detect(s.slave, s.master, d_max=10 * s.master.longest_edge)
+    c1 = ac.detect(s.slave, s.master, backend="numpy")
+    c10 = ac.detect(s.slave, s.master, d_max=10 * s.master.longest_edge, backend="numpy")
     assert sum(c10.counts.count.values()) <= 1.5 * sum(c1.counts.count.values())
 
 
@@ -154,14 +154,14 @@ def test_displacement_raises_d_max():
     master, slave = random_scene(0)
     u = np.zeros((10, 3))
     u[3] = [0, 0, 5.0]
-    c = ac.detect(slave, master, displacement=u)
+    c = ac.detect(slave, master, displacement=u, backend="numpy")
     assert c.d_max == pytest.approx(10.0)
-    assert ac.detect(slave, master).d_max == pytest.approx(master.longest_edge)
+    assert ac.detect(slave, master, backend="numpy").d_max == pytest.approx(master.longest_edge)
 
 
 def test_pairs_and_slave_ids():
     s = scenes.rough_surfaces(2**8, gap=0.3)
-    c = ac.detect(s.slave_surface, s.master)
+    c = ac.detect(s.slave_surface, s.master, backend="numpy")
     p = c.pairs()
     assert p.shape == (c.active.sum(), 2)
     assert np.array_equal(p[:, 0], s.slave_surface.nodes[c.active])

@@ -164,7 +164,7 @@ def test_gmsh_round_trip(tmp_path):
     assert block.n_faces == 24 and patch.n_faces == 2 and block.closed
     assert ac.read_surface(path, physical=2).n_faces == 2
     # Ids are the file's: the patch's slaves keep their node numbers.
-    c = ac.detect(patch, block, d_max=1.5)
+    c = ac.detect(patch, block, d_max=1.5, backend="numpy")
     assert set(c.slave_ids) == set(patch.nodes) and c.active.all()
     assert np.allclose(c.gap, 1.0)
     with pytest.raises(ValueError, match="no physical group"):

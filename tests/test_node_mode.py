@@ -121,7 +121,7 @@ def _check_paper_rules(case, **options):
     slave = rng.uniform(lo, hi, (300, 3))
     d_max = 1.0
     want = node_mode_direct(slave, surface, d_max)
-    c = ac.detect(slave, surface, mode="node", d_max=d_max, **options)
+    c = ac.detect(slave, surface, mode="node", d_max=d_max, **options, backend="numpy")
     status = np.array([w[0] for w in want])
     assert np.array_equal(c.status, status)
     active = np.isin(status, [S.OK, S.BLIND_SPOT])
@@ -152,7 +152,7 @@ def test_concave_corner_uses_or():
     # ... and would be outside at a convex one (AND).
     assert not proximal(np, p, np.array([4]), *args, np.zeros_like(concave))[0]
     # Beyond the convex outer corner (2, 0): passing by.
-    c = ac.detect(np.array([[2.3, -0.3, 0.1]]), s, mode="node", d_max=1.0)
+    c = ac.detect(np.array([[2.3, -0.3, 0.1]]), s, mode="node", d_max=1.0, backend="numpy")
     assert c.master_node[0] == 2 and c.status[0] == S.PASSING_BY and not c.active[0]
 
 

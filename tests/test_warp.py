@@ -53,7 +53,7 @@ def test_warp_equals_numpy_float32_and_the_reference(name):
     s = SCENES[name]()
     p = acw.plan(s.master, s.slave, device=DEVICE)
     o = acw.detect(p, s.slave, s.master.points)
-    r = ac.detect(s.slave, s.master, dtype=np.float32)
+    r = ac.detect(s.slave, s.master, dtype=np.float32, backend="numpy")
     _same_as_numpy(o, r, s.master.longest_edge)
     if name in ("rough_tri3", "layers_tri6"):  # the others: equal to NumPy, tested there
         c = ac.detect(s.slave, s.master, backend="warp")
@@ -67,7 +67,7 @@ def test_warp_float64_equals_numpy_float64_and_the_reference(name):
     p = acw.plan(s.master, s.slave, device=DEVICE, dtype="float64")
     o = acw.detect(p, s.slave, s.master.points)
     assert o["gap"].dtype == np.float64 and o["xi"].dtype == np.float64
-    r = ac.detect(s.slave, s.master, dtype=np.float64)
+    r = ac.detect(s.slave, s.master, dtype=np.float64, backend="numpy")
     assert np.array_equal(o["active"].astype(bool), r.active)
     for k in ("face", "feature", "master_node", "status"):
         assert np.array_equal(o[k], getattr(r, k)), k
@@ -128,7 +128,7 @@ def test_tie_rule_when_the_chosen_face_leaves_the_band():
     master = ac.Surface(pts, np.arange(9).reshape(3, 3), "tri3")
     slave = np.zeros((1, 3))
     o = acw.detect(acw.plan(master, slave, device=DEVICE, d_max=2.0), slave, master.points)
-    r = ac.detect(slave, master, dtype=np.float32, d_max=2.0)
+    r = ac.detect(slave, master, dtype=np.float32, d_max=2.0, backend="numpy")
     assert r.face[0] == 1 and o["face"][0] == 1
 
 
@@ -166,7 +166,7 @@ def test_closest_node_tie_rule():
     da = np.linalg.norm(slaves - master.points[a], axis=1)
     assert np.array_equal(da, np.linalg.norm(slaves - master.points[b], axis=1))  # exact ties
     o = acw.detect(acw.plan(master, slaves, device=DEVICE), slaves, master.points)
-    r = ac.detect(slaves, master, dtype=np.float32)
+    r = ac.detect(slaves, master, dtype=np.float32, backend="numpy")
     assert np.array_equal(o["master_node"], r.master_node)
     assert np.array_equal(o["master_node"], np.minimum(a, b))
 
@@ -178,7 +178,7 @@ def test_warp_node_mode_equals_numpy(name):
     s = SCENES[name]()
     p = acw.plan(s.master, s.slave, device=DEVICE, mode="node")
     o = acw.detect(p, s.slave, s.master.points)
-    r = ac.detect(s.slave, s.master, dtype=np.float32, mode="node", d_max=p.constants["d_max"])
+    r = ac.detect(s.slave, s.master, dtype=np.float32, mode="node", d_max=p.constants["d_max"], backend="numpy")
     assert np.array_equal(o["status"], r.status)
     seen = set(r.status.tolist())
     assert int(ac.Status.OK) in seen
@@ -255,7 +255,7 @@ def test_a_master_deformed_far_from_the_plan_stays_exact():
     stretched = s.master.points * [1.5, 1.5, 1.0]
     o = acw.detect(p, s.slave, stretched)
     r = ac.detect(s.slave, s.master.with_points(stretched), d_max=p.constants["d_max"],
-                  dtype=np.float32)
+                  dtype=np.float32, backend="numpy")
     _same_as_numpy(o, r, s.master.longest_edge)
 
 
@@ -277,7 +277,7 @@ def test_device_arrays_in_place_and_graph_capture():
     else:
         xs.assign(moved.astype(np.float32))
         acw.detect(p, xs, xm)
-    r = ac.detect(moved, s.master, dtype=np.float32)
+    r = ac.detect(moved, s.master, dtype=np.float32, backend="numpy")
     got = {k: v.numpy() for k, v in p.out.items()}
     assert np.array_equal(got["face"], r.face)
     a = r.active
@@ -292,7 +292,7 @@ def test_a_master_that_does_not_move_keeps_its_grid():
     first = acw.detect(p, s.slave, s.master.points)
     moved = s.slave + [0.05, 0.0, -0.2]
     again = acw.detect(p, moved)  # master stages skipped
-    r = ac.detect(moved, s.master, dtype=np.float32)
+    r = ac.detect(moved, s.master, dtype=np.float32, backend="numpy")
     assert np.array_equal(again["face"], r.face) and not np.array_equal(again["face"],
                                                                         first["face"])
 
@@ -337,7 +337,7 @@ def test_grid_refit_and_rebuild():
         run()
         assert int(p.rebuild.numpy()[0]) == int(stale)
         got = {k: v.numpy() for k, v in p.out.items()}
-        r = ac.detect(slave, master, d_max=p.constants["d_max"], dtype=np.float32)
+        r = ac.detect(slave, master, d_max=p.constants["d_max"], dtype=np.float32, backend="numpy")
         _same_as_numpy(got, r, L)
         built = {k: v.numpy() for k, v in acw.detect(q, xs, xm).items()}
         for k in got:  # a grid built in every call: the same bits
@@ -437,5 +437,5 @@ def test_jax_arrays_in_and_out():
     p.origin = np.zeros(3)  # the arrays above are in the plan's frame already
     o = acw.detect(p, xs, xm)
     assert type(o["gap"]).__module__.startswith("jax")
-    r = ac.detect(s.slave, s.master, dtype=np.float32)
+    r = ac.detect(s.slave, s.master, dtype=np.float32, backend="numpy")
     assert np.array_equal(np.asarray(o["face"]), r.face)

@@ -107,7 +107,8 @@ def run_one_shot(slave_x, master, prep, st, dtype):
                 break
             cap.update(_grown(over, GROWTH, len(x)))
         out = {k: np.asarray(v) for k, v in out.items()}
-    return out, counts, cap
+    d = next(iter(x_dev.devices()))
+    return out, counts, cap, f"{d.platform}:{d.id}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -261,7 +262,8 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         master_node=out["master_node"], status=out["status"],
         slave_ids=jnp.arange(n, dtype=jnp.int32), d_max=p.d_max,
         counts=Counts(slaves_in_box=n, master_nodes_in_box=len(p.master.nodes),
-                      master_faces_in_box=p.master.n_faces, count=counts, capacity=cap))
+                      master_faces_in_box=p.master.n_faces, count=counts, capacity=cap),
+        backend="jax", dtype=np.dtype(dtype).name)
 
 
 class _WarpSearch:
@@ -344,15 +346,16 @@ def _flatten_contacts(c):
     return (arrays, c.counts.count), (c.d_max, tuple(sorted(c.timings.items())),
                                      c.counts.slaves_in_box, c.counts.master_nodes_in_box,
                                      c.counts.master_faces_in_box,
-                                     tuple(sorted(c.counts.capacity.items())))
+                                     tuple(sorted(c.counts.capacity.items())),
+                                     c.backend, c.device, c.dtype)
 
 
 def _unflatten_contacts(aux, children):
     arrays, count = children
-    d_max, timings, n_s, n_n, n_f, cap = aux
+    d_max, timings, n_s, n_n, n_f, cap, backend, device, dtype = aux
     return Contacts(**dict(zip(_ARRAYS, arrays)), d_max=d_max,
                     counts=Counts(n_s, n_n, n_f, count=count, capacity=dict(cap)),
-                    timings=dict(timings))
+                    timings=dict(timings), backend=backend, device=device, dtype=dtype)
 
 
 _ARRAYS = ("active", "face", "xi", "point", "gap", "distance", "normal", "feature",

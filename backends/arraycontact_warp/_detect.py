@@ -522,7 +522,7 @@ def run_one_shot(slave_x, master, prep, st, dtype):
     out = detect(p, x, master.points)
     out["active"] = out["active"].astype(bool)
     out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back
-    return out, {}, {}
+    return out, {}, {}, str(p.device)
 
 
 __all__ = ["Plan", "plan", "detect", "run_one_shot"]
