@@ -116,15 +116,20 @@ def build_grids(xp, st: Static, sc: dict, m: dict):
 
 
 def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity: dict,
-               lap=None):
-    """Stages 3-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts."""
+               lap=None, search=None):
+    """Stages 3-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts.
+    search: what runs the tree searches of stages 3-4 (`closest_node`, `candidate_faces`):
+    by default the level-by-level queries of _closest_node and _projection (NumPy); the JAX
+    back end passes its per-slave scans (arraycontact_jax._grid)."""
     lap = lap or (lambda name: None)
+    node_search = search.closest_node if search else _closest_node.closest_node
+    face_search = search.candidate_faces if search else _projection.candidate_faces
     element = get_element(st.element)
     n = slave_x.shape[0]
     tie = sc["tie"]
     node_grid = grids["node"]
     # 3. closest node
-    node, dn, counts = _closest_node.closest_node(
+    node, dn, counts = node_search(
         xp, node_grid, m["nodes_x"], slave_x, d_max=sc["d_max"], tie=tie, slack=sc["slack"],
         capacity=capacity or None)
     lap("closest_node")
@@ -132,7 +137,7 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
     if st.mode == "exact":
         face_grid = grids["face"]
         rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
-        slave, face, valid, n_pairs = _projection.candidate_faces(
+        slave, face, valid, n_pairs = face_search(
             xp, face_grid, slave_x, rho, slack=sc["slack"], capacity=capacity or None)
         counts.update(n_pairs)
     else:

@@ -144,6 +144,49 @@ def _median_time(fn, repeats, sync=lambda: None):
     return statistics.median(times)
 
 
+def topology_time(master):
+    """Seconds to derive, on a fresh Surface, everything a detection reads from it."""
+    t0 = time.perf_counter()
+    m = ac.Surface(master.points, master.faces, master.element.name)
+    for name in ("nodes", "node_faces", "edges", "edge_faces", "boundary_nodes", "closed",
+                 "longest_edge", "face_normals", "face_bounds", "node_normals"):
+        getattr(m, name)
+    return time.perf_counter() - t0
+
+
+def jax_search(scene, d_max, repeats, check):
+    """The JAX back end with search="jax" (no Warp), float32, exact: plan, first call,
+    steady detection, and the steady value_and_grad of a gap energy (both coordinate arrays)."""
+    import jax
+    import jax.numpy as jnp
+
+    import arraycontact_jax as acj
+
+    t0 = time.perf_counter()
+    p = acj.plan(scene.master, scene.slave, d_max=d_max, dtype=np.float32, search="jax")
+    plan_s = time.perf_counter() - t0
+    xs = jax.device_put(jnp.asarray(scene.slave, jnp.float32))
+    xm = jax.device_put(jnp.asarray(scene.master.points, jnp.float32))
+    t0 = time.perf_counter()
+    c = jax.block_until_ready(acj.detect(p, xs, xm))
+    first_s = time.perf_counter() - t0
+    steady = _median_time(lambda: jax.block_until_ready(acj.detect(p, xs, xm)), repeats)
+
+    def energy(xs, xm):
+        c = acj.detect(p, xs, xm)
+        return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.0) ** 2, 0.0))
+
+    vg = jax.jit(jax.value_and_grad(energy, argnums=(0, 1)))
+    jax.block_until_ready(vg(xs, xm))
+    grad_s = _median_time(lambda: jax.block_until_ready(vg(xs, xm)), repeats)
+    c = jax.tree.map(np.asarray, c)
+    return dict(jax_plan_s=plan_s, jax_first_s=first_s, jax_steady_s=steady,
+                jax_value_and_grad_s=grad_s, jax_overflow=bool(c.overflow),
+                jax_counts={k: int(v) for k, v in c.counts.count.items()},
+                jax_capacity=dict(c.counts.capacity),
+                jax_errors=errors(c, scene, check, "float32"))
+
+
 def run_gpu(a):
     import warp as wp
 
@@ -189,6 +232,10 @@ def run_gpu(a):
                    active=int(c.active.sum()))
         rec["vs_refit"] = steady / rec["mesh_refit_query_s"]
         rec["vs_build"] = steady / rec["mesh_build_query_s"]
+        rec["topology_s"] = topology_time(scene.master)
+        if a.jax:
+            rec.update(jax_search(scene, d_max, a.repeats, a.check))
+            rec["jax_vs_warp"] = rec["jax_steady_s"] / steady
         _write(a, rec)
 
 
@@ -229,7 +276,9 @@ def run_cpu(a):
             fn = lambda dtype=dtype: ac.detect(scene.slave, m, backend="warp", d_max=d_max,
                                                dtype=dtype)
             ours[f"warp_cpu_{dtype}_s"] = _median_time(fn, a.repeats)
+            t0 = time.perf_counter()
             p = acw.plan(m, scene.slave, d_max=d_max, device="cpu", dtype=dtype)
+            ours[f"warp_cpu_{dtype}_plan_s"] = time.perf_counter() - t0
             acw.detect(p, scene.slave, m.points)
             ours[f"warp_cpu_{dtype}_detect_s"] = _median_time(
                 lambda p=p: acw.detect(p, scene.slave, m.points), a.repeats)
@@ -240,8 +289,19 @@ def run_cpu(a):
         rec = dict(meta, scene=label, log2=a.log2, n_slaves=len(scene.slave),
                    n_faces=m.n_faces, d_max=d_max, **ours, fcpw_s=t_fcpw, libigl_s=t_igl,
                    errors=errors(c, scene, a.check, "float32"), active=int(c.active.sum()))
-        best = min(v for k, v in ours.items() if not k.endswith("detect_s"))
+        best = min(v for k, v in ours.items() if not k.endswith(("detect_s", "plan_s")))
         rec["vs_fcpw"] = best / t_fcpw
+        # Set-up, each against fcpw's whole build + query of the scene.
+        rec["topology_s"] = topology_time(m)
+        for search in ("jax", "warp"):
+            import arraycontact_jax as acj
+
+            acj.plan(m, scene.slave, d_max=d_max, dtype=np.float32, search=search)
+            t0 = time.perf_counter()
+            acj.plan(m, scene.slave, d_max=d_max, dtype=np.float32, search=search)
+            rec[f"jax_{search}_plan_s"] = time.perf_counter() - t0
+        rec["setup_vs_fcpw"] = {k[:-2]: rec.get(k, ours.get(k)) / t_fcpw for k in (
+            "topology_s", "warp_cpu_float32_plan_s", "jax_jax_plan_s", "jax_warp_plan_s")}
         _write(a, rec)
 
 
@@ -289,7 +349,8 @@ def table(a):
             print("|---|---|---|---|---|---|---|---|---|")
             for r in recs:
                 best = min(v for k, v in r.items() if k.endswith("_s") and
-                           k.startswith(("warp_cpu", "numpy")) and not k.endswith("detect_s"))
+                           k.startswith(("warp_cpu", "numpy"))
+                           and not k.endswith(("detect_s", "plan_s")))
                 e = r["errors"]
                 print(f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | {1e3 * best:.1f} ms | "
                       f"{1e3 * r['fcpw_s']:.1f} ms | {1e3 * r['libigl_s']:.1f} ms | "
@@ -305,6 +366,8 @@ def main():
     ap.add_argument("--check", type=int, default=64, help="slaves checked against the reference")
     ap.add_argument("--only", nargs="*", help="scene labels (prefixes) to run")
     ap.add_argument("--no-numpy", action="store_true")
+    ap.add_argument("--jax", action="store_true",
+                    help="gpu: also the JAX back end with search='jax' (no Warp)")
     ap.add_argument("--run", help="run id recorded with every record")
     ap.add_argument("--out", help="folder for suite_<mode>.jsonl (default benchmarks/results)")
     a = ap.parse_args()

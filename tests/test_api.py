@@ -73,12 +73,14 @@ def test_empty_sets(backend):
 def test_jax_overflow_is_reported_and_replanned(monkeypatch):
     import arraycontact_jax._detect as jd
 
-    real = jd._estimate
-    monkeypatch.setattr(jd, "_estimate", lambda *a: {k: 1 for k in real(*a)})
+    # Plan with room for one candidate face a slave: the one-shot call must grow and re-run.
+    monkeypatch.setattr(jd, "_count", lambda *a, **k: {"face_candidates": 1})
+    monkeypatch.setattr(jd, "MIN_CANDIDATES", 1)
     c = ac.detect(SLAVE, MASTER, backend="jax")
     ref = ac.detect(SLAVE, MASTER, backend="numpy")
     assert not c.overflow
-    assert all(c.counts.count[k] <= c.counts.capacity[k] for k in c.counts.count)
+    assert all(c.counts.count[k] <= v for k, v in c.counts.capacity.items())
+    assert c.counts.capacity["face_candidates"] > 1  # grown after the first run overflowed
     assert np.array_equal(c.face, ref.face) and np.allclose(c.gap[c.active], ref.gap[c.active])
 
 
@@ -95,14 +97,10 @@ def test_jax_kernel_flags_overflow():
         st = Static("tri3", "exact", prep.node_levels, prep.face_levels, 0, False)
         m = master_arrays(MASTER, prep, np.float64)
         sc = scalars(prep, MASTER, np.float64)
-        cap = tuple((f"{t}_level{k}", 8) for t, levels in
-                    (("node", prep.node_levels), ("face", prep.face_levels))
-                    for k in range(len(levels) - 1))
-        _, counts = jd._kernel(sc, m, SLAVE[prep.slave_rows], st=st, capacity=cap)
-    # Each level's count is the true count of what it kept from the (truncated) level above:
-    # the first level to overflow is on record.
-    assert int(counts[f"node_level{len(prep.node_levels) - 2}"]) > 8
-    assert int(counts[f"face_level{len(prep.face_levels) - 2}"]) > 8
+        _, counts = jd._kernel(sc, m, SLAVE[prep.slave_rows], st=st,
+                               capacity=(("face_candidates", 2),))
+    # The true count (the most candidate faces of one slave) next to the capacity it exceeds.
+    assert int(counts["face_candidates"]) > 2
 
 
 def test_contacts_summary_and_status():

@@ -91,8 +91,8 @@ def test_no_recompilation_over_20_steps_of_a_moving_scene(search="jax"):
 
 def test_overflow_is_reported_and_update_plan_fixes_it():
     s = scenes.rough_surfaces(2**10, seed=6)
-    p = acj.plan(s.master, s.slave, growth=1.0)
-    # Move the slaves onto the master: more pairs than planned.
+    # Planned with the slaves far above the master (no candidate faces), then moved onto it.
+    p = acj.plan(s.master, s.slave + [0, 0, 20.0], growth=1.0, d_max=s.master.longest_edge)
     slave = s.slave - [0, 0, 1.0]
     c = acj.detect(p, jnp.asarray(slave), jnp.asarray(s.master.points))
     assert bool(c.overflow)

@@ -34,7 +34,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arraycontact import _closest_node, _projection
 from arraycontact._contacts import Contacts, Counts, Feature, Status
 from arraycontact._elements import get_element
 from arraycontact._detect import (ITERATIONS, Static, build_grids, check_options, master_arrays,
@@ -43,49 +42,49 @@ from arraycontact._grid import level_sizes, morton_order
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, validate_points
 
+from . import _grid
 from ._gradients import padded_node_faces, smooth
 
-# Capacities are the plan-time counts times this: the leaf level's count (the candidate faces)
-# grows about 30 % when the slaves of the rough surfaces close 40 % of their gap.
+# Capacities are the plan-time counts times this: the candidate faces of a slave grow when
+# the slaves come closer to a rough master than they were at plan time.
 GROWTH = 1.5
+# Candidate faces a slave at least (a slave within reach of a flat triangulated master has
+# about 6-12).
+MIN_CANDIDATES = 8
 
 
 @partial(jax.jit, static_argnames=("st", "capacity"))
 def _kernel(sc, m, slave_x, *, st, capacity):
     grids = build_grids(jnp, st, sc, m)
-    out, counts = run_stages(jnp, st, sc, m, grids, slave_x, dict(capacity))
+    out, counts = run_stages(jnp, st, sc, m, grids, slave_x, dict(capacity), search=_grid)
     return out, counts
 
 
-def _estimate(slave_x, m, sc, st, chunk=1 << 15):
-    """The pair counts of every tree level, from stages 3-4 on the host (no projections)."""
-    grids = build_grids(np, st, sc, m)
-    cap = {}
-
-    def add(counts):
-        for k, v in counts.items():
-            cap[k] = cap.get(k, 0) + int(v)
-
-    for i in range(0, len(slave_x), chunk):
-        x = slave_x[i:i + chunk]
-        node, dn, counts = _closest_node.closest_node(
-            np, grids["node"], m["nodes_x"], x, d_max=sc["d_max"], tie=sc["tie"],
-            slack=sc["slack"], capacity=None)
-        add(counts)
-        if st.mode == "exact":
-            rho = np.minimum(dn, sc["d_max"]) + sc["slack"]
-            add(_projection.candidate_faces(np, grids["face"], x, rho, slack=sc["slack"],
-                                            capacity=None)[3])
-        else:
-            deg = np.diff(m["nf_offsets"])[np.maximum(node, 0)]
-            add({"attached": int(np.where(node >= 0, deg, 0).sum())})
-    return cap
+@partial(jax.jit, static_argnames=("st",))
+def _count(sc, m, slave_x, *, st):
+    """The counts that size the capacities, on the device (the scans of stages 3-4 with no
+    candidate slots): the most candidate faces of one slave (exact mode), or the faces
+    attached to the closest nodes (node mode)."""
+    grids = build_grids(jnp, st, sc, m)
+    node, dn, _ = _grid.closest_node(jnp, grids["node"], m["nodes_x"], slave_x,
+                                     d_max=sc["d_max"], tie=sc["tie"], slack=sc["slack"])
+    if st.mode == "exact":
+        rho = jnp.minimum(dn, sc["d_max"]) + sc["slack"]
+        counts = _grid.candidate_faces(jnp, grids["face"], slave_x, rho, slack=sc["slack"],
+                                       capacity={"face_candidates": 0})[3]
+        return {"face_candidates": counts["face_candidates"]}
+    nd = jnp.maximum(node, 0)
+    deg = m["nf_offsets"][nd + 1] - m["nf_offsets"][nd]
+    return {"attached": jnp.sum(jnp.where(node >= 0, deg, 0))}
 
 
-def _grown(cap, growth, n_slaves):
-    """Capacities from counts: times growth, and at least 64 + 2 per slave (a level's count
-    is a few entries per slave; on a small scene a new configuration can double it)."""
-    return {k: max(int(np.ceil(v * growth)), 64 + 2 * n_slaves) for k, v in cap.items()}
+def _grown(counts, growth, n_slaves):
+    """Capacities from counts, times growth: at least MIN_CANDIDATES candidate faces a slave;
+    at least 64 + 2 a slave for the attached faces of node mode (a total, which on a small
+    scene a new configuration can double)."""
+    floor = {"face_candidates": MIN_CANDIDATES}
+    return {k: max(int(np.ceil(int(v) * growth)), floor.get(k, 64 + 2 * n_slaves))
+            for k, v in counts.items()}
 
 
 def run_one_shot(slave_x, master, prep, st, dtype):
@@ -95,14 +94,15 @@ def run_one_shot(slave_x, master, prep, st, dtype):
         m = master_arrays(master, prep, dtype)
         sc = scalars(prep, master, dtype)
         x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
-        cap = _grown(_estimate(x, m, sc, st), GROWTH, len(x))
         m_dev = {k: jnp.asarray(v) for k, v in m.items()}
         sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
         x_dev = jnp.asarray(x)
+        # The counts of these very coordinates: no growth needed (the loop is a safeguard).
+        cap = _grown(_count(sc_dev, m_dev, x_dev, st=st), 1.0, len(x))
         for _ in range(4):
             out, counts = _kernel(sc_dev, m_dev, x_dev, st=st, capacity=tuple(sorted(cap.items())))
             counts = {k: int(v) for k, v in counts.items()}
-            over = {k: v for k, v in counts.items() if v > cap[k]}
+            over = {k: v for k, v in counts.items() if k in cap and v > cap[k]}
             if not over:
                 break
             cap.update(_grown(over, GROWTH, len(x)))
@@ -197,7 +197,9 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
                     tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
                     engine)
     m = master_arrays(master, prep, dtype)
-    cap = _grown(_estimate((slave_x - origin).astype(dtype), m, sc, st), growth, len(slave_x))
+    sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
+    cap = _grown(_count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), st=st),
+                 growth, len(slave_x))
     for k, v in (minimum or {}).items():
         if k in cap:
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
@@ -244,7 +246,8 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     else:
         m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
         grids = build_grids(jnp, st, sc, m)
-        out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap)
+        out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap,
+                                 search=_grid)
     keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
     face = jnp.where(keep, out["face"], -1)
     feature = jnp.where(keep, out["feature"], int(Feature.NONE))

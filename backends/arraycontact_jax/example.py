@@ -34,7 +34,8 @@ def rotation(w):
 
 
 def push_out(n_nodes=2**12, steps=40, k=1e3, sink=1.6, seed=0):
-    """Returns the gaps and energy before and after, and whether any step overflowed."""
+    """Returns the gaps and energy before and after, whether the final contacts overflowed,
+    and how many times the path outgrew the plan (then re-planned and solved again)."""
     s = scenes.rough_surfaces(n_nodes, seed=seed)
     length = s.master.longest_edge
     body = s.slave - [0.0, 0.0, sink]  # sunk into the master: deep penetration
@@ -43,35 +44,51 @@ def push_out(n_nodes=2**12, steps=40, k=1e3, sink=1.6, seed=0):
     p = plan(s.master, body, d_max=2 * sink, growth=2.0)
     master = jnp.asarray(s.master.points)
 
-    def contacts(q):
+    def contacts(p, q):
         x = (jnp.asarray(body) - centre) @ rotation(q[3:]).T + centre + q[:3]
         return detect(p, x, master)
 
-    def energy(q):
-        c = contacts(q)
+    def energy(p, q):
+        c = contacts(p, q)
         g = jnp.where(c.active, c.gap, jnp.inf)
         return 0.5 * k * jnp.sum(jnp.minimum(g - margin, 0.0) ** 2)
 
     @jax.jit
-    def solve(q):
+    def solve(p, q):
+        """Newton steps; also the largest count of every capacity met on the way."""
+
+        def worst(q, most):
+            count = contacts(p, q).counts.count
+            return {key: jnp.maximum(most[key], count[key]) for key in most}
+
         def step(_, state):
-            q, overflow = state
-            h = jax.hessian(energy)(q) + 1e-9 * k * jnp.eye(6)
-            q = q - jnp.linalg.solve(h, jax.grad(energy)(q))
-            return q, overflow | contacts(q).overflow
+            q, most = state
+            h = jax.hessian(lambda q: energy(p, q))(q) + 1e-9 * k * jnp.eye(6)
+            q = q - jnp.linalg.solve(h, jax.grad(lambda q: energy(p, q))(q))
+            return q, worst(q, most)
 
-        return jax.lax.fori_loop(0, steps, step, (q, contacts(q).overflow))
+        most = {key: jnp.int32(0) for key in dict(p.capacity)}
+        return jax.lax.fori_loop(0, steps, step, (q, worst(q, most)))
 
+    # The overflow protocol: a path that met a count above its capacity is solved again with
+    # a plan sized for the largest counts it met (a step's result could be incomplete).
     q0 = jnp.zeros(6, dtype=master.dtype)
-    q, overflow = solve(q0)
+    replans = 0
+    while True:
+        q, most = solve(p, q0)
+        most = {key: int(v) for key, v in most.items()}
+        if all(most[key] <= v for key, v in p.capacity):
+            break
+        replans += 1
+        p = plan(s.master, body, d_max=2 * sink, growth=2.0, minimum=most)
 
     def min_gap(q):
-        c = contacts(q)
+        c = contacts(p, q)
         return float(jnp.min(jnp.where(c.active, c.gap, jnp.inf)))
 
     return dict(min_gap_before=min_gap(q0), min_gap_after=min_gap(q), energy_before=float(
-        energy(q0)), energy_after=float(energy(q)), motion=np.asarray(q), length=length,
-        overflow=bool(overflow))
+        energy(p, q0)), energy_after=float(energy(p, q)), motion=np.asarray(q), length=length,
+        overflow=bool(contacts(p, q).overflow), replans=replans)
 
 
 if __name__ == "__main__":

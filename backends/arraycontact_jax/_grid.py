@@ -1,0 +1,179 @@
+"""Stages 3-4 in JAX: per-slave depth-first scans of the trees of arraycontact._grid (read its
+docstring for the structure), all slaves in lockstep in one `lax.while_loop`.
+
+Why not the level-by-level query of the NumPy back end: under `jit` each level's surviving
+(slave, entry) pairs need a static capacity, planned on the host by running the query there
+(seconds at 2^20), and each level is a compaction (a cumulative sum and a scatter over every
+pair). Here each slave keeps a fixed-size state, as the Warp kernels' threads do: the entry
+it visits, the pending children of each level as a W-bit mask (the whole stack), its reach,
+and what it found. One step visits one entry per slave: it tests the entry's W children at
+once (one gather of W boxes), shrinks the reach with their representative points, and goes
+on with the nearest child, or else with the next pending entry of the deepest level that has
+one. Pending entries are tested again when their turn comes, against the reach as it is then.
+A slave that has nothing left idles until the last one is done: the loop runs as many steps
+as the busiest slave needs (a few tens: the entries within its reach).
+
+Memory: O(n) state plus, for the face scan, K candidate slots a slave (K planned from a
+device-side count, reported as the capacity "face_candidates"). The closest-node scan stores
+nothing: a first scan finds the smallest distance, a second (with a reach of that distance plus
+the tie band) the smallest node id within the band.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from arraycontact._grid import W, Tree
+
+BIG = np.iinfo(np.int32).max
+# The index of the lowest set bit of a W-bit mask (0 for an empty mask, never read).
+_LOWEST_BIT = np.array([(m & -m).bit_length() - 1 if m else 0 for m in range(1 << W)], np.int32)
+
+
+class Flat(NamedTuple):
+    """A tree's levels 0 .. top-1 as groups of W siblings, each row the W children of one
+    entry as [9, W] (box lo x, y, z, box hi x, y, z, representative point x, y, z; empty boxes
+    past a level's end): the children of entry j of level k are row offset[k - 1] + j. One
+    gather of 9 W contiguous values a step, and the arithmetic on [n, W] planes: as [W, 9] rows
+    with reductions over the axis of 3, a step took 4x longer on the CPU."""
+
+    groups: jax.Array  # [rows, 9, W]
+    offset: jax.Array  # [top] first row of each level
+    top: int
+
+
+def flatten(tree: Tree) -> Flat:
+    top = len(tree.lo) - 1
+    big = float(np.finfo(tree.lo[0].dtype).max) ** 0.25
+    rows, offset = [], [0]
+    for k in range(top):
+        n = tree.lo[k].shape[0]
+        pad = ((0, -n % W), (0, 0))
+        lv = jnp.concatenate([jnp.pad(tree.lo[k], pad, constant_values=big),
+                              jnp.pad(tree.hi[k], pad, constant_values=-big),
+                              jnp.pad(tree.rep[k], pad)], -1)
+        rows.append(jnp.swapaxes(lv.reshape(-1, W, 9), 1, 2))
+        offset.append(offset[-1] + rows[-1].shape[0])
+    return Flat(jnp.concatenate(rows), jnp.asarray(offset[:-1], jnp.int32), top)
+
+
+def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
+    """Depth-first scans of `flat` from the root, one per query point q [n, 3], with reach [n].
+
+    At each step every busy slave tests the W children of its entry; the reach becomes
+    min(reach, nearest representative + slack); `visit(carry, pos, keep, dist)` is called
+    with, per slave, the W children's positions in their level `pos` [n, W], which of them are items within reach
+    (`keep`, false except where the children are items) and the representatives' distances
+    `dist` [n, W], and returns the new carry. Returns (carry, reach, steps)."""
+    n = q.shape[0]
+    top = flat.top
+    lane = jnp.arange(W, dtype=jnp.int32)
+    levels = jnp.arange(top + 1, dtype=jnp.int32)
+    bits = jnp.left_shift(1, lane)
+    lowest = jnp.asarray(_LOWEST_BIT)
+    done = jnp.zeros(n, bool) if active is None else ~active
+    state = (jnp.full(n, top, jnp.int32), jnp.zeros(n, jnp.int32),
+             jnp.zeros((n, top + 1), jnp.int32), reach, done, carry, jnp.int32(0))
+
+    def step(state):
+        k, j, stack, reach, done, carry, steps = state
+        pos = W * j[:, None] + lane  # the children's positions in their level
+        box = flat.groups[flat.offset[k - 1] + j]  # [n, 9, W]
+        lo, hi, rep = box[:, 0:3], box[:, 3:6], box[:, 6:9]
+        qs = q[:, :, None]
+        g = jnp.maximum(jnp.maximum(lo - qs, qs - hi), 0)
+        d2 = g[:, 0] ** 2 + g[:, 1] ** 2 + g[:, 2] ** 2
+        filled = (lo[:, 0] <= hi[:, 0]) & (lo[:, 1] <= hi[:, 1]) & (lo[:, 2] <= hi[:, 2])
+        r = rep - qs
+        dr = jnp.where(filled, jnp.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2 + r[:, 2] ** 2), jnp.inf)
+        reach = jnp.where(done, reach, jnp.minimum(reach, jnp.min(dr, -1) + slack))
+        keep = filled & (d2 <= (reach * reach)[:, None]) & ~done[:, None]
+        leaf = k == 1
+        carry = visit(carry, pos, keep & leaf[:, None], dr)
+        # Descend to the nearest child (among boxes that hold q, the nearest centre), keeping
+        # the others pending at their level.
+        c = 0.5 * (lo + hi) - qs
+        rank = jnp.where(d2 == 0, -1 / (1 + c[:, 0] ** 2 + c[:, 1] ** 2 + c[:, 2] ** 2), d2)
+        near = jnp.argmin(jnp.where(keep, rank, jnp.inf), -1).astype(jnp.int32)
+        down = jnp.any(keep, -1) & ~leaf
+        rest = jnp.sum(jnp.where(keep, bits, 0), -1, dtype=jnp.int32) & ~jnp.left_shift(1, near)
+        at = levels == (k - 1)[:, None]
+        stack_down = jnp.where(at, rest[:, None], stack)
+        # Else the next pending entry: the lowest level >= k with pending children.
+        kk = jnp.min(jnp.where((stack != 0) & (levels >= k[:, None]), levels, top), -1)
+        left = jnp.take_along_axis(stack, jnp.minimum(kk, top)[:, None], 1)[:, 0]
+        stack_up = jnp.where(levels == kk[:, None], (left & (left - 1))[:, None], stack)
+        j_up = W * (jnp.right_shift(j, 3 * (kk - k)) // W) + lowest[left]
+        finished = ~down & (kk >= top)
+        k_new = jnp.where(down, k - 1, kk)
+        j_new = jnp.where(down, W * j + near, j_up)
+        stack_new = jnp.where(down[:, None], stack_down, stack_up)
+        keep_old = done | finished
+        return (jnp.where(keep_old, k, k_new), jnp.where(keep_old, j, j_new),
+                jnp.where(keep_old[:, None], stack, stack_new), reach, done | finished, carry,
+                steps + 1)
+
+    k, j, stack, reach, done, carry, steps = jax.lax.while_loop(
+        lambda s: ~jnp.all(s[4]), step, state)
+    return carry, reach, steps
+
+
+def _shrinks_to(d_max, slack, n, dtype):
+    return jnp.zeros(n, dtype) + (d_max + slack)
+
+
+def closest_node(xp, tree: Tree, nodes_x, slave_x, *, d_max, tie, slack, capacity=None):
+    """The closest master node within d_max of each slave (ties: the smallest node id within
+    `tie` of the smallest distance), -1 and inf where none: (node [n], distance [n], counts).
+    The same answer as arraycontact._closest_node's."""
+    n = slave_x.shape[0]
+    flat = flatten(tree)
+    ids = tree.ids
+
+    def nearest(dmin, pos, keep, dist):
+        return jnp.minimum(dmin, jnp.min(jnp.where(keep, dist, jnp.inf), -1))
+
+    reach = _shrinks_to(d_max, slack, n, slave_x.dtype)
+    dmin, _, steps = scan(flat, slave_x, reach, slack, nearest, jnp.full(n, jnp.inf,
+                                                                         slave_x.dtype))
+    dmin = jnp.where(dmin <= d_max, dmin, jnp.inf)
+    has = dmin < jnp.inf
+
+    def smallest_id(best, pos, keep, dist):
+        ok = keep & (dist <= (dmin + tie)[:, None]) & (dist <= d_max)
+        node = ids[jnp.minimum(pos, ids.shape[0] - 1)]
+        return jnp.minimum(best, jnp.min(jnp.where(ok, node, BIG), -1))
+
+    band = jnp.where(has, dmin + slack, 0)
+    best, _, steps2 = scan(flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32),
+                           active=has)
+    return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
+
+
+def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity):
+    """Candidate (slave, face) pairs: the faces whose box is within the slave's reach (rho,
+    shrunk by the scan to the nearest surface point it meets), K = capacity["face_candidates"]
+    slots a slave. Returns (slave [n K], face [n K], valid [n K], counts); the count is the
+    largest number of candidates of one slave (above K: overflow, the extra ones dropped)."""
+    n = slave_x.shape[0]
+    K = capacity["face_candidates"]
+    flat = flatten(tree)
+    rows = jnp.arange(n)[:, None]
+
+    def collect(carry, pos, keep, dist):
+        found, count = carry
+        slot = count[:, None] + jnp.cumsum(keep, -1, dtype=jnp.int32) - 1
+        found = found.at[rows, jnp.where(keep, slot, K)].set(pos, mode="drop")
+        return found, count + jnp.sum(keep, -1, dtype=jnp.int32)
+
+    carry = (jnp.zeros((n, K), jnp.int32), jnp.zeros(n, jnp.int32))
+    (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry)
+    valid = (jnp.arange(K) < count[:, None]).reshape(-1)
+    face = tree.ids[found.reshape(-1)]
+    slave = jnp.repeat(jnp.arange(n), K)
+    return slave, face, valid, {"face_candidates": jnp.max(count, initial=0),
+                                "face_scan_steps": steps}
