@@ -40,6 +40,10 @@ def segment_min(xp, data, ids, n, sorted=False):
 def segment_sum(xp, data, ids, n):
     """Sum of `data` rows per segment id (zero for an empty segment)."""
     if is_numpy(xp):
+        if data.ndim <= 2 and data.dtype.kind == "f":  # bincount: 10-20x np.add.at's speed
+            cols = data.reshape(len(data), -1).T
+            out = np.stack([np.bincount(ids, c, minlength=n) for c in cols], -1)
+            return out.astype(data.dtype).reshape((n,) + data.shape[1:])
         out = np.zeros((n,) + data.shape[1:], data.dtype)
         np.add.at(out, ids, data)
         return out

@@ -121,7 +121,7 @@ def _check_paper_rules(case, **options):
     slave = rng.uniform(lo, hi, (300, 3))
     d_max = 1.0
     want = node_mode_direct(slave, surface, d_max)
-    c = ac.detect(slave, surface, mode="node", d_max=d_max, **options, backend="numpy")
+    c = ac.detect(slave, surface, mode="node", d_max=d_max, **options)
     status = np.array([w[0] for w in want])
     assert np.array_equal(c.status, status)
     active = np.isin(status, [S.OK, S.BLIND_SPOT])
