@@ -7,7 +7,9 @@ contact face, natural coordinates, point, signed gap, normal and feature. Back e
 
 from . import reference as reference
 from . import scenes as scenes
-from ._contacts import Contacts as Contacts, Counts as Counts, Feature as Feature
+from ._contacts import Contacts as Contacts
+from ._contacts import Counts as Counts
+from ._contacts import Feature as Feature
 from ._contacts import Status as Status
 from ._detect import detect as detect
 from ._elements import ELEMENTS as ELEMENTS
@@ -17,5 +19,17 @@ from ._prepare import default_d_max as default_d_max
 from ._surface import Surface as Surface
 
 __version__ = "0.1.0"
-__all__ = ["Contacts", "Counts", "Feature", "Status", "Surface", "detect", "default_d_max",
-           "read_surface", "surface_from_meshio", "reference", "scenes", "ELEMENTS"]
+__all__ = [
+    "Contacts",
+    "Counts",
+    "Feature",
+    "Status",
+    "Surface",
+    "detect",
+    "default_d_max",
+    "read_surface",
+    "surface_from_meshio",
+    "reference",
+    "scenes",
+    "ELEMENTS",
+]

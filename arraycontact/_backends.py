@@ -25,6 +25,19 @@ def load(name):
     try:
         importlib.import_module(dependency)
     except ImportError as e:
-        raise ImportError(f"backend {name!r} needs {dependency!r}: pip install "
-                          f"'arraycontact[{name}]' (or the package {dependency})") from e
+        raise ImportError(
+            f"backend {name!r} needs {dependency!r}: pip install "
+            f"'arraycontact[{name}]' (or the package {dependency})"
+        ) from e
     return importlib.import_module(package)
+
+
+def quiet_warp():
+    """Warp without its banner and kernel-cache lines (reports and tests print their own):
+    `config.log_level` on Warp >= 1.10, where `config.quiet` is deprecated and ignored."""
+    import warp as wp
+
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:
+        wp.config.quiet = True

@@ -42,8 +42,9 @@ class Counts:
     @property
     def overflow(self) -> bool:
         # `|` rather than any(): the counts may be traced JAX scalars inside a jitted function.
-        flags = [self.count[k] > self.capacity[k] for k in self.capacity
-                 if self.capacity[k] is not None]
+        flags = [
+            self.count[k] > self.capacity[k] for k in self.capacity if self.capacity[k] is not None
+        ]
         return functools.reduce(operator.or_, flags, False)
 
 
@@ -91,8 +92,10 @@ class Contacts:
         a = np.asarray(self.active)
         gap = np.asarray(self.gap)[a]
         lines = [f"backend: {self.backend or '?'} on {self.device or '?'}, {self.dtype or '?'}"]
-        lines += [f"slaves: {len(a)}  active: {int(a.sum())}  contact elements: {len(self.pairs())}",
-                 f"d_max: {self.d_max:.6g}  min gap: {gap.min() if len(gap) else float('nan'):.6g}"]
+        lines += [
+            f"slaves: {len(a)}  active: {int(a.sum())}  contact elements: {len(self.pairs())}",
+            f"d_max: {self.d_max:.6g}  min gap: {gap.min() if len(gap) else float('nan'):.6g}",
+        ]
         st = np.bincount(np.asarray(self.status), minlength=len(Status))
         lines.append("status: " + ", ".join(f"{s.name.lower()} {st[s]}" for s in Status if st[s]))
         return "\n".join(lines)

@@ -48,10 +48,19 @@ def master_topology(master: Surface, prep: Prepared):
     faces that take part are prep's."""
     offsets, ids = master.node_faces
     prev_node, next_node, prev_face, next_face, on = _select.boundary_topology(master)
-    out = dict(faces=master.faces, node_ids=prep.node_ids, face_ids=prep.face_ids,
-               face_edges=master.face_edges, edge_faces=master.edge_faces, nf_offsets=offsets,
-               nf_ids=ids, prev_node=prev_node, next_node=next_node, prev_face=prev_face,
-               next_face=next_face)
+    out = dict(
+        faces=master.faces,
+        node_ids=prep.node_ids,
+        face_ids=prep.face_ids,
+        face_edges=master.face_edges,
+        edge_faces=master.edge_faces,
+        nf_offsets=offsets,
+        nf_ids=ids,
+        prev_node=prev_node,
+        next_node=next_node,
+        prev_face=prev_face,
+        next_face=next_face,
+    )
     out = {k: np.asarray(v).astype(np.int32) for k, v in out.items()}
     out["on_boundary"] = on
     return out
@@ -64,10 +73,21 @@ def master_geometry(xp, element, topo, nodes_x):
     element = get_element(element)
     xe = nodes_x[topo["faces"]]
     prev_n, next_n, concave = _select.boundary_geometry(
-        xp, nodes_x, topo["prev_node"], topo["next_node"], topo["prev_face"],
-        topo["next_face"], face_normals(element, xe, xp))
-    return dict(nodes_x=nodes_x, node_normals=node_normals(element, topo["faces"], nodes_x, xp),
-                prev_normal=prev_n, next_normal=next_n, concave=concave)
+        xp,
+        nodes_x,
+        topo["prev_node"],
+        topo["next_node"],
+        topo["prev_face"],
+        topo["next_face"],
+        face_normals(element, xe, xp),
+    )
+    return dict(
+        nodes_x=nodes_x,
+        node_normals=node_normals(element, topo["faces"], nodes_x, xp),
+        prev_normal=prev_n,
+        next_normal=next_n,
+        concave=concave,
+    )
 
 
 def master_arrays(master: Surface, prep: Prepared, dtype):
@@ -75,20 +95,34 @@ def master_arrays(master: Surface, prep: Prepared, dtype):
     normals are the Surface's cached ones (they do not depend on the frame)."""
     topo = master_topology(master, prep)
     prev_n, next_n, concave = _select.boundary_geometry(
-        np, master.points, topo["prev_node"], topo["next_node"], topo["prev_face"],
-        topo["next_face"], master.face_normals)
-    return dict(topo, nodes_x=(master.points - prep.origin).astype(dtype),
-                node_normals=master.node_normals.astype(dtype), prev_normal=prev_n.astype(dtype),
-                next_normal=next_n.astype(dtype), concave=concave)
+        np,
+        master.points,
+        topo["prev_node"],
+        topo["next_node"],
+        topo["prev_face"],
+        topo["next_face"],
+        master.face_normals,
+    )
+    return dict(
+        topo,
+        nodes_x=(master.points - prep.origin).astype(dtype),
+        node_normals=master.node_normals.astype(dtype),
+        prev_normal=prev_n.astype(dtype),
+        next_normal=next_n.astype(dtype),
+        concave=concave,
+    )
 
 
 def scalars(prep: Prepared, master: Surface, dtype):
     eps = float(np.finfo(dtype).eps)
     tie = TIE_RTOL[np.dtype(dtype)] * master.longest_edge
-    return dict(d_max=prep.d_max, tie=tie,
-                # Rounding slack of the pruning tests (never of the answer).
-                slack=tie + 16 * eps * (prep.extent + prep.d_max + prep.r_max),
-                tol=KKT_TOL[np.dtype(dtype)])
+    return dict(
+        d_max=prep.d_max,
+        tie=tie,
+        # Rounding slack of the pruning tests (never of the answer).
+        slack=tie + 16 * eps * (prep.extent + prep.d_max + prep.r_max),
+        tol=KKT_TOL[np.dtype(dtype)],
+    )
 
 
 class _Laps:
@@ -115,8 +149,9 @@ def build_grids(xp, st: Static, sc: dict, m: dict):
     return grids
 
 
-def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity: dict,
-               lap=None, search=None):
+def run_stages(
+    xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity: dict, lap=None, search=None
+):
     """Stages 3-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts.
     search: what runs the tree searches of stages 3-4 (`closest_node`, `candidate_faces`):
     by default the level-by-level queries of _closest_node and _projection (NumPy); the JAX
@@ -130,15 +165,23 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
     node_grid = grids["node"]
     # 3. closest node
     node, dn, counts = node_search(
-        xp, node_grid, m["nodes_x"], slave_x, d_max=sc["d_max"], tie=tie, slack=sc["slack"],
-        capacity=capacity or None)
+        xp,
+        node_grid,
+        m["nodes_x"],
+        slave_x,
+        d_max=sc["d_max"],
+        tie=tie,
+        slack=sc["slack"],
+        capacity=capacity or None,
+    )
     lap("closest_node")
     # 4. candidate faces and projections
     if st.mode == "exact":
         face_grid = grids["face"]
         rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
         slave, face, valid, n_pairs = face_search(
-            xp, face_grid, slave_x, rho, slack=sc["slack"], capacity=capacity or None)
+            xp, face_grid, slave_x, rho, slack=sc["slack"], capacity=capacity or None
+        )
         counts.update(n_pairs)
     else:
         # Node mode: the faces attached to the closest node (seed 000 section 2.2).
@@ -151,8 +194,16 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
         counts.update(attached=n_att)
     lap("candidates")
     xi, point, diff, feature, local, conv = _projection.project(
-        xp, element, slave_x, m["nodes_x"], m["faces"], slave, face,
-        iterations=st.iterations, tol=sc["tol"])
+        xp,
+        element,
+        slave_x,
+        m["nodes_x"],
+        m["faces"],
+        slave,
+        face,
+        iterations=st.iterations,
+        tol=sc["tol"],
+    )
     lap("projection")
     # 5. selection and classification
     dist = norm(xp, diff)
@@ -167,9 +218,17 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
         pick = xp.where(has_p, pick_p, pick_b)
         blind = ~has_p & has_b
         if st.passing_by:
-            inside = _select.proximal(xp, slave_x, nd, m["nodes_x"], m["prev_node"],
-                                      m["next_node"], m["prev_normal"], m["next_normal"],
-                                      m["concave"])
+            inside = _select.proximal(
+                xp,
+                slave_x,
+                nd,
+                m["nodes_x"],
+                m["prev_node"],
+                m["next_node"],
+                m["prev_normal"],
+                m["next_normal"],
+                m["concave"],
+            )
             passing = blind & m["on_boundary"][nd] & ~inside
         else:
             passing = blind & False
@@ -178,15 +237,36 @@ def run_stages(xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity
         status = xp.where(passing, int(Status.PASSING_BY), status)
     face_out = face[pick]
     gap, dist_out, normal = _select.classify(
-        xp, element, m["nodes_x"], m["faces"], m["face_edges"], m["edge_faces"],
-        m["node_normals"], face_out, xi[pick], diff[pick], feature[pick], local[pick], tie)
+        xp,
+        element,
+        m["nodes_x"],
+        m["faces"],
+        m["face_edges"],
+        m["edge_faces"],
+        m["node_normals"],
+        face_out,
+        xi[pick],
+        diff[pick],
+        feature[pick],
+        local[pick],
+        tie,
+    )
     status = xp.where(active & ~conv[pick], int(Status.NOT_CONVERGED), status)
-    status = xp.where(active | (status == int(Status.PASSING_BY)), status,
-                      int(Status.OUT_OF_RANGE))
+    status = xp.where(active | (status == int(Status.PASSING_BY)), status, int(Status.OUT_OF_RANGE))
     lap("select")
-    out = dict(active=active, face=face_out, xi=xi[pick], point=point[pick], gap=gap,
-               distance=dist_out, normal=normal, feature=feature[pick], master_node=node,
-               status=status, local=local[pick])
+    out = dict(
+        active=active,
+        face=face_out,
+        xi=xi[pick],
+        point=point[pick],
+        gap=gap,
+        distance=dist_out,
+        normal=normal,
+        feature=feature[pick],
+        master_node=node,
+        status=status,
+        local=local[pick],
+    )
     return out, counts
 
 
@@ -199,12 +279,22 @@ def _slaves(slave):
 
 def _empty(n, ids, d_max, counts=None, timings=None, **answered) -> Contacts:
     return Contacts(
-        active=np.zeros(n, bool), face=np.full(n, -1, np.int64), xi=np.full((n, 2), np.nan),
-        point=np.full((n, 3), np.nan), gap=np.full(n, np.nan), distance=np.full(n, np.nan),
-        normal=np.full((n, 3), np.nan), feature=np.full(n, int(Feature.NONE), np.int32),
-        master_node=np.full(n, -1, np.int64), status=np.full(n, int(Status.OUT_OF_RANGE), np.int32),
-        slave_ids=np.asarray(ids), d_max=float(d_max), counts=counts or Counts(),
-        timings=timings or {}, **answered)
+        active=np.zeros(n, bool),
+        face=np.full(n, -1, np.int64),
+        xi=np.full((n, 2), np.nan),
+        point=np.full((n, 3), np.nan),
+        gap=np.full(n, np.nan),
+        distance=np.full(n, np.nan),
+        normal=np.full((n, 3), np.nan),
+        feature=np.full(n, int(Feature.NONE), np.int32),
+        master_node=np.full(n, -1, np.int64),
+        status=np.full(n, int(Status.OUT_OF_RANGE), np.int32),
+        slave_ids=np.asarray(ids),
+        d_max=float(d_max),
+        counts=counts or Counts(),
+        timings=timings or {},
+        **answered,
+    )
 
 
 def assemble(n, ids, prep, out, d_max, counts, timings, answered) -> Contacts:
@@ -237,7 +327,7 @@ def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
     lap("grid")
     outs, totals = [], {}
     for i in range(0, len(x), chunk):
-        o, cnt = run_stages(np, st, sc, m, grids, x[i:i + chunk], {}, lap)
+        o, cnt = run_stages(np, st, sc, m, grids, x[i : i + chunk], {}, lap)
         outs.append(o)
         for k, v in cnt.items():
             totals[k] = totals.get(k, 0) + int(v)
@@ -261,8 +351,9 @@ def check_options(master, mode, d_max, displacement, dtype):
     return float(d_max), dtype
 
 
-def detect(slave, master, *, backend="auto", mode="exact", d_max=None, displacement=None,
-           dtype=None) -> Contacts:
+def detect(
+    slave, master, *, backend="auto", mode="exact", d_max=None, displacement=None, dtype=None
+) -> Contacts:
     """Closest point on `master` of every slave node.
 
     slave: [n, 3] coordinates or a Surface (its nodes are the slaves). master: a Surface.
@@ -286,21 +377,38 @@ def detect(slave, master, *, backend="auto", mode="exact", d_max=None, displacem
     t1 = time.perf_counter()
     answered = dict(backend=backend, dtype=dtype.name)
     if prep is None:  # the boxes do not meet: no grid, no contact
-        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0},
-                      **answered)
-    st = Static(element=master.element.name, mode=mode, node_levels=prep.node_levels,
-                face_levels=prep.face_levels,
-                iterations=ITERATIONS.get(master.element.name, 0),
-                passing_by=mode == "node" and not master.closed)
+        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0}, **answered)
+    st = Static(
+        element=master.element.name,
+        mode=mode,
+        node_levels=prep.node_levels,
+        face_levels=prep.face_levels,
+        iterations=ITERATIONS.get(master.element.name, 0),
+        passing_by=mode == "node" and not master.closed,
+    )
     if backend == "numpy":
         out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype)
         answered["device"] = "cpu"
     else:
-        out, count, cap, answered["device"] = load(backend).run_one_shot(slave_x, master, prep,
-                                                                          st, dtype)
+        out, count, cap, answered["device"] = load(backend).run_one_shot(
+            slave_x, master, prep, st, dtype
+        )
         laps = {}
     t2 = time.perf_counter()
-    counts = Counts(slaves_in_box=len(prep.slave_rows), master_nodes_in_box=len(prep.node_ids),
-                    master_faces_in_box=len(prep.face_ids), count=count, capacity=cap)
-    return assemble(n, ids, prep, out, d_max, counts,
-                    {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0}, answered)
+    counts = Counts(
+        slaves_in_box=len(prep.slave_rows),
+        master_nodes_in_box=len(prep.node_ids),
+        master_faces_in_box=len(prep.face_ids),
+        count=count,
+        capacity=cap,
+    )
+    return assemble(
+        n,
+        ids,
+        prep,
+        out,
+        d_max,
+        counts,
+        {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0},
+        answered,
+    )

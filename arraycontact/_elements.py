@@ -91,8 +91,11 @@ class Element:
         """Local edge id on which constraint j is active."""
         out = []
         for a, b in zip(self.constraints_a, self.constraints_b):
-            on = [i for i, (s, e) in enumerate(self.edge_nodes[:, :2])
-                  if abs(a @ self.nodes[s] - b) < 1e-12 and abs(a @ self.nodes[e] - b) < 1e-12]
+            on = [
+                i
+                for i, (s, e) in enumerate(self.edge_nodes[:, :2])
+                if abs(a @ self.nodes[s] - b) < 1e-12 and abs(a @ self.nodes[e] - b) < 1e-12
+            ]
             out.append(on[0])
         return np.array(out, np.int32)
 
@@ -133,12 +136,24 @@ ELEMENTS = {
     for e in (
         _element("tri3", "tri", _TRI_CORNERS, [(0, 0), (1, 0), (0, 1)]),
         _element("quad4", "quad", _QUAD_CORNERS, [(0, 0), (1, 0), (0, 1), (1, 1)]),
-        _element("tri6", "tri", _TRI_CORNERS + _TRI_MIDS,
-                 [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]),
-        _element("quad8", "quad", _QUAD_CORNERS + _QUAD_MIDS,
-                 [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (2, 1), (1, 2)]),
-        _element("quad9", "quad", _QUAD_CORNERS + _QUAD_MIDS + [[0, 0]],
-                 [(p, q) for p in range(3) for q in range(3)]),
+        _element(
+            "tri6",
+            "tri",
+            _TRI_CORNERS + _TRI_MIDS,
+            [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)],
+        ),
+        _element(
+            "quad8",
+            "quad",
+            _QUAD_CORNERS + _QUAD_MIDS,
+            [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (2, 1), (1, 2)],
+        ),
+        _element(
+            "quad9",
+            "quad",
+            _QUAD_CORNERS + _QUAD_MIDS + [[0, 0]],
+            [(p, q) for p in range(3) for q in range(3)],
+        ),
     )
 }
 NODES_PER_FACE = {e.nodes_per_face: e.name for e in ELEMENTS.values()}
@@ -159,11 +174,17 @@ def _monomials(element, xi, xp, order):
         cols = [_pow(x, p) * _pow(y, q) for p, q in element.monomials]
         return xp.stack(cols, -1)
     if order == 1:
-        cols = [xp.stack([_dpow(x, p) * _pow(y, q), _pow(x, p) * _dpow(y, q)], -1)
-                for p, q in element.monomials]
+        cols = [
+            xp.stack([_dpow(x, p) * _pow(y, q), _pow(x, p) * _dpow(y, q)], -1)
+            for p, q in element.monomials
+        ]
         return xp.stack(cols, -2)  # [..., m, 2]
-    cols = [xp.stack([_ddpow(x, p) * _pow(y, q), _dpow(x, p) * _dpow(y, q),
-                      _pow(x, p) * _ddpow(y, q)], -1) for p, q in element.monomials]
+    cols = [
+        xp.stack(
+            [_ddpow(x, p) * _pow(y, q), _dpow(x, p) * _dpow(y, q), _pow(x, p) * _ddpow(y, q)], -1
+        )
+        for p, q in element.monomials
+    ]
     return xp.stack(cols, -2)  # [..., m, 3]: d/dxi2, d/dxi deta, d/deta2
 
 
@@ -200,7 +221,8 @@ def shape_second_derivatives(element, xi, xp=np):
 
 
 def interpolate(element, xe, xi, xp=np):
-    """Point x(xi) [..., 3] and tangents x_xi, x_eta [..., 3, 2] of faces with nodes xe [..., nn, 3]."""
+    """Point x(xi) [..., 3] and tangents x_xi, x_eta [..., 3, 2] of faces with nodes xe
+    [..., nn, 3]."""
     n = shape_functions(element, xi, xp)
     dn = shape_derivatives(element, xi, xp)
     if xp is np:

@@ -44,9 +44,13 @@ def closest_point_triangle(p, a, b, c, xp=np):
     # (condition, v, w, feature, local) from the last region to the first: later assignments win.
     regions = [
         (den > 0, _safe_div(vb, den, xp), _safe_div(vc, den, xp), FACE, -1),
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-         1 - _safe_div(d4 - d3, (d4 - d3) + (d5 - d6), xp),
-         _safe_div(d4 - d3, (d4 - d3) + (d5 - d6), xp), EDGE, 1),
+        (
+            (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+            1 - _safe_div(d4 - d3, (d4 - d3) + (d5 - d6), xp),
+            _safe_div(d4 - d3, (d4 - d3) + (d5 - d6), xp),
+            EDGE,
+            1,
+        ),
         ((vb <= 0) & (d2 >= 0) & (d6 <= 0), zero, _safe_div(d2, d2 - d6, xp), EDGE, 2),
         ((d6 >= 0) & (d5 <= d6), zero, one, VERTEX, 2),
         ((vc <= 0) & (d1 >= 0) & (d3 <= 0), _safe_div(d1, d1 - d3, xp), zero, EDGE, 0),
@@ -133,8 +137,10 @@ def closest_point_edge(element, r, xe, xp=np, steps=12):
     xt = p0[..., None, :] + t[..., None] * (p1[..., None, :] + t[..., None] * p2[..., None, :])
     d = _dot(xt, xt, xp)
     k = xp.argmin(d, -1)
-    return (xp.take_along_axis(t, k[..., None], -1)[..., 0],
-            xp.take_along_axis(d, k[..., None], -1)[..., 0])
+    return (
+        xp.take_along_axis(t, k[..., None], -1)[..., 0],
+        xp.take_along_axis(d, k[..., None], -1)[..., 0],
+    )
 
 
 def closest_point_edges(element, r, xe, xp=np):
@@ -167,8 +173,9 @@ def start_option_two(element, r, xe, xp=np):
     return xp.zeros(r.shape[:-1] + (2,), dtype=xe.dtype) + xp.asarray(element.centre, xe.dtype)
 
 
-def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="active_set",
-                       hessian="exact"):
+def closest_point_face(
+    element, r, xe, xi0, *, iterations, tol, xp=np, method="active_set", hessian="exact"
+):
     """Closest point on faces with nodes xe [P, nn, 3] to points r [P, 3]: seed 003 eq. (8).
 
     Two methods on the element's linear constraints A xi >= b, both with the exact Hessian of
@@ -217,8 +224,9 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         else:
             d2 = xp.einsum("...ns,...nk->...ks", shape_second_derivatives(element, xi, xp), xe)
             c = xp.einsum("...ks,...k->...s", d2, d)
-            h = gn - xp.stack([xp.stack([c[..., 0], c[..., 1]], -1),
-                               xp.stack([c[..., 1], c[..., 2]], -1)], -2)
+            h = gn - xp.stack(
+                [xp.stack([c[..., 0], c[..., 1]], -1), xp.stack([c[..., 1], c[..., 2]], -1)], -2
+            )
         if hessian != "exact":
             h = gn
         scale = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], xp.finfo(xe.dtype).tiny)
@@ -332,8 +340,9 @@ def closest_point_face(element, r, xe, xi0, *, iterations, tol, xp=np, method="a
         # A step that hit a constraint goes on to the exact closest point of that edge (the
         # next working set's solution, known without new derivatives); W holds every
         # constraint active there (both at a corner).
-        on_edge = xi + xp.take_along_axis(p_edges, xp.asarray(ce)[jb][..., None, None],
-                                          -2)[..., 0, :]
+        on_edge = (
+            xi + xp.take_along_axis(p_edges, xp.asarray(ce)[jb][..., None, None], -2)[..., 0, :]
+        )
         new = xp.where(blocked[..., None], on_edge, new)
         w = w | (blocked[..., None] & (xp.abs(new @ A.T - b) <= feasible_tol))
         w = w | ((xp.arange(m) == jb[..., None]) & blocked[..., None])

@@ -17,19 +17,20 @@ Each entry also keeps a representative point: a point of the surface inside it (
 item's first node). The distance to it bounds the answer from above, so a query starts with
 reach min(d_max, ...) and shrinks it as it descends ("a shrinking radius": DESIGN section 10).
 
-Query (NumPy), level by level from the root: every (slave, entry) pair within reach is expanded into its W children; a child
-survives when its box is within the slave's reach, and the reach shrinks to the smallest
-representative distance seen (plus the rounding and tie slack). Cost model, per slave: the
-entries within reach at each of the log_W(n) levels, times W. The reach is at most the
-distance to a surface point the slave's own neighbourhood holds, so at every level only the
-entries near the slave survive: a few near the root (boxes there are large but few) and,
-near the leaves, the entries whose size is the local face size, which is what a uniform grid
-of the local size would visit. It depends on the face sizes near the slave and on how many
-faces are within the distance of its answer, not on the ratio of the largest to the smallest
-face; a slave with nothing within d_max stops at the first level whose boxes are all farther.
-Memory is the surviving pairs of one level at a time (bounded per slave by the same count; the
-NumPy back end runs the slaves in chunks). The JAX back end walks the same trees depth first,
-one fixed-size state a slave (arraycontact_jax._grid), and the Warp kernels likewise.
+Query (NumPy), level by level from the root: every (slave, entry) pair within reach is expanded
+into its W children; a child survives when its box is within the slave's reach, and the reach
+shrinks to the smallest representative distance seen (plus the rounding and tie slack). Cost
+model, per slave: the entries within reach at each of the log_W(n) levels, times W. The reach
+is at most the distance to a surface point the slave's own neighbourhood holds, so at every
+level only the entries near the slave survive: a few near the root (boxes there are large but
+few) and, near the leaves, the entries whose size is the local face size, which is what a
+uniform grid of the local size would visit. It depends on the face sizes near the slave and on
+how many faces are within the distance of its answer, not on the ratio of the largest to the
+smallest face; a slave with nothing within d_max stops at the first level whose boxes are all
+farther. Memory is the surviving pairs of one level at a time (bounded per slave by the same
+count; the NumPy back end runs the slaves in chunks). The JAX back end walks the same trees
+depth first, one fixed-size state a slave (arraycontact_jax._grid), and the Warp kernels
+likewise.
 """
 
 from __future__ import annotations

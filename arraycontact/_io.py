@@ -13,8 +13,13 @@ import numpy as np
 from ._surface import Surface
 
 # Surface cell types of meshio -> element names.
-_SURFACE_CELLS = {"triangle": "tri3", "quad": "quad4", "triangle6": "tri6", "quad8": "quad8",
-                  "quad9": "quad9"}
+_SURFACE_CELLS = {
+    "triangle": "tri3",
+    "quad": "quad4",
+    "triangle6": "tri6",
+    "quad8": "quad8",
+    "quad9": "quad9",
+}
 
 # Volume cells: faces as corner cycles (any orientation: they are oriented geometrically), the
 # mid-edge node of each corner pair and the centre node of each face (VTK / meshio numbering).
@@ -22,10 +27,28 @@ _TET = [(0, 1, 2), (0, 1, 3), (1, 2, 3), (0, 2, 3)]
 _HEX = [(0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)]
 _WEDGE = [(0, 1, 2), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)]
 _TET10_MID = {(0, 1): 4, (1, 2): 5, (0, 2): 6, (0, 3): 7, (1, 3): 8, (2, 3): 9}
-_HEX20_MID = {(0, 1): 8, (1, 2): 9, (2, 3): 10, (0, 3): 11, (4, 5): 12, (5, 6): 13, (6, 7): 14,
-              (4, 7): 15, (0, 4): 16, (1, 5): 17, (2, 6): 18, (3, 7): 19}
-_HEX27_CENTRE = {(0, 3, 4, 7): 20, (1, 2, 5, 6): 21, (0, 1, 4, 5): 22, (2, 3, 6, 7): 23,
-                 (0, 1, 2, 3): 24, (4, 5, 6, 7): 25}
+_HEX20_MID = {
+    (0, 1): 8,
+    (1, 2): 9,
+    (2, 3): 10,
+    (0, 3): 11,
+    (4, 5): 12,
+    (5, 6): 13,
+    (6, 7): 14,
+    (4, 7): 15,
+    (0, 4): 16,
+    (1, 5): 17,
+    (2, 6): 18,
+    (3, 7): 19,
+}
+_HEX27_CENTRE = {
+    (0, 3, 4, 7): 20,
+    (1, 2, 5, 6): 21,
+    (0, 1, 4, 5): 22,
+    (2, 3, 6, 7): 23,
+    (0, 1, 2, 3): 24,
+    (4, 5, 6, 7): 25,
+}
 _VOLUME_CELLS = {
     "tetra": (_TET, None, None),
     "tetra10": (_TET, _TET10_MID, None),
@@ -34,8 +57,13 @@ _VOLUME_CELLS = {
     "hexahedron27": (_HEX, _HEX20_MID, _HEX27_CENTRE),
     "wedge": (_WEDGE, None, None),
 }
-_FACE_ELEMENT = {(3, False, False): "tri3", (4, False, False): "quad4", (3, True, False): "tri6",
-                 (4, True, False): "quad8", (4, True, True): "quad9"}
+_FACE_ELEMENT = {
+    (3, False, False): "tri3",
+    (4, False, False): "quad4",
+    (3, True, False): "tri6",
+    (4, True, False): "quad8",
+    (4, True, True): "quad9",
+}
 
 
 def _local_face(cycle, mid, centre):
@@ -74,8 +102,9 @@ def exterior_faces(points, cell_type, cells):
     # A face is exterior when its corner set occurs once among all faces of all cells. Triangle
     # and quad keys are padded to one width so that both kinds sort together.
     width = max(k.shape[1] for k in corner_keys)
-    keys = np.concatenate([np.pad(k, ((0, 0), (0, width - k.shape[1])), constant_values=-1)
-                           for k in corner_keys])
+    keys = np.concatenate(
+        [np.pad(k, ((0, 0), (0, width - k.shape[1])), constant_values=-1) for k in corner_keys]
+    )
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     once = counts[inverse.reshape(-1)] == 1
     centroid = points[cells].mean(1)
@@ -84,7 +113,7 @@ def exterior_faces(points, cell_type, cells):
         sel = []
         k = 3 if name.startswith("tri") else 4
         for f_fwd, f_rev, owner in parts:
-            m = once[start:start + len(f_fwd)]
+            m = once[start : start + len(f_fwd)]
             start += len(f_fwd)
             f, fr, o = f_fwd[m], f_rev[m], owner[m]
             x = points[f[:, :k]]
@@ -116,8 +145,9 @@ def _selected_blocks(mesh, cell_blocks, cell_set, physical):
         tag = physical
         if isinstance(physical, str):
             if physical not in mesh.field_data:
-                raise ValueError(f"no physical group {physical!r}; the mesh has "
-                                 f"{sorted(mesh.field_data)}")
+                raise ValueError(
+                    f"no physical group {physical!r}; the mesh has {sorted(mesh.field_data)}"
+                )
             tag = int(mesh.field_data[physical][0])
         for i, t in enumerate(tags):
             m = np.asarray(t) == tag
@@ -164,17 +194,21 @@ def surface_from_meshio(mesh, *, cell_blocks=None, cell_set=None, physical=None,
             raise ValueError(f"the selection has no {element!r} faces; it has {sorted(groups)}")
         groups = {element: groups[element]}
     if len(groups) != 1:
-        raise ValueError("the selection gives no surface faces" if not groups else
-                         f"the selection mixes face types {sorted(groups)}: pick one with element=")
-    (name, parts), = groups.items()
+        raise ValueError(
+            "the selection gives no surface faces"
+            if not groups
+            else f"the selection mixes face types {sorted(groups)}: pick one with element="
+        )
+    ((name, parts),) = groups.items()
     points = np.asarray(mesh.points, float)
     if points.shape[1] == 2:
         points = np.c_[points, np.zeros(len(points))]
     return Surface(points, np.concatenate(parts), name)
 
 
-def read_surface(path, *, cell_blocks=None, cell_set=None, physical=None, element=None,
-                 file_format=None):
+def read_surface(
+    path, *, cell_blocks=None, cell_set=None, physical=None, element=None, file_format=None
+):
     """Read a mesh file with meshio and return its contact surface (see surface_from_meshio).
     A missing, unreadable or unknown file raises a ValueError that names it."""
     import contextlib
@@ -190,18 +224,22 @@ def read_surface(path, *, cell_blocks=None, cell_set=None, physical=None, elemen
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             mesh = meshio.read(path, file_format=file_format)
     except SystemExit:
-        raise ValueError(f"{path}: cannot read it as "
-                         f"{file_format or 'the format its extension names'}") from None
+        raise ValueError(
+            f"{path}: cannot read it as {file_format or 'the format its extension names'}"
+        ) from None
     except meshio.ReadError as e:
         if "format" in str(e).lower() and file_format is None:
-            raise ValueError(f"{path}: unknown mesh format; name it with file_format (the "
-                             f"command line's --format), one of meshio's formats such as "
-                             f"vtu, vtk, msh, xdmf, med, inp, obj, ply, stl") from None
+            raise ValueError(
+                f"{path}: unknown mesh format; name it with file_format (the "
+                f"command line's --format), one of meshio's formats such as "
+                f"vtu, vtk, msh, xdmf, med, inp, obj, ply, stl"
+            ) from None
         raise ValueError(f"{path}: cannot read it ({e})") from None
     except Exception as e:  # a parser failing inside meshio: the file is not what it claims
         raise ValueError(f"{path}: cannot read it as a mesh ({type(e).__name__}: {e})") from None
     try:
-        return surface_from_meshio(mesh, cell_blocks=cell_blocks, cell_set=cell_set,
-                                   physical=physical, element=element)
+        return surface_from_meshio(
+            mesh, cell_blocks=cell_blocks, cell_set=cell_set, physical=physical, element=element
+        )
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None

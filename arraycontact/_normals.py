@@ -21,8 +21,9 @@ def face_normal(element, xe, xi, xp=np):
     return _unit(xp.cross(dx[..., 0], dx[..., 1]), xp)
 
 
-def pseudo_normal(element, points, faces, face_edges, edge_faces, node_normals,
-                  face, feature, local, xi, xp=np):
+def pseudo_normal(
+    element, points, faces, face_edges, edge_faces, node_normals, face, feature, local, xi, xp=np
+):
     """Unit pseudo-normal of the feature each closest point lies on ([P, 3]). node_normals:
     the nodes' pseudo-normals [n_points, 3], or a function giving them for node ids [P]."""
     f = xp.maximum(face, 0)
@@ -53,8 +54,9 @@ def pseudo_normal(element, points, faces, face_edges, edge_faces, node_normals,
 
     node = xp.take_along_axis(faces[f], loc[:, None], 1)[:, 0]
     n_vertex = node_normals(node) if callable(node_normals) else node_normals[node]
-    return xp.where((feature == FACE)[:, None], n_face,
-                    xp.where((feature == EDGE)[:, None], n_edge, n_vertex))
+    return xp.where(
+        (feature == FACE)[:, None], n_face, xp.where((feature == EDGE)[:, None], n_edge, n_vertex)
+    )
 
 
 def signed_gap(d_vec, n_pseudo, feature, xp=np, on_surface=0.0):

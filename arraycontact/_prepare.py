@@ -72,7 +72,13 @@ def prepare(slave_x, master, d_max, dtype=np.float64) -> Prepared | None:
     node_ids = node_ids[morton_order(master.points[node_ids], lo, extent)]
     face_ids = face_ids[morton_order(centres[face_ids], lo, extent)]
     return Prepared(
-        slave_rows=slave_rows, node_ids=node_ids, face_ids=face_ids, origin=origin,
-        d_max=float(d_max), r_max=r_max, node_levels=level_sizes(len(node_ids)),
+        slave_rows=slave_rows,
+        node_ids=node_ids,
+        face_ids=face_ids,
+        origin=origin,
+        d_max=float(d_max),
+        r_max=r_max,
+        node_levels=level_sizes(len(node_ids)),
         face_levels=level_sizes(len(face_ids)),
-        extent=float(np.abs(np.r_[lo - origin, hi - origin]).max()))
+        extent=float(np.abs(np.r_[lo - origin, hi - origin]).max()),
+    )

@@ -17,18 +17,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._elements import shape_functions
-from ._geometry import (closest_point_edges, closest_point_face, closest_point_triangle,
-                        start_option_one, start_option_two)
 from . import _grid
+from ._elements import shape_functions
+from ._geometry import (
+    closest_point_edges,
+    closest_point_face,
+    closest_point_triangle,
+    start_option_one,
+    start_option_two,
+)
 
 
 def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity):
     """Candidate (slave, face) pairs, the faces whose box is within rho of the slave (shrunk
     by the tree to the nearest surface point it meets): (slave [P], face [P], valid [P],
     pair counts per tree level)."""
-    slave, pos, valid, counts = _grid.query(xp, tree, slave_x, rho, slack, capacity,
-                                            "face_level")
+    slave, pos, valid, counts = _grid.query(xp, tree, slave_x, rho, slack, capacity, "face_level")
     return slave, tree.ids[pos], valid, counts
 
 
@@ -51,7 +55,6 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
     return xi, point + x0, diff, feature, local, converged
 
 
-
 def _best_of_starts(xp, element, r, xe, iterations, tol):
     """Active-set Newton from start option I and, on curved faces, also from the centre
     (option II) and each mid-edge node; the closest result wins (the first on a tie), unless
@@ -64,15 +67,18 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     if not element.linear:
         starts.append(start_option_two(element, r, xe, xp))
         k = element.n_corners
-        starts += [xp.zeros_like(starts[0]) + xp.asarray(element.nodes[i], xe.dtype)
-                   for i in range(k, 2 * k)]
+        starts += [
+            xp.zeros_like(starts[0]) + xp.asarray(element.nodes[i], xe.dtype)
+            for i in range(k, 2 * k)
+        ]
         starts.append(_lattice_start(xp, element, r, xe))
     # All starts as one batch: one traced iteration loop on JAX, not one per start.
     n_s, n_p = len(starts), r.shape[0]
     rs = xp.reshape(xp.broadcast_to(r, (n_s,) + r.shape), (-1, 3))
     xes = xp.reshape(xp.broadcast_to(xe, (n_s,) + xe.shape), (-1,) + xe.shape[1:])
-    res = closest_point_face(element, rs, xes, xp.concatenate(starts), iterations=iterations,
-                             tol=tol, xp=xp)
+    res = closest_point_face(
+        element, rs, xes, xp.concatenate(starts), iterations=iterations, tol=tol, xp=xp
+    )
     x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xes)
     d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
     best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)  # the first start on a tie
@@ -101,5 +107,9 @@ def _edges(xp, element, r, xe, xi, feature, local, converged):
     x = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
     e_xi, e_f, e_loc, e_d = closest_point_edges(element, r, xe, xp)
     use = e_d <= xp.sum((r - x) ** 2, -1)
-    return (xp.where(use[:, None], e_xi, xi), xp.where(use, e_f, feature),
-            xp.where(use, e_loc, local), converged | use)
+    return (
+        xp.where(use[:, None], e_xi, xi),
+        xp.where(use, e_f, feature),
+        xp.where(use, e_loc, local),
+        converged | use,
+    )

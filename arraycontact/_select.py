@@ -27,8 +27,7 @@ def select_closest(xp, n, slave, face, valid, dist, tie):
     return xp.where(has, pick, 0), has
 
 
-def proximal(xp, slave_x, node, nodes_x, prev_node, next_node, prev_normal, next_normal,
-             concave):
+def proximal(xp, slave_x, node, nodes_x, prev_node, next_node, prev_normal, next_normal, concave):
     """Seed 000 eq. (13): is the slave in the proximal volume of boundary node `node`?
 
     m2 -> m -> m1 follow the boundary in the faces' orientation; n2, n1 are the normals of the
@@ -54,8 +53,11 @@ def boundary_topology(surface):
     be = surface.boundary_edges
     if len(be):
         fe_face, _ = np.nonzero(surface.edge_counts[surface.face_edges] == 1)
-        segs = [(be[:, 0], be[:, 1])] if be.shape[1] == 2 else [(be[:, 0], be[:, 2]),
-                                                                   (be[:, 2], be[:, 1])]
+        segs = (
+            [(be[:, 0], be[:, 1])]
+            if be.shape[1] == 2
+            else [(be[:, 0], be[:, 2]), (be[:, 2], be[:, 1])]
+        )
         for a, b in segs:
             next_node[a], next_face[a] = b, fe_face
             prev_node[b], prev_face[b] = a, fe_face
@@ -76,15 +78,29 @@ def boundary_geometry(xp, nodes_x, prev_node, next_node, prev_face, next_face, f
 def boundary_frames(surface):
     """boundary_topology and boundary_geometry of a Surface: m2, m1, n2, n1, on, concave."""
     prev_node, next_node, prev_face, next_face, on = boundary_topology(surface)
-    prev_n, next_n, concave = boundary_geometry(np, surface.points, prev_node, next_node,
-                                                prev_face, next_face, surface.face_normals)
+    prev_n, next_n, concave = boundary_geometry(
+        np, surface.points, prev_node, next_node, prev_face, next_face, surface.face_normals
+    )
     return prev_node, next_node, prev_n, next_n, on, concave
 
 
-def classify(xp, element, nodes_x, faces, face_edges, edge_faces, node_normals, face, xi,
-             diff, feature, local, on_surface):
+def classify(
+    xp,
+    element,
+    nodes_x,
+    faces,
+    face_edges,
+    edge_faces,
+    node_normals,
+    face,
+    xi,
+    diff,
+    feature,
+    local,
+    on_surface,
+):
     """Signed gap, distance and normal of the chosen closest points."""
-    n_pseudo = pseudo_normal(element, nodes_x, faces, face_edges, edge_faces, node_normals,
-                             face, feature, local, xi, xp)
+    n_pseudo = pseudo_normal(
+        element, nodes_x, faces, face_edges, edge_faces, node_normals, face, feature, local, xi, xp
+    )
     return signed_gap(diff, n_pseudo, feature, xp, on_surface)
-

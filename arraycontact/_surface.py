@@ -27,6 +27,7 @@ def _unit(v, xp=np):
 # Geometry derived from node coordinates, written against an array namespace: the NumPy
 # pipeline caches it on the Surface; the JAX plan/detect recomputes it from moving coordinates.
 
+
 def face_normals(element, xe, xp=np):
     """Unit normal at the centre of each face with nodes xe [F, nn, 3] (zero if degenerate)."""
     if element.name == "tri3":
@@ -46,7 +47,7 @@ def face_bounds(element, xe, xp=np):
     because x(xi) - c = sum_i N_i(xi) (x_i - c)."""
     nn = xe.shape[1]
     c = sum(xe[:, i] for i in range(nn)) / nn  # loops over the nodes: reductions over an
-    d2 = None                                   # axis of 3-9 are slow on NumPy
+    d2 = None  # axis of 3-9 are slow on NumPy
     for i in range(nn):
         e = _dot(xe[:, i] - c, xe[:, i] - c)
         d2 = e if d2 is None else xp.maximum(d2, e)
@@ -99,8 +100,11 @@ def node_normals(element, faces, points, xp=np):
             x, nxt, prv = comp[c], comp[(c + 1) % nn], comp[(c - 1) % nn]
             t1 = [nxt[a] - x[a] for a in range(3)]
             t2 = [prv[a] - x[a] for a in range(3)]
-            n = [t1[1] * t2[2] - t1[2] * t2[1], t1[2] * t2[0] - t1[0] * t2[2],
-                 t1[0] * t2[1] - t1[1] * t2[0]]
+            n = [
+                t1[1] * t2[2] - t1[2] * t2[1],
+                t1[2] * t2[0] - t1[0] * t2[2],
+                t1[0] * t2[1] - t1[1] * t2[0],
+            ]
             s2 = xp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
             w = xp.arctan2(s2, t1[0] * t2[0] + t1[1] * t2[1] + t1[2] * t2[2])
             w = w / xp.where(s2 > 0, s2, 1)  # angle times the unit normal (zero if degenerate)
@@ -181,14 +185,17 @@ class Surface:
         e = get_element(element)
         if f.shape[1] != e.nodes_per_face:
             raise ValueError(
-                f"element {e.name!r} has {e.nodes_per_face} nodes per face, faces have {f.shape[1]}")
+                f"element {e.name!r} has {e.nodes_per_face} nodes per face, faces have {f.shape[1]}"
+            )
         object.__setattr__(self, "points", p)
         object.__setattr__(self, "faces", f)
         object.__setattr__(self, "element", e)
 
     def __repr__(self):
-        return (f"Surface({self.element.name}, {self.n_faces} faces, {len(self.nodes)} nodes, "
-                f"{'closed' if self.closed else 'open'})")
+        return (
+            f"Surface({self.element.name}, {self.n_faces} faces, {len(self.nodes)} nodes, "
+            f"{'closed' if self.closed else 'open'})"
+        )
 
     def with_points(self, points) -> "Surface":
         """The same connectivity on new coordinates (a deformed configuration)."""
@@ -205,7 +212,8 @@ class Surface:
 
     @cached_property
     def node_faces(self) -> tuple[np.ndarray, np.ndarray]:
-        """CSR node -> faces over all point ids: faces of node i are ids[offsets[i]:offsets[i+1]]."""
+        """CSR node -> faces over all point ids: the faces of node i are
+        ids[offsets[i]:offsets[i + 1]]."""
         flat = self.faces.ravel()
         order = np.argsort(flat, kind="stable")
         ids = order // self.faces.shape[1]
@@ -285,7 +293,7 @@ class Surface:
             for j in range(i + 1, nn):
                 d = x[:, i] - x[:, j]
                 best = max(best, float(_dot(d, d).max()))
-        return best ** 0.5
+        return best**0.5
 
     @cached_property
     def face_normals(self) -> np.ndarray:
@@ -301,4 +309,3 @@ class Surface:
     def node_normals(self) -> np.ndarray:
         """Angle-weighted pseudo-normal at each node (see `node_normals`)."""
         return node_normals(self.element, self.faces, self.points)
-

@@ -11,27 +11,46 @@ from contextlib import contextmanager
 import numpy as np
 
 
-@contextmanager
-def progress(label, after=2.0):
-    """Print elapsed seconds on stderr while a call runs longer than `after` seconds."""
-    done = threading.Event()
+class Progress:
+    """Stages on stderr, for runs long enough to wait for: once the run has taken `after`
+    seconds, a live line "stage... 3.5 s" while a stage runs, and "stage: 3.52 s" when it
+    ends (quiet on small scenes, whose report comes at once)."""
 
-    def tick():
-        t0 = time.perf_counter()
-        if done.wait(after):
-            return
-        while not done.wait(0.5):
-            print(f"\r{label}... {time.perf_counter() - t0:5.1f} s", end="", file=sys.stderr,
-                  flush=True)
-        print(file=sys.stderr)
+    def __init__(self, after=1.0, stream=None):
+        self.t0 = time.perf_counter()
+        self.after = after
+        self.stream = stream or sys.stderr
 
-    t = threading.Thread(target=tick, daemon=True)
-    t.start()
-    try:
-        yield
-    finally:
-        done.set()
-        t.join()
+    def _late(self):
+        return time.perf_counter() - self.t0 > self.after
+
+    @contextmanager
+    def stage(self, label):
+        start = time.perf_counter()
+        done = threading.Event()
+
+        def tick():
+            while not done.wait(0.25):
+                if self._late():
+                    t = time.perf_counter() - start
+                    print(f"\r{label}... {t:5.1f} s", end="", file=self.stream, flush=True)
+
+        t = threading.Thread(target=tick, daemon=True)
+        t.start()
+        try:
+            yield
+        finally:
+            done.set()
+            t.join()
+            if self._late():
+                t = time.perf_counter() - start
+                print(f"\r{label}: {t:.2f} s   ", file=self.stream, flush=True)
+
+
+def topology(surface):
+    """Derive what a detection reads from a Surface (a stage of its own in the progress)."""
+    for name in ("nodes", "node_faces", "edges", "face_bounds", "node_normals", "longest_edge"):
+        getattr(surface, name)
 
 
 def write_vtu(path, contacts, slave_x):
@@ -49,8 +68,10 @@ def write_vtu(path, contacts, slave_x):
         v = np.asarray(v)
         return np.r_[v, v[a]]
 
-    data = {name: both(getattr(contacts, name)).astype(float)
-            for name in ("gap", "distance", "face", "feature", "status", "master_node")}
+    data = {
+        name: both(getattr(contacts, name)).astype(float)
+        for name in ("gap", "distance", "face", "feature", "status", "master_node")
+    }
     data["active"] = both(a).astype(np.int8)
     data["normal"] = both(contacts.normal)
     data["slave_id"] = both(contacts.slave_ids).astype(float)
@@ -67,9 +88,16 @@ def write_png(path, contacts, slave_x, title):
     a = np.asarray(contacts.active)
     fig, ax = plt.subplots(figsize=(7, 6))
     ax.scatter(slave_x[~a, 0], slave_x[~a, 1], s=1, c="0.85", lw=0)
-    sc = ax.scatter(slave_x[a, 0], slave_x[a, 1], s=2, c=contacts.gap[a], cmap="coolwarm_r",
-                    lw=0, vmin=-np.abs(contacts.gap[a]).max() if a.any() else -1,
-                    vmax=np.abs(contacts.gap[a]).max() if a.any() else 1)
+    sc = ax.scatter(
+        slave_x[a, 0],
+        slave_x[a, 1],
+        s=2,
+        c=contacts.gap[a],
+        cmap="coolwarm_r",
+        lw=0,
+        vmin=-np.abs(contacts.gap[a]).max() if a.any() else -1,
+        vmax=np.abs(contacts.gap[a]).max() if a.any() else 1,
+    )
     fig.colorbar(sc, label="signed gap (negative: penetration)")
     ax.set_aspect("equal")
     ax.set_title(title)
@@ -90,12 +118,23 @@ def _report(c, label):
 def demo(args):
     import arraycontact as ac
 
-    scene = ac.scenes.rough_surfaces(args.nodes, gap=args.gap, element=args.element)
-    label = (f"rough surfaces (seed 000 Fig. 10): {len(scene.slave)} slave nodes, "
-             f"{scene.master.n_faces} {args.element} master faces, mode {args.mode}")
-    with progress("detecting"):
-        c = ac.detect(scene.slave_surface, scene.master, backend=args.backend, mode=args.mode,
-                      dtype=args.dtype)
+    progress = Progress()
+    with progress.stage("making the scene"):
+        scene = ac.scenes.rough_surfaces(args.nodes, gap=args.gap, element=args.element)
+    with progress.stage("master topology"):
+        topology(scene.master)
+    label = (
+        f"rough surfaces (seed 000 Fig. 10): {len(scene.slave)} slave nodes, "
+        f"{scene.master.n_faces} {args.element} master faces, mode {args.mode}"
+    )
+    with progress.stage("detecting"):
+        c = ac.detect(
+            scene.slave_surface,
+            scene.master,
+            backend=args.backend,
+            mode=args.mode,
+            dtype=args.dtype,
+        )
     _report(c, label)
     write_vtu(f"{args.output}.vtu", c, scene.slave)
     write_png(f"{args.output}.png", c, scene.slave, "gap field on the slave surface")
@@ -106,11 +145,17 @@ def demo(args):
 def detect_files(args):
     import arraycontact as ac
 
-    master = ac.read_surface(args.master, file_format=args.format)
-    slave = ac.read_surface(args.slave, file_format=args.format)
-    with progress("detecting"):
-        c = ac.detect(slave, master, backend=args.backend, mode=args.mode, d_max=args.d_max,
-                      dtype=args.dtype)
+    progress = Progress()
+    with progress.stage(f"reading {args.master}"):
+        master = ac.read_surface(args.master, file_format=args.format)
+    with progress.stage(f"reading {args.slave}"):
+        slave = ac.read_surface(args.slave, file_format=args.format)
+    with progress.stage("master topology"):
+        topology(master)
+    with progress.stage("detecting"):
+        c = ac.detect(
+            slave, master, backend=args.backend, mode=args.mode, d_max=args.d_max, dtype=args.dtype
+        )
     _report(c, f"{args.slave} on {args.master}")
     write_vtu(args.output, c, slave.points[slave.nodes])
     print(f"wrote {args.output}")
@@ -122,16 +167,19 @@ def main(argv=None):
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(q):
-        q.add_argument("--backend", default="auto", choices=["auto", "numpy", "jax", "warp"],
-                       help="auto: Warp (GPU, else CPU) when it imports, else NumPy")
+        q.add_argument(
+            "--backend",
+            default="auto",
+            choices=["auto", "numpy", "jax", "warp"],
+            help="auto: Warp (GPU, else CPU) when it imports, else NumPy",
+        )
         q.add_argument("--mode", default="exact", choices=["exact", "node"])
         q.add_argument("--dtype", default="float64", choices=["float64", "float32"])
 
     d = sub.add_parser("demo", help="detect contact between two built-in rough surfaces")
     d.add_argument("--nodes", type=int, default=2**16, help="nodes per surface")
     d.add_argument("--gap", type=float, default=1.0, help="mean-plane gap (element sizes)")
-    d.add_argument("--element", default="tri3",
-                   choices=["tri3", "quad4", "tri6", "quad8", "quad9"])
+    d.add_argument("--element", default="tri3", choices=["tri3", "quad4", "tri6", "quad8", "quad9"])
     d.add_argument("-o", "--output", default="arraycontact-demo", help="output file stem")
     common(d)
     d.set_defaults(func=demo)
@@ -140,11 +188,20 @@ def main(argv=None):
     f.add_argument("slave")
     f.add_argument("-o", "--output", required=True, help="output .vtu")
     f.add_argument("--d-max", type=float, default=None)
-    f.add_argument("--format", default=None,
-                   help="meshio's name of the files' format, when the extension does not tell")
+    f.add_argument(
+        "--format",
+        default=None,
+        help="meshio's name of the files' format, when the extension does not tell",
+    )
     common(f)
     f.set_defaults(func=detect_files)
     args = p.parse_args(argv)
+    from ._backends import resolve
+
+    if resolve(args.backend) == "warp":
+        from ._backends import quiet_warp
+
+        quiet_warp()  # no banner or kernel-cache lines in the report
     try:
         return args.func(args)
     except (ValueError, OSError) as e:  # bad input or an output that cannot be written

@@ -100,8 +100,7 @@ def _interior_candidates(element, r, xe):
     rr, xx = r[:, None], np.broadcast_to(xe[:, None], (len(r), len(starts)) + xe.shape[1:])
 
     def f(xi):  # |x(xi) - r|^2, x = sum_n N_n x_n as a matmul (einsum's loops are slow here)
-        return np.sum(((shape_functions(element, xi)[..., None, :] @ xx)[..., 0, :] - rr) ** 2,
-                      -1)
+        return np.sum(((shape_functions(element, xi)[..., None, :] @ xx)[..., 0, :] - rr) ** 2, -1)
 
     # Descent: Newton where the Hessian is positive definite, Gauss-Newton elsewhere, each step
     # halved until the distance does not grow; so iterates go to local minima, not saddles.
@@ -112,14 +111,23 @@ def _interior_candidates(element, r, xe):
         d2 = np.swapaxes(xx, -1, -2) @ shape_second_derivatives(element, xi)  # [..., 3, 3]
         c = np.einsum("...ks,...k->...s", d2, d)
         gn = np.einsum("...ka,...kb->...ab", dx, dx)
-        h = gn - np.stack([np.stack([c[..., 0], c[..., 1]], -1),
-                           np.stack([c[..., 1], c[..., 2]], -1)], -2)
+        h = gn - np.stack(
+            [np.stack([c[..., 0], c[..., 1]], -1), np.stack([c[..., 1], c[..., 2]], -1)], -2
+        )
         pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
         h = np.where(pd[..., None, None], h, gn)
         det = h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] * h[..., 1, 0]
         det = np.where(np.abs(det) > 1e-300, det, 1e-300)
-        step = np.stack([h[..., 1, 1] * g[..., 0] - h[..., 0, 1] * g[..., 1],
-                         h[..., 0, 0] * g[..., 1] - h[..., 1, 0] * g[..., 0]], -1) / det[..., None]
+        step = (
+            np.stack(
+                [
+                    h[..., 1, 1] * g[..., 0] - h[..., 0, 1] * g[..., 1],
+                    h[..., 0, 0] * g[..., 1] - h[..., 1, 0] * g[..., 0],
+                ],
+                -1,
+            )
+            / det[..., None]
+        )
         f0 = f(xi)
         alpha = np.ones(f0.shape)
         for _ in range(10):
@@ -130,7 +138,8 @@ def _interior_candidates(element, r, xe):
     g = -np.einsum("...ka,...k->...a", dx, rr - x)
     scale = np.einsum("...kaa->...", dx[..., None] * dx[..., None, :])
     conv = np.linalg.norm(g, axis=-1) <= 1e-12 * np.maximum(scale, 1e-300) * (
-        1 + np.linalg.norm(rr - x, axis=-1) / np.sqrt(np.maximum(scale, 1e-300)))
+        1 + np.linalg.norm(rr - x, axis=-1) / np.sqrt(np.maximum(scale, 1e-300))
+    )
     a, b = element.constraints_a, element.constraints_b
     inside = conv & (xi @ a.T - b >= -1e-12).all(-1)
     return xi, inside
@@ -192,11 +201,11 @@ def closest_points(points, surface: Surface, *, chunk_points=1024, chunk_faces=8
     corner_x = surface.points[corner_ids]
     tie = TIE_RTOL * surface.longest_edge
     for p0 in range(0, n, chunk_points):
-        r = r_all[p0:p0 + chunk_points]
+        r = r_all[p0 : p0 + chunk_points]
         # Upper bound: the nearest corner is a point of the surface.
         ub = np.full(len(r), np.inf)
         for q0 in range(0, len(corner_x), chunk_faces):
-            d = np.linalg.norm(r[:, None] - corner_x[None, q0:q0 + chunk_faces], axis=-1)
+            d = np.linalg.norm(r[:, None] - corner_x[None, q0 : q0 + chunk_faces], axis=-1)
             ub = np.minimum(ub, d.min(1))
         cand = []
         for f0 in range(0, nf, chunk_faces):
@@ -217,9 +226,9 @@ def closest_points(points, surface: Surface, *, chunk_points=1024, chunk_faces=8
         best_xi = np.zeros((len(r), 2))
         best_d2 = np.zeros(len(r))
         best_xi[pi[k]], best_d2[pi[k]] = xq[k], dq[k] ** 2
-        face[p0:p0 + len(r)] = best_f
-        xi[p0:p0 + len(r)] = best_xi
-        dist2[p0:p0 + len(r)] = best_d2
+        face[p0 : p0 + len(r)] = best_f
+        xi[p0 : p0 + len(r)] = best_xi
+        dist2[p0 : p0 + len(r)] = best_d2
     return _finish(surface, r_all, face, xi, dist2)
 
 
@@ -237,10 +246,28 @@ def _finish(surface, r, face, xi, dist2):
         x, _ = interpolate(e, surface.points[surface.faces[f]], xi[ok])
         point[ok] = x
         feature[ok], local[ok] = _feature_of(e, xi[ok])
-        npse = pseudo_normal(e, surface.points, surface.faces, surface.face_edges,
-                             surface.edge_faces, surface.node_normals, f, feature[ok],
-                             local[ok], xi[ok])
-        gap[ok], _, normal[ok] = signed_gap(r[ok] - x, npse, feature[ok],
-                                            on_surface=TIE_RTOL * surface.longest_edge)
-    return ReferenceResult(face=face, xi=xi, point=point, distance=np.sqrt(dist2), gap=gap,
-                           normal=normal, feature=feature, local=local)
+        npse = pseudo_normal(
+            e,
+            surface.points,
+            surface.faces,
+            surface.face_edges,
+            surface.edge_faces,
+            surface.node_normals,
+            f,
+            feature[ok],
+            local[ok],
+            xi[ok],
+        )
+        gap[ok], _, normal[ok] = signed_gap(
+            r[ok] - x, npse, feature[ok], on_surface=TIE_RTOL * surface.longest_edge
+        )
+    return ReferenceResult(
+        face=face,
+        xi=xi,
+        point=point,
+        distance=np.sqrt(dist2),
+        gap=gap,
+        normal=normal,
+        feature=feature,
+        local=local,
+    )

@@ -13,9 +13,19 @@ import numpy as np
 
 from ._surface import Surface
 
-__all__ = ["Scene", "grid_surface", "rough_field", "rough_surfaces", "rough_layers",
-           "sphere_on_plane", "cylinder_on_road", "curved_patch", "graded_surfaces",
-           "fine_patch", "steep_rough_surfaces"]
+__all__ = [
+    "Scene",
+    "grid_surface",
+    "rough_field",
+    "rough_surfaces",
+    "rough_layers",
+    "sphere_on_plane",
+    "cylinder_on_road",
+    "curved_patch",
+    "graded_surfaces",
+    "fine_patch",
+    "steep_rough_surfaces",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,17 +58,26 @@ def grid_surface(x, y, z, element="tri3", *, flip=False) -> Surface:
         if element == "quad4":
             f = np.stack([a, b, c, d], -1).reshape(-1, 4)
         else:
-            f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
-                                np.stack([a, c, d], -1).reshape(-1, 3)])
+            f = np.concatenate(
+                [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+            )
     else:
         if nx % 2 == 0 or ny % 2 == 0:
             raise ValueError("quadratic grid surfaces need an odd number of nodes per side")
-        n = {(di, dj): ids[di:nx - 2 + di:2, dj:ny - 2 + dj:2] for di in range(3) for dj in range(3)}
+        n = {
+            (di, dj): ids[di : nx - 2 + di : 2, dj : ny - 2 + dj : 2]
+            for di in range(3)
+            for dj in range(3)
+        }
         c0, c1, c2, c3 = n[0, 0], n[2, 0], n[2, 2], n[0, 2]
         m01, m12, m23, m30, mc = n[1, 0], n[2, 1], n[1, 2], n[0, 1], n[1, 1]
         if element == "tri6":
-            f = np.concatenate([np.stack([c0, c1, c2, m01, m12, mc], -1).reshape(-1, 6),
-                                np.stack([c0, c2, c3, mc, m23, m30], -1).reshape(-1, 6)])
+            f = np.concatenate(
+                [
+                    np.stack([c0, c1, c2, m01, m12, mc], -1).reshape(-1, 6),
+                    np.stack([c0, c2, c3, mc, m23, m30], -1).reshape(-1, 6),
+                ]
+            )
         elif element == "quad8":
             f = np.stack([c0, c1, c2, c3, m01, m12, m23, m30], -1).reshape(-1, 8)
         elif element == "quad9":
@@ -71,8 +90,8 @@ def grid_surface(x, y, z, element="tri3", *, flip=False) -> Surface:
         if f.shape[1] > k:
             # Reversing the corner cycle c0 c1 .. c(k-1) reverses the edge order as well:
             # edge i of the flipped face is edge k-1-i of the original.
-            mids = f[:, k:2 * k][:, ::-1]
-            f = np.concatenate([corners, mids, f[:, 2 * k:]], 1)
+            mids = f[:, k : 2 * k][:, ::-1]
+            f = np.concatenate([corners, mids, f[:, 2 * k :]], 1)
         else:
             f = corners
     return Surface(pts, f, element)
@@ -95,8 +114,9 @@ def rough_field(nx, ny, *, hurst=0.8, rms=1.0, seed=0, cutoff=None):
     return h * (rms / std) if std > 0 else h
 
 
-def rough_surfaces(n_nodes=2**12, *, gap=1.0, rms=0.5, hurst=0.8, curvature=0.0,
-                   element="tri3", seed=0) -> Scene:
+def rough_surfaces(
+    n_nodes=2**12, *, gap=1.0, rms=0.5, hurst=0.8, curvature=0.0, element="tri3", seed=0
+) -> Scene:
     """Two rough surfaces facing each other (seed 000 Fig. 10).
 
     The master (normal +z) lies around z = 0, the slave surface (normal -z) around z = gap;
@@ -114,9 +134,21 @@ def rough_surfaces(n_nodes=2**12, *, gap=1.0, rms=0.5, hurst=0.8, curvature=0.0,
     master = grid_surface(x, y, z1, element)
     slave_surface = grid_surface(x, y, z2, element, flip=True)
     slave = slave_surface.points[slave_surface.nodes]
-    return Scene("rough_surfaces", master, slave, slave_surface,
-                 dict(n_nodes=nx * ny, gap=gap, rms=rms, hurst=hurst, curvature=curvature,
-                      element=element, seed=seed))
+    return Scene(
+        "rough_surfaces",
+        master,
+        slave,
+        slave_surface,
+        dict(
+            n_nodes=nx * ny,
+            gap=gap,
+            rms=rms,
+            hurst=hurst,
+            curvature=curvature,
+            element=element,
+            seed=seed,
+        ),
+    )
 
 
 def _graded_axis(spacing):
@@ -125,8 +157,9 @@ def _graded_axis(spacing):
     return x - 0.5 * x[-1]
 
 
-def graded_surfaces(n_nodes=2**12, *, ratio=100.0, gap=1.0, rms=0.5, element="tri3",
-                    seed=0) -> Scene:
+def graded_surfaces(
+    n_nodes=2**12, *, ratio=100.0, gap=1.0, rms=0.5, element="tri3", seed=0
+) -> Scene:
     """`rough_surfaces` on graded grids: element size 1 at the centre growing geometrically to
     `ratio` at the border along each axis (so faces of every size between, stretched up to
     `ratio`:1 where a fine row crosses a coarse column), with the same node count for every
@@ -150,13 +183,18 @@ def graded_surfaces(n_nodes=2**12, *, ratio=100.0, gap=1.0, rms=0.5, element="tr
     z2 = h * (gap + rough_field(nx, ny, rms=rms, seed=seed + 1))
     master = grid_surface(x, y, z1, element)
     slave_surface = grid_surface(x, y, z2, element, flip=True)
-    return Scene("graded_surfaces", master, slave_surface.points[slave_surface.nodes],
-                 slave_surface, dict(n_nodes=nx * ny, ratio=ratio, gap=gap, rms=rms,
-                                     element=element, seed=seed))
+    return Scene(
+        "graded_surfaces",
+        master,
+        slave_surface.points[slave_surface.nodes],
+        slave_surface,
+        dict(n_nodes=nx * ny, ratio=ratio, gap=gap, rms=rms, element=element, seed=seed),
+    )
 
 
-def fine_patch(n_fine=64, *, ratio=1000.0, growth=1.5, n_slaves=None, gap=0.5, rms=0.3,
-               element="tri3", seed=0) -> Scene:
+def fine_patch(
+    n_fine=64, *, ratio=1000.0, growth=1.5, n_slaves=None, gap=0.5, rms=0.3, element="tri3", seed=0
+) -> Scene:
     """A fine patch (n_fine x n_fine elements of size 1) inside a coarse plate (elements of size
     `ratio`), joined by rows growing by `growth` per element, and a rough slave punch of
     `n_slaves` nodes (default n_fine^2) over the patch at mean height `gap`: the contact zone
@@ -179,9 +217,22 @@ def fine_patch(n_fine=64, *, ratio=1000.0, growth=1.5, n_slaves=None, gap=0.5, r
     sx, sy = np.meshgrid(u, u, indexing="ij")
     sz = gap + rough_field(ns, ns, rms=rms, seed=seed)
     slave = np.stack([sx, sy, sz], -1).reshape(-1, 3)
-    return Scene("fine_patch", master, slave, None,
-                 dict(n_fine=n_fine, ratio=ratio, growth=growth, n_slaves=len(slave), gap=gap,
-                      rms=rms, element=element, seed=seed))
+    return Scene(
+        "fine_patch",
+        master,
+        slave,
+        None,
+        dict(
+            n_fine=n_fine,
+            ratio=ratio,
+            growth=growth,
+            n_slaves=len(slave),
+            gap=gap,
+            rms=rms,
+            element=element,
+            seed=seed,
+        ),
+    )
 
 
 def steep_rough_surfaces(n_nodes=2**12, *, rms=4.0, gap=4.0, seed=0) -> Scene:
@@ -189,8 +240,13 @@ def steep_rough_surfaces(n_nodes=2**12, *, rms=4.0, gap=4.0, seed=0) -> Scene:
     faces several times longer than their in-plane spacing), a uniform mesh whose faces are
     long needles for any structure sized by the longest edge."""
     s = rough_surfaces(n_nodes, gap=gap, rms=rms, seed=seed)
-    return Scene("steep_rough_surfaces", s.master, s.slave, s.slave_surface,
-                 dict(n_nodes=len(s.slave), rms=rms, gap=gap, seed=seed))
+    return Scene(
+        "steep_rough_surfaces",
+        s.master,
+        s.slave,
+        s.slave_surface,
+        dict(n_nodes=len(s.slave), rms=rms, gap=gap, seed=seed),
+    )
 
 
 def rough_layers(n_nodes=2**12, *, quadratic=False, rms=0.5, seed=0) -> Scene:
@@ -198,10 +254,16 @@ def rough_layers(n_nodes=2**12, *, quadratic=False, rms=0.5, seed=0) -> Scene:
 
     Linear layers are tri3, quadratic ones tri6. About half the slave nodes are below the
     master surface, so gaps of both signs are present everywhere."""
-    s = rough_surfaces(n_nodes, gap=0.0, rms=rms, element="tri6" if quadratic else "tri3",
-                       seed=seed)
-    return Scene("rough_layers", s.master, s.slave, s.slave_surface,
-                 dict(n_nodes=len(s.slave), quadratic=quadratic, rms=rms, seed=seed))
+    s = rough_surfaces(
+        n_nodes, gap=0.0, rms=rms, element="tri6" if quadratic else "tri3", seed=seed
+    )
+    return Scene(
+        "rough_layers",
+        s.master,
+        s.slave,
+        s.slave_surface,
+        dict(n_nodes=len(s.slave), quadratic=quadratic, rms=rms, seed=seed),
+    )
 
 
 def sphere_on_plane(n_nodes=2**12, *, radius=10.0, depth=0.5, element="quad4") -> Scene:
@@ -217,15 +279,22 @@ def sphere_on_plane(n_nodes=2**12, *, radius=10.0, depth=0.5, element="quad4") -
     k = np.arange(n_nodes) + 0.5
     phi = np.arccos(1 - 2 * k / n_nodes)
     theta = np.pi * (1 + 5**0.5) * k
-    sphere = radius * np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi),
-                                np.cos(phi)], -1)
+    sphere = radius * np.stack(
+        [np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], -1
+    )
     slave = sphere + np.array([0.0, 0.0, radius - depth])
-    return Scene("sphere_on_plane", master, slave, None,
-                 dict(n_nodes=n_nodes, radius=radius, depth=depth, element=element))
+    return Scene(
+        "sphere_on_plane",
+        master,
+        slave,
+        None,
+        dict(n_nodes=n_nodes, radius=radius, depth=depth, element=element),
+    )
 
 
-def cylinder_on_road(n_nodes=2**12, *, radius=20.0, width=None, depth=0.5, rms=0.3,
-                     element="tri3", seed=0) -> Scene:
+def cylinder_on_road(
+    n_nodes=2**12, *, radius=20.0, width=None, depth=0.5, rms=0.3, element="tri3", seed=0
+) -> Scene:
     """A cylinder (the tyre) pressed into a rough road (seed 000 section 2.3).
 
     The road is a rough master of about `n_nodes` nodes; the tyre's slave nodes (`n_nodes`
@@ -235,18 +304,35 @@ def cylinder_on_road(n_nodes=2**12, *, radius=20.0, width=None, depth=0.5, rms=0
     width = width or float(np.ptp(xy[:, 1])) * 0.5
     n_around = max(int(np.sqrt(n_nodes * 2 * np.pi * radius / width)), 8)
     n_along = max(n_nodes // n_around, 2)
-    a, yy = np.meshgrid(np.linspace(0, 2 * np.pi, n_around, endpoint=False),
-                        np.linspace(-width / 2, width / 2, n_along), indexing="ij")
+    a, yy = np.meshgrid(
+        np.linspace(0, 2 * np.pi, n_around, endpoint=False),
+        np.linspace(-width / 2, width / 2, n_along),
+        indexing="ij",
+    )
     top = road.points[:, 2].max()
-    slave = np.stack([radius * np.sin(a), yy, top + radius - depth - radius * np.cos(a)],
-                     -1).reshape(-1, 3)
-    return Scene("cylinder_on_road", road, slave, None,
-                 dict(n_nodes=len(slave), radius=radius, width=width, depth=depth, rms=rms,
-                      element=element, seed=seed))
+    slave = np.stack(
+        [radius * np.sin(a), yy, top + radius - depth - radius * np.cos(a)], -1
+    ).reshape(-1, 3)
+    return Scene(
+        "cylinder_on_road",
+        road,
+        slave,
+        None,
+        dict(
+            n_nodes=len(slave),
+            radius=radius,
+            width=width,
+            depth=depth,
+            rms=rms,
+            element=element,
+            seed=seed,
+        ),
+    )
 
 
-def curved_patch(n_faces_side=8, *, element="quad9", curvature=0.3, gap=0.3, n_slaves=2000,
-                 seed=0) -> Scene:
+def curved_patch(
+    n_faces_side=8, *, element="quad9", curvature=0.3, gap=0.3, n_slaves=2000, seed=0
+) -> Scene:
     """A doubly curved patch of quadratic (or linear) faces with slaves scattered around it.
 
     The master is z = curvature/2 (x^2 - 0.5 y^2) + 0.2 sin(x) cos(y) on n_faces_side^2 faces of
@@ -265,9 +351,20 @@ def curved_patch(n_faces_side=8, *, element="quad9", curvature=0.3, gap=0.3, n_s
     u = rng.uniform(-n_faces_side / 2 - 0.5, n_faces_side / 2 + 0.5, (n_slaves, 2))
     z = height(u[:, 0], u[:, 1]) + rng.uniform(-gap, gap, n_slaves)
     slave = np.c_[u, z]
-    return Scene("curved_patch", master, slave, None,
-                 dict(n_faces_side=n_faces_side, element=element, curvature=curvature, gap=gap,
-                      n_slaves=n_slaves, seed=seed))
+    return Scene(
+        "curved_patch",
+        master,
+        slave,
+        None,
+        dict(
+            n_faces_side=n_faces_side,
+            element=element,
+            curvature=curvature,
+            gap=gap,
+            n_slaves=n_slaves,
+            seed=seed,
+        ),
+    )
 
 
 #: Single elements in the plane z = 0 for the study of seed 003 section 5.1 (Fig. 4): a linear
@@ -278,10 +375,25 @@ def curved_patch(n_faces_side=8, *, element="quad9", curvature=0.3, gap=0.3, n_s
 STUDY_ELEMENTS = {
     "tri3": (np.array([[-0.6, -0.2], [0.6, -0.7], [0.5, 0.8]]), 2.0),
     "quad4": (np.array([[-0.8, -0.8], [0.9, -0.7], [0.8, 0.9], [-0.9, 0.7]]), 2.0),
-    "tri6": (np.array([[-2.0, -1.8], [2.0, -1.5], [-1.2, 2.0], [0.0, -1.2], [0.8, 0.8],
-                       [-1.9, 0.1]]), 6.0),
-    "quad8": (np.array([[-2.0, -2.0], [2.0, -1.8], [1.8, 2.0], [-2.0, 1.8], [0.0, -1.5],
-                        [2.3, 0.1], [0.0, 1.6], [-1.6, 0.0]]), 6.0),
+    "tri6": (
+        np.array([[-2.0, -1.8], [2.0, -1.5], [-1.2, 2.0], [0.0, -1.2], [0.8, 0.8], [-1.9, 0.1]]),
+        6.0,
+    ),
+    "quad8": (
+        np.array(
+            [
+                [-2.0, -2.0],
+                [2.0, -1.8],
+                [1.8, 2.0],
+                [-2.0, 1.8],
+                [0.0, -1.5],
+                [2.3, 0.1],
+                [0.0, 1.6],
+                [-1.6, 0.0],
+            ]
+        ),
+        6.0,
+    ),
 }
 
 

@@ -21,16 +21,16 @@ from pathlib import Path
 import numpy as np
 
 import arraycontact as ac
+from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
 from run import errors, make_scene  # noqa: E402
 
 
 def bench_jax(scene, repeats, mode="exact", search="jax"):
+    import arraycontact_jax as acj
     import jax
     import jax.numpy as jnp
-
-    import arraycontact_jax as acj
 
     t0 = time.perf_counter()
     p = acj.plan(scene.master, scene.slave, mode=mode, dtype=np.float32, search=search)
@@ -48,9 +48,10 @@ def bench_jax(scene, repeats, mode="exact", search="jax"):
     extra = {}
     if search == "warp":
         # Split the time: the Warp search alone (inside jit), and the JAX side's parts.
+        from arraycontact_jax._gradients import smooth
+
         from arraycontact._elements import get_element
         from arraycontact._surface import face_bounds, node_normals
-        from arraycontact_jax._gradients import smooth
 
         def median_time(fn, *args):
             fn = jax.jit(fn)
@@ -71,26 +72,52 @@ def bench_jax(scene, repeats, mode="exact", search="jax"):
         extra["jax_parts_s"] = dict(
             face_bounds=median_time(lambda m: face_bounds(el, m[faces], jnp)[1].max(), m),
             node_normals=median_time(lambda m: node_normals(el, faces, m, jnp), m),
-            smooth=median_time(lambda s, m, o: smooth(
-                el, s, m, p.topology, o["face"], o["feature"], o["local"], o["xi"], o["gap"],
-                tie), s - origin, m - origin, out))
+            smooth=median_time(
+                lambda s, m, o: smooth(
+                    el,
+                    s,
+                    m,
+                    p.topology,
+                    o["face"],
+                    o["feature"],
+                    o["local"],
+                    o["xi"],
+                    o["gap"],
+                    tie,
+                ),
+                s - origin,
+                m - origin,
+                out,
+            ),
+        )
     c = jax.tree.map(np.asarray, c)
-    return c, dict(**extra, plan_s=plan_s, first_call_s=first, steady_s=statistics.median(times),
-                   steady_min_s=min(times), device=str(jax.devices()[0].device_kind),
-                   overflow=bool(c.overflow),
-                   counts={k: float(v) for k, v in c.counts.count.items()},
-                   capacity=dict(c.counts.capacity))
+    return c, dict(
+        **extra,
+        plan_s=plan_s,
+        first_call_s=first,
+        steady_s=statistics.median(times),
+        steady_min_s=min(times),
+        device=str(jax.devices()[0].device_kind),
+        overflow=bool(c.overflow),
+        counts={k: float(v) for k, v in c.counts.count.items()},
+        capacity=dict(c.counts.capacity),
+    )
 
 
 def _node_stage_kernel():
     import warp as wp
-
     from arraycontact_warp._closest_node import closest_node
     from arraycontact_warp._grid import Grid
 
     @wp.kernel(module="unique")
-    def node_stage(grid: Grid, slaves: wp.array(dtype=wp.vec3), order: wp.array(dtype=int),
-                   d_max: float, tie: float, node_out: wp.array(dtype=int)):
+    def node_stage(
+        grid: Grid,
+        slaves: wp.array(dtype=wp.vec3),
+        order: wp.array(dtype=int),
+        d_max: float,
+        tie: float,
+        node_out: wp.array(dtype=int),
+    ):
         i = order[wp.tid()]
         node, dn = closest_node(slaves[i], 0, 1, grid, d_max, tie)
         node_out[i] = node
@@ -124,14 +151,12 @@ def kernel_resources(device):
 def warp_plan(scene, device="cuda", **plan_options):
     """A Warp plan for the scene and its slave and master coordinates as device arrays in the
     plan's frame, as a simulator holds them (the plan's origin then zero)."""
-    import warp as wp
-
     import arraycontact_warp as acw
+    import warp as wp
 
     p = acw.plan(scene.master, scene.slave, device=device, **plan_options)
     xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
-    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
-                  device=device)
+    xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
     p.origin = np.zeros(3)  # the arrays above are already local
     return p, xs, xm
 
@@ -152,9 +177,8 @@ def bench_warp_moving(scene, steps, step, device="cuda"):
     as a simulator's step writes them. The mean time of the steps (detect's graph: a refit
     while every face stays within the plan's margin of where it was keyed, else a build) and
     how many steps built the grids again."""
-    import warp as wp
-
     import arraycontact_warp as acw
+    import warp as wp
 
     p, xs, xm = warp_plan(scene, device)
     move = _move_kernel()
@@ -176,18 +200,23 @@ def bench_warp_moving(scene, steps, step, device="cuda"):
     q = warp_plan(scene, device, refit=False)[0]
     ref = acw.detect(q, xs, xm)
     got = {k: v.numpy() for k, v in p.out.items()}
-    same = all(np.array_equal(a, ref[k].numpy(), equal_nan=a.dtype.kind == "f")
-               for k, a in got.items())
-    return dict(mean_s=statistics.fmean(times), median_s=statistics.median(times),
-                steps=steps, rebuilds=rebuilds, step=[float(v) for v in step],
-                same_as_building=same)
+    same = all(
+        np.array_equal(a, ref[k].numpy(), equal_nan=a.dtype.kind == "f") for k, a in got.items()
+    )
+    return dict(
+        mean_s=statistics.fmean(times),
+        median_s=statistics.median(times),
+        steps=steps,
+        rebuilds=rebuilds,
+        step=[float(v) for v in step],
+        same_as_building=same,
+    )
 
 
 def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, **plan_options):
     """quick: the steady-state time only (variants beside the main record)."""
-    import warp as wp
-
     import arraycontact_warp as acw
+    import warp as wp
 
     t0 = time.perf_counter()
     p, xs, xm = warp_plan(scene, device, sort_slaves=sort_slaves, **plan_options)
@@ -210,8 +239,9 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
         p.graphs = False  # the launches one by one from Python
         launches_s = timed(run, repeats, device)[1]
         # Time per kernel / copy / memset of one detection (CUDA activity timing).
-        with wp.ScopedTimer("detect", cuda_filter=wp.TIMING_ALL, synchronize=True,
-                            print=False) as timer:
+        with wp.ScopedTimer(
+            "detect", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False
+        ) as timer:
             run()
         p.graphs = True
         kernels = {}
@@ -220,11 +250,23 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
 
         # The closest-node stage alone (same grid, same slave order): its share of the kernel.
         node_stage = _node_stage_kernel()  # built once: not inside the timed call
-        rec_node = timed(lambda: wp.launch(
-            node_stage, p.n_slaves,
-            inputs=[p.node_grid, xs, p.order, float(p.constants["d_max"]),
-                    float(p.constants["tie"]), p.out["master_node"]], device=device),
-            repeats, device)[1]
+        rec_node = timed(
+            lambda: wp.launch(
+                node_stage,
+                p.n_slaves,
+                inputs=[
+                    p.node_grid,
+                    xs,
+                    p.order,
+                    float(p.constants["d_max"]),
+                    float(p.constants["tie"]),
+                    p.out["master_node"],
+                ],
+                device=device,
+            ),
+            repeats,
+            device,
+        )[1]
         kernels["closest_node_stage_alone"] = rec_node
 
         # The caller's own capture of detect (as a simulator's step graph).
@@ -240,21 +282,39 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
         kernels["resources"] = kernel_resources(device)
     o = {k: v.numpy() for k, v in p.out.items()}
     n = len(scene.slave)
-    c = ac.Contacts(active=o["active"].astype(bool), face=o["face"], xi=o["xi"],
-                    point=o["point"], gap=o["gap"], distance=o["distance"], normal=o["normal"],
-                    feature=o["feature"], master_node=o["master_node"], status=o["status"],
-                    slave_ids=np.arange(n), d_max=p.constants["d_max"])
-    return c, dict(plan_s=plan_s, first_call_s=first, steady_s=steady,
-                   launches_s=launches_s, graph_replay_s=graph_s, kernels_s=kernels,
-                   device=wp.get_device(device).name, overflow=False)
+    c = ac.Contacts(
+        active=o["active"].astype(bool),
+        face=o["face"],
+        xi=o["xi"],
+        point=o["point"],
+        gap=o["gap"],
+        distance=o["distance"],
+        normal=o["normal"],
+        feature=o["feature"],
+        master_node=o["master_node"],
+        status=o["status"],
+        slave_ids=np.arange(n),
+        d_max=p.constants["d_max"],
+    )
+    return c, dict(
+        plan_s=plan_s,
+        first_call_s=first,
+        steady_s=steady,
+        launches_s=launches_s,
+        graph_replay_s=graph_s,
+        kernels_s=kernels,
+        device=wp.get_device(device).name,
+        overflow=False,
+    )
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("what", choices=["jax", "jax-warp", "warp", "all"],
-                    help="jax-warp: the JAX back end with search='warp' (Warp kernels through "
-                         "Warp's JAX FFI)")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument(
+        "what",
+        choices=["jax", "jax-warp", "warp", "all"],
+        help="jax-warp: the JAX back end with search='warp' (Warp kernels through Warp's JAX FFI)",
+    )
     ap.add_argument("--sizes", type=int, nargs="*", default=[16, 20])
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--check", type=int, default=256)
@@ -263,7 +323,7 @@ def main():
     a = ap.parse_args()
     import warp as wp
 
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     from peers_warp import hashgrid_peer, mesh_peers
 
@@ -278,84 +338,118 @@ def main():
         peers = dict(
             warp_mesh_build_query=dict(zip(("first_s", "steady_s"), mesh["build_query"])),
             warp_mesh_refit_query=dict(zip(("first_s", "steady_s"), mesh["refit_query"])),
-            warp_mesh_refit_query_graph=dict(zip(("first_s", "steady_s"),
-                                                 mesh.get("refit_query_graph", (None, None)))),
-            warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"), grid["build_query"])))
+            warp_mesh_refit_query_graph=dict(
+                zip(("first_s", "steady_s"), mesh.get("refit_query_graph", (None, None)))
+            ),
+            warp_hashgrid_closest_node=dict(zip(("first_s", "steady_s"), grid["build_query"])),
+        )
         for backend in backends:
             if backend.startswith("jax"):
-                c, rec = bench_jax(scene, a.repeats,
-                                   search="warp" if backend == "jax-warp" else "jax")
+                c, rec = bench_jax(
+                    scene, a.repeats, search="warp" if backend == "jax-warp" else "jax"
+                )
             else:
                 c, rec = bench_warp(scene, a.repeats, a.device)
                 # The same detection with the slaves sorted again in every call, and in the
                 # order they come; then on the slaves in a random order (a mesh numbered
                 # without spatial order), sorted at plan time or not.
                 perm = np.random.default_rng(0).permutation(len(scene.slave))
-                shuffled = type(scene)(scene.name, scene.master, scene.slave[perm],
-                                       scene.slave_surface, scene.params)
+                shuffled = type(scene)(
+                    scene.name, scene.master, scene.slave[perm], scene.slave_surface, scene.params
+                )
                 rec["variants_steady_s"] = {
                     "sorted_per_call": bench_warp(scene, a.repeats, a.device, "detect", True),
                     "unsorted": bench_warp(scene, a.repeats, a.device, False, True),
                     "shuffled_sorted": bench_warp(shuffled, a.repeats, a.device, "plan", True),
                     "shuffled_unsorted": bench_warp(shuffled, a.repeats, a.device, False, True),
                     # a build of the face grid in every call, no refit
-                    "no_refit": bench_warp(scene, a.repeats, a.device, "plan", True,
-                                           refit=False)}
+                    "no_refit": bench_warp(scene, a.repeats, a.device, "plan", True, refit=False),
+                }
                 # Master and slaves moving a thousandth of the longest edge a step.
                 rec["moving_master"] = bench_warp_moving(
-                    scene, 200, np.array([1e-3, 0.0, 0.0]) * scene.master.longest_edge,
-                    a.device)
+                    scene, 200, np.array([1e-3, 0.0, 0.0]) * scene.master.longest_edge, a.device
+                )
             ok = c.active & (mesh["face"] >= 0)
             rec.update(
-                suite="gpu", scene="rough_close", log2_nodes=k, n_slaves=len(scene.slave),
-                n_master_faces=scene.master.n_faces, backend=backend, dtype="float32",
-                mode="exact", active=int(c.active.sum()),
-                errors=errors(c, scene, a.check, "float32"), peers=peers,
+                suite="gpu",
+                scene="rough_close",
+                log2_nodes=k,
+                n_slaves=len(scene.slave),
+                n_master_faces=scene.master.n_faces,
+                backend=backend,
+                dtype="float32",
+                mode="exact",
+                active=int(c.active.sum()),
+                errors=errors(c, scene, a.check, "float32"),
+                peers=peers,
                 warp_mesh_active_agreement=float(((mesh["face"] >= 0) == c.active).mean()),
-                warp_mesh_max_distance_diff=float(np.abs(mesh["distance"][ok]
-                                                         - c.distance[ok]).max())
-                if ok.any() else None)
-            rec["ratio_to_mesh_build_query"] = (rec["steady_s"]
-                                                / peers["warp_mesh_build_query"]["steady_s"])
-            rec["ratio_to_mesh_refit_query"] = (rec["steady_s"]
-                                                / peers["warp_mesh_refit_query"]["steady_s"])
+                warp_mesh_max_distance_diff=float(
+                    np.abs(mesh["distance"][ok] - c.distance[ok]).max()
+                )
+                if ok.any()
+                else None,
+            )
+            rec["ratio_to_mesh_build_query"] = (
+                rec["steady_s"] / peers["warp_mesh_build_query"]["steady_s"]
+            )
+            rec["ratio_to_mesh_refit_query"] = (
+                rec["steady_s"] / peers["warp_mesh_refit_query"]["steady_s"]
+            )
             rg = peers["warp_mesh_refit_query_graph"]["steady_s"]
             rec["ratio_to_mesh_refit_query_graph"] = rec["steady_s"] / rg if rg else None
             with open(out / "gpu.jsonl", "a") as f:
                 f.write(json.dumps(rec) + "\n")
             if rec.get("search_only_s"):
-                print(f"   the Warp search alone {rec['search_only_s'] * 1e3:.3f} ms; JAX parts "
-                      + ", ".join(f"{k} {v * 1e3:.3f} ms"
-                                  for k, v in rec["jax_parts_s"].items()))
+                print(
+                    f"   the Warp search alone {rec['search_only_s'] * 1e3:.3f} ms; JAX parts "
+                    + ", ".join(f"{k} {v * 1e3:.3f} ms" for k, v in rec["jax_parts_s"].items())
+                )
             g = rec.get("graph_replay_s")
             la = rec.get("launches_s")
-            print(f"2^{k} {backend} {rec['device']}: plan {rec['plan_s']:.2f} s, first "
-                  f"{rec['first_call_s']:.2f} s, steady {rec['steady_s'] * 1e3:.3f} ms"
-                  + (f", launches one by one {la * 1e3:.3f} ms" if la else "")
-                  + (f", in the caller's graph {g * 1e3:.3f} ms" if g else "")
-                  + " | wp.Mesh build+query "
-                  f"{peers['warp_mesh_build_query']['steady_s'] * 1e3:.3f} ms, refit+query "
-                  f"{peers['warp_mesh_refit_query']['steady_s'] * 1e3:.3f} ms"
-                  + (f" (as a graph {rg * 1e3:.3f} ms)" if rg else "") + ", HashGrid node "
-                  f"{peers['warp_hashgrid_closest_node']['steady_s'] * 1e3:.3f} ms | ratio to "
-                  f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
-                  f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
-                  f"{rec['overflow']}", flush=True)
+            print(
+                f"2^{k} {backend} {rec['device']}: plan {rec['plan_s']:.2f} s, first "
+                f"{rec['first_call_s']:.2f} s, steady {rec['steady_s'] * 1e3:.3f} ms"
+                + (f", launches one by one {la * 1e3:.3f} ms" if la else "")
+                + (f", in the caller's graph {g * 1e3:.3f} ms" if g else "")
+                + " | wp.Mesh build+query "
+                f"{peers['warp_mesh_build_query']['steady_s'] * 1e3:.3f} ms, refit+query "
+                f"{peers['warp_mesh_refit_query']['steady_s'] * 1e3:.3f} ms"
+                + (f" (as a graph {rg * 1e3:.3f} ms)" if rg else "")
+                + ", HashGrid node "
+                f"{peers['warp_hashgrid_closest_node']['steady_s'] * 1e3:.3f} ms | ratio to "
+                f"build+query {rec['ratio_to_mesh_build_query']:.2f}, refit+query "
+                f"{rec['ratio_to_mesh_refit_query']:.2f} | errors {rec['errors']} | overflow "
+                f"{rec['overflow']}",
+                flush=True,
+            )
             if rec.get("moving_master"):
                 mm = rec["moving_master"]
-                print(f"   moving master: mean {mm['mean_s'] * 1e3:.3f} ms a step "
-                      f"(incl. moving both), {mm['rebuilds']} builds in {mm['steps']} steps")
+                print(
+                    f"   moving master: mean {mm['mean_s'] * 1e3:.3f} ms a step "
+                    f"(incl. moving both), {mm['rebuilds']} builds in {mm['steps']} steps"
+                )
             if rec.get("variants_steady_s"):
-                print("   variants ms: " + ", ".join(
-                    f"{n} {t * 1e3:.3f}" for n, t in rec["variants_steady_s"].items()))
+                print(
+                    "   variants ms: "
+                    + ", ".join(f"{n} {t * 1e3:.3f}" for n, t in rec["variants_steady_s"].items())
+                )
             if rec.get("kernels_s"):
                 res = rec["kernels_s"].pop("resources", {})  # printed apart
-                print("   per kernel ms: " + ", ".join(
-                    f"{n[:40]} {t * 1e3:.3f}" for n, t in sorted(rec["kernels_s"].items(),
-                                                                key=lambda kv: -kv[1])))
-                print("   registers / local bytes: " + ", ".join(
-                    f"{n[:30]} {v['registers']}/{v['local_bytes']}" for n, v in res.items()
-                    if "detect" in n or "node_stage" in n))
+                print(
+                    "   per kernel ms: "
+                    + ", ".join(
+                        f"{n[:40]} {t * 1e3:.3f}"
+                        for n, t in sorted(rec["kernels_s"].items(), key=lambda kv: -kv[1])
+                    )
+                )
+                print(
+                    "   registers / local bytes: "
+                    + ", ".join(
+                        f"{n[:30]} {v['registers']}/{v['local_bytes']}"
+                        for n, v in res.items()
+                        if "detect" in n or "node_stage" in n
+                    )
+                )
 
 
 if __name__ == "__main__":

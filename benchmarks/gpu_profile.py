@@ -10,24 +10,27 @@ import ctypes
 import sys
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).parent))
 from gpu import warp_plan  # noqa: E402
 from run import make_scene  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--log2", type=int, default=20)
-    ap.add_argument("--lineinfo", action="store_true",
-                    help="kernels built with line information (for ncu's source counters) "
-                    "pointing at the generated CUDA source, whose comments name the Python "
-                    "lines")
+    ap.add_argument(
+        "--lineinfo",
+        action="store_true",
+        help="kernels built with line information (for ncu's source counters) "
+        "pointing at the generated CUDA source, whose comments name the Python "
+        "lines",
+    )
     a = ap.parse_args()
     import warp as wp
 
-    wp.config.quiet = True
+    from arraycontact._backends import quiet_warp
+
+    quiet_warp()
     if a.lineinfo:  # before the modules are made: they take their options then
         wp.config.lineinfo = True
         wp.config.line_directives = False

@@ -12,27 +12,32 @@ from pathlib import Path
 
 import numpy as np
 
+from arraycontact._backends import quiet_warp
+
 sys.path.insert(0, str(Path(__file__).parent))
 from suite import suite  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--only", nargs="*")
     a = ap.parse_args()
+    import arraycontact_warp as acw
     import warp as wp
 
-    import arraycontact_warp as acw
-
-    wp.config.quiet = True
+    quiet_warp()
     for label, make, f in suite(a.log2):
         if a.only and not any(label.startswith(o) for o in a.only):
             continue
         scene = make()
-        p = acw.plan(scene.master, scene.slave, d_max=f * scene.master.longest_edge,
-                     device="cuda", graphs=False)
+        p = acw.plan(
+            scene.master,
+            scene.slave,
+            d_max=f * scene.master.longest_edge,
+            device="cuda",
+            graphs=False,
+        )
         xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3)
         xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3)
         p.origin = np.zeros(3)
@@ -42,13 +47,16 @@ def main():
         totals = defaultdict(float)
         runs = 5
         for _ in range(runs):
-            with wp.ScopedTimer("detect", print=False, synchronize=True,
-                                cuda_filter=wp.TIMING_ALL) as t:
+            with wp.ScopedTimer(
+                "detect", print=False, synchronize=True, cuda_filter=wp.TIMING_ALL
+            ) as t:
                 acw.detect(p, xs, xm)
             for r in t.timing_results:
                 totals[r.name] += r.elapsed / runs
-        print(f"{label}: {scene.master.n_faces} faces, {len(scene.slave)} slaves; "
-              f"total {sum(totals.values()):.3f} ms")
+        print(
+            f"{label}: {scene.master.n_faces} faces, {len(scene.slave)} slaves; "
+            f"total {sum(totals.values()):.3f} ms"
+        )
         for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:12]:
             print(f"   {ms:8.3f} ms  {name}")
 

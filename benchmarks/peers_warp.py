@@ -16,8 +16,13 @@ import warp as wp
 
 
 @wp.kernel
-def _mesh_query(mesh: wp.uint64, q: wp.array(dtype=wp.vec3), d_max: float,
-                face_out: wp.array(dtype=int), dist_out: wp.array(dtype=float)):
+def _mesh_query(
+    mesh: wp.uint64,
+    q: wp.array(dtype=wp.vec3),
+    d_max: float,
+    face_out: wp.array(dtype=int),
+    dist_out: wp.array(dtype=float),
+):
     i = wp.tid()
     r = wp.mesh_query_point_no_sign(mesh, q[i], d_max)
     if r.result:
@@ -30,8 +35,13 @@ def _mesh_query(mesh: wp.uint64, q: wp.array(dtype=wp.vec3), d_max: float,
 
 
 @wp.kernel
-def _grid_query(grid: wp.uint64, q: wp.array(dtype=wp.vec3), nodes: wp.array(dtype=wp.vec3),
-                d_max: float, node_out: wp.array(dtype=int)):
+def _grid_query(
+    grid: wp.uint64,
+    q: wp.array(dtype=wp.vec3),
+    nodes: wp.array(dtype=wp.vec3),
+    d_max: float,
+    node_out: wp.array(dtype=int),
+):
     i = wp.tid()
     p = q[i]
     best = int(-1)
@@ -81,13 +91,23 @@ def mesh_peers(surface, q, d_max, repeats=10, device="cuda"):
 
     def build_query():
         holder["mesh"] = wp.Mesh(points=pts, indices=idx)
-        wp.launch(_mesh_query, len(q), inputs=[holder["mesh"].id, qa, float(d_max)],
-                  outputs=[face, dist], device=device)
+        wp.launch(
+            _mesh_query,
+            len(q),
+            inputs=[holder["mesh"].id, qa, float(d_max)],
+            outputs=[face, dist],
+            device=device,
+        )
 
     def refit_query():
         holder["mesh"].refit()
-        wp.launch(_mesh_query, len(q), inputs=[holder["mesh"].id, qa, float(d_max)],
-                  outputs=[face, dist], device=device)
+        wp.launch(
+            _mesh_query,
+            len(q),
+            inputs=[holder["mesh"].id, qa, float(d_max)],
+            outputs=[face, dist],
+            device=device,
+        )
 
     b = timed(build_query, repeats, device)
     r = timed(refit_query, repeats, device)
@@ -110,8 +130,13 @@ def hashgrid_peer(surface, q, d_max, repeats=10, device="cuda"):
 
     def run():
         grid.build(na, float(d_max))
-        wp.launch(_grid_query, len(q), inputs=[grid.id, qa, na, float(d_max)], outputs=[out],
-                  device=device)
+        wp.launch(
+            _grid_query,
+            len(q),
+            inputs=[grid.id, qa, na, float(d_max)],
+            outputs=[out],
+            device=device,
+        )
 
     t = timed(run, repeats, device)
     return dict(build_query=t, node=out.numpy())

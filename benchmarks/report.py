@@ -27,8 +27,10 @@ def load(name):
     latest = {}
     for line in open(f):
         r = json.loads(line)
-        key = tuple(r.get(k) for k in ("scene", "log2_nodes", "backend", "dtype", "mode",
-                                       "d_max_factor", "skip"))
+        key = tuple(
+            r.get(k)
+            for k in ("scene", "log2_nodes", "backend", "dtype", "mode", "d_max_factor", "skip")
+        )
         latest.pop(key, None)
         latest[key] = r
     return list(latest.values())
@@ -52,29 +54,46 @@ def pareto(records):
         for r in rs:
             face = "none" if r["dtype"] == "float32" else None
             colour = "C0" if r["mode"] == "exact" else "C3"
-            ax.scatter(r["time_per_slave_s"] * 1e6, max(_err(r), 1e-4) * 100,
-                       marker=marks[r["backend"]], s=30 + 40 * r["d_max_factor"],
-                       facecolors=face, edgecolors=colour, color=colour)
+            ax.scatter(
+                r["time_per_slave_s"] * 1e6,
+                max(_err(r), 1e-4) * 100,
+                marker=marks[r["backend"]],
+                s=30 + 40 * r["d_max_factor"],
+                facecolors=face,
+                edgecolors=colour,
+                color=colour,
+            )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("time per slave (us), steady state, this CPU")
         ax.set_ylabel("missed + wrong-face slaves (%)  [0 drawn at 0.01]")
         ax.set_title(f"{scene}, 2^{rs[0]['log2_nodes'] if rs else '?'} nodes per surface")
         ax.grid(True, which="both", alpha=0.3)
-    axes[1].text(0.02, 0.9, "blue: exact, red: node; o numpy, s jax, ^ warp;\n"
-                 "filled float64, hollow float32; size ~ d_max factor (0.5, 1, 2)",
-                 transform=axes[1].transAxes, fontsize=8)
+    axes[1].text(
+        0.02,
+        0.9,
+        "blue: exact, red: node; o numpy, s jax, ^ warp;\n"
+        "filled float64, hollow float32; size ~ d_max factor (0.5, 1, 2)",
+        transform=axes[1].transAxes,
+        fontsize=8,
+    )
     fig.tight_layout()
     fig.savefig(RES / "pareto.png", dpi=110)
-    lines = ["| scene | back end | dtype | mode | d_max x | time / slave | miss | wrong face | "
-             "gap error / edge | active |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in sorted(records, key=lambda r: (r["scene"], r["mode"], r["backend"], r["dtype"],
-                                            r["d_max_factor"])):
+    lines = [
+        "| scene | back end | dtype | mode | d_max x | time / slave | miss | wrong face | "
+        "gap error / edge | active |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(
+        records, key=lambda r: (r["scene"], r["mode"], r["backend"], r["dtype"], r["d_max_factor"])
+    ):
         e = r["errors"]
-        lines.append(f"| {r['scene']} | {r['backend']} | {r['dtype']} | {r['mode']} | "
-                     f"{r['d_max_factor']:g} | {r['time_per_slave_s'] * 1e6:.2f} us | "
-                     f"{e['miss_rate'] * 100:.2g} % | {e['wrong_face_rate'] * 100:.2g} % | "
-                     f"{e['max_gap_error_rel']:.1e} | {r['active']} |")
+        lines.append(
+            f"| {r['scene']} | {r['backend']} | {r['dtype']} | {r['mode']} | "
+            f"{r['d_max_factor']:g} | {r['time_per_slave_s'] * 1e6:.2f} us | "
+            f"{e['miss_rate'] * 100:.2g} % | {e['wrong_face_rate'] * 100:.2g} % | "
+            f"{e['max_gap_error_rel']:.1e} | {r['active']} |"
+        )
     return lines
 
 
@@ -84,8 +103,10 @@ def scaling(records):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    lines = ["| back end | nodes / surface | time / slave | peak bytes / node |",
-             "|---|---|---|---|"]
+    lines = [
+        "| back end | nodes / surface | time / slave | peak bytes / node |",
+        "|---|---|---|---|",
+    ]
     fig, ax = plt.subplots(figsize=(6, 4.5))
     slopes = {}
     for backend in sorted({r["backend"] for r in records}):
@@ -96,8 +117,10 @@ def scaling(records):
         ax.loglog(n, t, "o-", label=f"{backend} {rs[0]['dtype']} (slope {slopes[backend]:.2f})")
         for r in rs:
             mem = f"{r['bytes_per_node']:.0f}" if "bytes_per_node" in r else "-"
-            lines.append(f"| {backend} {r['dtype']} | 2^{r['log2_nodes']} | "
-                         f"{r['time_per_slave_s'] * 1e6:.2f} us | {mem} |")
+            lines.append(
+                f"| {backend} {r['dtype']} | 2^{r['log2_nodes']} | "
+                f"{r['time_per_slave_s'] * 1e6:.2f} us | {mem} |"
+            )
     ax.set_xlabel("slave nodes (= master nodes)")
     ax.set_ylabel("steady-state detection time (s), this CPU")
     ax.grid(True, which="both", alpha=0.3)
@@ -105,41 +128,59 @@ def scaling(records):
     fig.tight_layout()
     fig.savefig(RES / "scaling.png", dpi=110)
     lines.append("")
-    lines.append("Log-log slope of time against nodes (1 = linear): " + ", ".join(
-        f"{b} {s:.2f}" for b, s in slopes.items() if s is not None) + ".")
+    lines.append(
+        "Log-log slope of time against nodes (1 = linear): "
+        + ", ".join(f"{b} {s:.2f}" for b, s in slopes.items() if s is not None)
+        + "."
+    )
     return lines
 
 
 def peers(records):
-    lines = ["| scene | arraycontact (exact) / peer | time | max distance error / edge |",
-             "|---|---|---|---|"]
+    lines = [
+        "| scene | arraycontact (exact) / peer | time | max distance error / edge |",
+        "|---|---|---|---|",
+    ]
     for r in records:
         e = r["errors"]
-        lines.append(f"| {r['scene']} 2^{r['log2_nodes']} | arraycontact {r['backend']} "
-                     f"{r['dtype']} | {r['steady_s']:.3f} s | {e['max_gap_error_rel']:.1e} |")
+        lines.append(
+            f"| {r['scene']} 2^{r['log2_nodes']} | arraycontact {r['backend']} "
+            f"{r['dtype']} | {r['steady_s']:.3f} s | {e['max_gap_error_rel']:.1e} |"
+        )
         if r["backend"] == "numpy":
-            lines.append(f"| | scipy cKDTree (closest node only) | {r['peer']['steady_s']:.3f} s"
-                         f" | (no closest point) |")
+            lines.append(
+                f"| | scipy cKDTree (closest node only) | {r['peer']['steady_s']:.3f} s"
+                f" | (no closest point) |"
+            )
             for name, p in r.get("peers", {}).items():
                 if "error" in p:
                     lines.append(f"| | {name} | {p['error']} | |")
                 else:
-                    lines.append(f"| | {name} | {p['steady_s']:.3f} s | "
-                                 f"{p['max_distance_error_rel']:.1e} |")
+                    lines.append(
+                        f"| | {name} | {p['steady_s']:.3f} s | {p['max_distance_error_rel']:.1e} |"
+                    )
     return lines
 
 
 def table1(records):
-    paper = {"table1_close": ("2,100,000", "75,300", "35 min"),
-             "table1_convex": ("340,000", "15,800", "1 min"),
-             "table1_apart": ("50,000", "0", "4 s")}
-    lines = ["| case | back end | nodes in box | active (within d_max) | penetrating | time | "
-             "paper: nodes in box, contact elements, time |", "|---|---|---|---|---|---|---|"]
+    paper = {
+        "table1_close": ("2,100,000", "75,300", "35 min"),
+        "table1_convex": ("340,000", "15,800", "1 min"),
+        "table1_apart": ("50,000", "0", "4 s"),
+    }
+    lines = [
+        "| case | back end | nodes in box | active (within d_max) | penetrating | time | "
+        "paper: nodes in box, contact elements, time |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in records:
         n_box = r.get("nodes_in_box", "-")
-        lines.append(f"| {r['scene']} | {r['backend']} {r['dtype']} | {n_box:,} | "
-                     f"{r['active']:,} | {r.get('penetrating', '-'):,} | {r['steady_s']:.2f} s | "
-                     + ", ".join(paper[r["scene"]]) + " |")
+        lines.append(
+            f"| {r['scene']} | {r['backend']} {r['dtype']} | {n_box:,} | "
+            f"{r['active']:,} | {r.get('penetrating', '-'):,} | {r['steady_s']:.2f} s | "
+            + ", ".join(paper[r["scene"]])
+            + " |"
+        )
     return lines
 
 
@@ -158,33 +199,54 @@ def run_all():
 def skips(rec):
     return ["| skip | with | without | saved |", "|---|---|---|---|"] + [
         f"| {r['skip']} | {r['with_skip_s'] * 1e3:.1f} ms | {r['without_skip_s'] * 1e3:.1f} ms "
-        f"| {r['saved_fraction'] * 100:.0f} % |" for r in rec]
+        f"| {r['saved_fraction'] * 100:.0f} % |"
+        for r in rec
+    ]
 
 
 # (records, heading, introduction, table) of each RESULTS.md section, in order.
 SECTIONS = [
-    ("pareto", "Run time against error — `python benchmarks/run.py pareto`",
-     "Every back end x dtype x mode x d_max factor (times the default d_max) on the rough "
-     "surfaces and the tyre on a rough road, 2^14 nodes each; errors against the reference on "
-     "256 random slaves. Plot: `results/pareto.png`.", pareto),
-    ("scaling", "Scaling — `python benchmarks/run.py scaling`",
-     "Rough surfaces, 2^12 .. 2^22 nodes each; peak bytes per node is the largest NumPy "
-     "allocation of one call (tracemalloc) over slave + master nodes. Plot: "
-     "`results/scaling.png`.", scaling),
-    ("skips", "What each skip saves — `python benchmarks/skips.py`",
-     "The same scene with and without each skip in one run on this CPU (NumPy float64; the "
-     "static master on Warp's CPU device, the only back end that keeps a grid between calls); "
-     "the scenes are in the script.", skips),
-    ("table1", "Seed 000 Table 1 at 2^20 nodes per surface — `python benchmarks/run.py table1`",
-     "quad4 faces, two rough surfaces of 2^20 nodes each: close (gap 1, RMS 0.5), convex "
-     "(curvature 2e-4), close but apart (convex, gap 4). Nodes in box = slaves + master nodes "
-     "inside the grown-box intersection. The paper's times are from its 2012 hardware and "
-     "code; ours from Warp's CPU device on this 2-core machine (NumPy's quad4 Newton path "
-     "takes minutes per call at this size here).", table1),
-    ("peers", "Peers on the same points — `python benchmarks/run.py peers`",
-     "Open3D, libigl and Warp's BVH answer the unsigned closest-point question (no feature, no "
-     "signed gap, no tie rule); they are built and queried on the same points in the same run.",
-     peers),
+    (
+        "pareto",
+        "Run time against error — `python benchmarks/run.py pareto`",
+        "Every back end x dtype x mode x d_max factor (times the default d_max) on the rough "
+        "surfaces and the tyre on a rough road, 2^14 nodes each; errors against the reference on "
+        "256 random slaves. Plot: `results/pareto.png`.",
+        pareto,
+    ),
+    (
+        "scaling",
+        "Scaling — `python benchmarks/run.py scaling`",
+        "Rough surfaces, 2^12 .. 2^22 nodes each; peak bytes per node is the largest NumPy "
+        "allocation of one call (tracemalloc) over slave + master nodes. Plot: "
+        "`results/scaling.png`.",
+        scaling,
+    ),
+    (
+        "skips",
+        "What each skip saves — `python benchmarks/skips.py`",
+        "The same scene with and without each skip in one run on this CPU (NumPy float64; the "
+        "static master on Warp's CPU device, the only back end that keeps a grid between calls); "
+        "the scenes are in the script.",
+        skips,
+    ),
+    (
+        "table1",
+        "Seed 000 Table 1 at 2^20 nodes per surface — `python benchmarks/run.py table1`",
+        "quad4 faces, two rough surfaces of 2^20 nodes each: close (gap 1, RMS 0.5), convex "
+        "(curvature 2e-4), close but apart (convex, gap 4). Nodes in box = slaves + master nodes "
+        "inside the grown-box intersection. The paper's times are from its 2012 hardware and "
+        "code; ours from Warp's CPU device on this 2-core machine (NumPy's quad4 Newton path "
+        "takes minutes per call at this size here).",
+        table1,
+    ),
+    (
+        "peers",
+        "Peers on the same points — `python benchmarks/run.py peers`",
+        "Open3D, libigl and Warp's BVH answer the unsigned closest-point question (no feature, no "
+        "signed gap, no tie rule); they are built and queried on the same points in the same run.",
+        peers,
+    ),
 ]
 
 
@@ -202,10 +264,14 @@ def main():
     text = f.read_text()
     block = BEGIN + "\n" + "\n".join(out) + "\n" + END
     if BEGIN in text:
-        text = text[:text.index(BEGIN)] + block + text[text.index(END) + len(END):]
+        text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END) :]
     else:
-        text = text.rstrip() + "\n\n## Issue 7 suites (regenerated by benchmarks/report.py)\n\n" \
-            + block + "\n"
+        text = (
+            text.rstrip()
+            + "\n\n## Issue 7 suites (regenerated by benchmarks/report.py)\n\n"
+            + block
+            + "\n"
+        )
     f.write_text(text)
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import arraycontact as ac
+from arraycontact._backends import quiet_warp
 
 HERE = Path(__file__).parent
 
@@ -38,30 +39,50 @@ SCENES = {
     "tyre_road": ("cylinder_on_road", dict(radius=40.0, depth=0.5)),
     # Seed 000 Table 1 (quadrilateral faces): close, convex, close but not touching.
     "table1_close": ("rough_surfaces", dict(gap=1.0, rms=0.5, element="quad4")),
-    "table1_convex": ("rough_surfaces", dict(gap=1.0, rms=0.5, curvature=2e-4,
-                                             element="quad4")),
-    "table1_apart": ("rough_surfaces", dict(gap=4.0, rms=0.5, curvature=2e-4,
-                                            element="quad4")),
+    "table1_convex": ("rough_surfaces", dict(gap=1.0, rms=0.5, curvature=2e-4, element="quad4")),
+    "table1_apart": ("rough_surfaces", dict(gap=4.0, rms=0.5, curvature=2e-4, element="quad4")),
 }
 
-_EVERY = [(b, d, m) for b in ("numpy", "jax", "warp") for d in ("float64", "float32")
-          for m in ("exact", "node") if not (b == "warp" and (d == "float64" or m == "node"))]
+_EVERY = [
+    (b, d, m)
+    for b in ("numpy", "jax", "warp")
+    for d in ("float64", "float32")
+    for m in ("exact", "node")
+    if not (b == "warp" and (d == "float64" or m == "node"))
+]
 SUITES = {
-    "cpu": dict(scenes=["rough_close"], sizes=[16, 20],
-                runs=[("numpy", "float64", "exact"), ("numpy", "float64", "node"),
-                      ("numpy", "float32", "exact"), ("jax", "float32", "exact")]),
+    "cpu": dict(
+        scenes=["rough_close"],
+        sizes=[16, 20],
+        runs=[
+            ("numpy", "float64", "exact"),
+            ("numpy", "float64", "node"),
+            ("numpy", "float32", "exact"),
+            ("jax", "float32", "exact"),
+        ],
+    ),
     # Every back end x dtype x mode x d_max factor (times the default d_max).
-    "pareto": dict(scenes=["rough_close", "tyre_road"], sizes=[14], runs=_EVERY,
-                   d_max_factors=[0.5, 1.0, 2.0]),
-    "scaling": dict(scenes=["rough_close"], sizes=[12, 14, 16, 18, 20, 22],
-                    runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
-                    memory=True),
+    "pareto": dict(
+        scenes=["rough_close", "tyre_road"], sizes=[14], runs=_EVERY, d_max_factors=[0.5, 1.0, 2.0]
+    ),
+    "scaling": dict(
+        scenes=["rough_close"],
+        sizes=[12, 14, 16, 18, 20, 22],
+        runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
+        memory=True,
+    ),
     # Warp's CPU device only: NumPy quad4 at 2^20 takes minutes per call on this machine.
-    "table1": dict(scenes=["table1_close", "table1_convex", "table1_apart"], sizes=[20],
-                   runs=[("warp", "float32", "exact")]),
-    "peers": dict(scenes=["rough_close", "tyre_road"], sizes=[16],
-                  runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
-                  peers=True),
+    "table1": dict(
+        scenes=["table1_close", "table1_convex", "table1_apart"],
+        sizes=[20],
+        runs=[("warp", "float32", "exact")],
+    ),
+    "peers": dict(
+        scenes=["rough_close", "tyre_road"],
+        sizes=[16],
+        runs=[("numpy", "float64", "exact"), ("warp", "float32", "exact")],
+        peers=True,
+    ),
 }
 
 
@@ -99,13 +120,21 @@ def errors(c, scene, n_check, dtype, seed=0):
     wrong = 0.0
     gap_err = 0.0
     if both.any():
-        _, d2 = _closest_on_faces(scene.master.element, scene.slave[idx][both],
-                                  scene.master.points[scene.master.faces[c.face[idx][both]]])
+        _, d2 = _closest_on_faces(
+            scene.master.element,
+            scene.slave[idx][both],
+            scene.master.points[scene.master.faces[c.face[idx][both]]],
+        )
         tol = (2e-5 if dtype == "float32" else 1e-9) * L  # the dtype's tie tolerance
         wrong = float((np.sqrt(d2) - ref.distance[both] > tol).mean())
         gap_err = float(np.abs(c.gap[idx][both] - ref.gap[both]).max() / L)
-    return dict(checked=int(len(idx)), miss_rate=miss, extra_rate=extra, wrong_face_rate=wrong,
-                max_gap_error_rel=gap_err)
+    return dict(
+        checked=int(len(idx)),
+        miss_rate=miss,
+        extra_rate=extra,
+        wrong_face_rate=wrong,
+        max_gap_error_rel=gap_err,
+    )
 
 
 def kdtree_peer(scene, d_max, repeats):
@@ -124,8 +153,11 @@ def kdtree_peer(scene, d_max, repeats):
 def peer_records(scene, d_max, repeats, n_check):
     """Closest-point peers on the same points: Open3D, libigl, Warp's BVH on the CPU device.
     Each is timed (first call apart) and checked against the reference on the same subset."""
-    tri = scene.master.faces if scene.master.element.name == "tri3" else np.concatenate(
-        [scene.master.faces[:, [0, 1, 2]], scene.master.faces[:, [0, 2, 3]]])
+    tri = (
+        scene.master.faces
+        if scene.master.element.name == "tri3"
+        else np.concatenate([scene.master.faces[:, [0, 1, 2]], scene.master.faces[:, [0, 2, 3]]])
+    )
     pts = scene.master.points
     q = scene.slave
     rng = np.random.default_rng(0)
@@ -147,8 +179,9 @@ def peer_records(scene, d_max, repeats, n_check):
         import open3d as o3d
 
         sc = o3d.t.geometry.RaycastingScene()
-        sc.add_triangles(o3d.core.Tensor(pts.astype(np.float32)),
-                         o3d.core.Tensor(tri.astype(np.uint32)))
+        sc.add_triangles(
+            o3d.core.Tensor(pts.astype(np.float32)), o3d.core.Tensor(tri.astype(np.uint32))
+        )
         r = sc.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
         return np.linalg.norm(r["points"].numpy() - q, axis=1)
 
@@ -159,12 +192,11 @@ def peer_records(scene, d_max, repeats, n_check):
         return np.sqrt(d2)
 
     def warp_bvh():
-        import warp as wp
 
         sys.path.insert(0, str(HERE))
         from peers_warp import mesh_peers
 
-        wp.config.quiet = True
+        quiet_warp()
         r = mesh_peers(scene.master, q, d_max, repeats=1, device="cpu")
         return np.where(r["face"] >= 0, r["distance"], np.inf)
 
@@ -199,29 +231,48 @@ def run_suite(suite, sizes=None, repeats=2, n_check=512, out=None):
                     d_max = d0 * factor
 
                     def call():
-                        return ac.detect(scene.slave, scene.master, backend=backend, mode=mode,
-                                         dtype=dtype, d_max=d_max)
+                        return ac.detect(
+                            scene.slave,
+                            scene.master,
+                            backend=backend,
+                            mode=mode,
+                            dtype=dtype,
+                            d_max=d_max,
+                        )
 
                     c, first, steady = timed(call, repeats)
                     if peer is None:
                         peer = kdtree_peer(scene, d_max, repeats)
-                    rec = dict(suite=suite, scene=scene_name, log2_nodes=log2n,
-                               n_slaves=len(scene.slave), n_master_faces=scene.master.n_faces,
-                               element=scene.master.element.name, backend=backend,
-                               device=device, dtype=dtype, mode=mode, d_max_factor=factor,
-                               d_max=d_max, first_call_s=first, steady_s=steady,
-                               stages_s={k: v for k, v in c.timings.items()},
-                               active=int(c.active.sum()), counts=c.counts.count,
-                               penetrating=int((c.active & (c.gap < 0)).sum()),
-                               nodes_in_box=c.counts.slaves_in_box
-                               + c.counts.master_nodes_in_box,
-                               errors=errors(c, scene, n_check, dtype), peer=peer,
-                               ratio_to_peer=steady / peer["steady_s"],
-                               time_per_slave_s=steady / len(scene.slave))
+                    rec = dict(
+                        suite=suite,
+                        scene=scene_name,
+                        log2_nodes=log2n,
+                        n_slaves=len(scene.slave),
+                        n_master_faces=scene.master.n_faces,
+                        element=scene.master.element.name,
+                        backend=backend,
+                        device=device,
+                        dtype=dtype,
+                        mode=mode,
+                        d_max_factor=factor,
+                        d_max=d_max,
+                        first_call_s=first,
+                        steady_s=steady,
+                        stages_s={k: v for k, v in c.timings.items()},
+                        active=int(c.active.sum()),
+                        counts=c.counts.count,
+                        penetrating=int((c.active & (c.gap < 0)).sum()),
+                        nodes_in_box=c.counts.slaves_in_box + c.counts.master_nodes_in_box,
+                        errors=errors(c, scene, n_check, dtype),
+                        peer=peer,
+                        ratio_to_peer=steady / peer["steady_s"],
+                        time_per_slave_s=steady / len(scene.slave),
+                    )
                     if cfg.get("memory") and backend == "numpy":
                         rec["peak_bytes"] = _peak_bytes(call)
-                        rec["bytes_per_node"] = rec["peak_bytes"] / (len(scene.slave)
-                                                                     + len(scene.master.points))
+                        rec["bytes_per_node"] = rec["peak_bytes"] / (
+                            len(scene.slave) + len(scene.master.points)
+                        )
                     if cfg.get("peers") and backend == "numpy":
                         rec["peers"] = peer_records(scene, d_max, repeats, n_check)
                     records.append(rec)
@@ -239,20 +290,29 @@ def _cores():
 
 
 def _print(r):
-    st = ", ".join(f"{k} {v * 1e3:.0f}" for k, v in r["stages_s"].items()
-                   if k not in ("detect", "total"))
+    st = ", ".join(
+        f"{k} {v * 1e3:.0f}" for k, v in r["stages_s"].items() if k not in ("detect", "total")
+    )
     e = r["errors"]
-    print(f"{r['scene']} 2^{r['log2_nodes']} {r['backend']:5s} {r['dtype']} {r['mode']:5s} "
-          f"d_max x{r.get('d_max_factor', 1.0)} | "
-          f"first {r['first_call_s']:.3f} s, steady {r['steady_s']:.3f} s "
-          f"({r['ratio_to_peer']:.1f}x cKDTree {r['peer']['steady_s']:.3f} s) | "
-          f"active {r['active']} | miss {e['miss_rate']:.2g} wrong face "
-          f"{e['wrong_face_rate']:.2g} gap err {e['max_gap_error_rel']:.2g}"
-          + (f" | stages ms: {st}" if st else "")
-          + (f" | peak {r['bytes_per_node']:.0f} B/node" if "bytes_per_node" in r else "")
-          + "".join(f"\n    peer {k}: " + (v.get("error") or f"{v['steady_s']:.3f} s, "
-                                               f"dist err {v['max_distance_error_rel']:.1e}")
-                    for k, v in r.get("peers", {}).items()), flush=True)
+    print(
+        f"{r['scene']} 2^{r['log2_nodes']} {r['backend']:5s} {r['dtype']} {r['mode']:5s} "
+        f"d_max x{r.get('d_max_factor', 1.0)} | "
+        f"first {r['first_call_s']:.3f} s, steady {r['steady_s']:.3f} s "
+        f"({r['ratio_to_peer']:.1f}x cKDTree {r['peer']['steady_s']:.3f} s) | "
+        f"active {r['active']} | miss {e['miss_rate']:.2g} wrong face "
+        f"{e['wrong_face_rate']:.2g} gap err {e['max_gap_error_rel']:.2g}"
+        + (f" | stages ms: {st}" if st else "")
+        + (f" | peak {r['bytes_per_node']:.0f} B/node" if "bytes_per_node" in r else "")
+        + "".join(
+            f"\n    peer {k}: "
+            + (
+                v.get("error")
+                or f"{v['steady_s']:.3f} s, dist err {v['max_distance_error_rel']:.1e}"
+            )
+            for k, v in r.get("peers", {}).items()
+        ),
+        flush=True,
+    )
 
 
 def main():

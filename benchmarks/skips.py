@@ -1,4 +1,4 @@
-""""Skip what a scene doesn't need", measured (issue 7): the time each skip saves, on this CPU,
+""" "Skip what a scene doesn't need", measured (issue 7): the time each skip saves, on this CPU,
 NumPy float64, as ratios within one run.
 
     python benchmarks/skips.py            # -> results/skips.jsonl and stdout
@@ -25,6 +25,7 @@ import numpy as np
 
 import arraycontact as ac
 from arraycontact import _detect, _projection
+from arraycontact._backends import quiet_warp
 
 HERE = Path(__file__).parent
 
@@ -56,13 +57,22 @@ def passing_by(n=2**14):
     prep = _detect.prepare(slave, sphere, d_max, np.float64)
 
     def run(flag):
-        st = _detect.Static(element="quad4", mode="node", node_levels=prep.node_levels,
-                            face_levels=prep.face_levels, iterations=_detect.ITERATIONS["quad4"],
-                            passing_by=flag)
+        st = _detect.Static(
+            element="quad4",
+            mode="node",
+            node_levels=prep.node_levels,
+            face_levels=prep.face_levels,
+            iterations=_detect.ITERATIONS["quad4"],
+            passing_by=flag,
+        )
         return lambda: _detect._run_numpy(slave, sphere, prep, st, np.float64)
 
-    return dict(skip="closed master: no passing-by test (node mode)", with_skip_s=_time(
-        run(False)), without_skip_s=_time(run(True)), closed=bool(sphere.closed))
+    return dict(
+        skip="closed master: no passing-by test (node mode)",
+        with_skip_s=_time(run(False)),
+        without_skip_s=_time(run(True)),
+        closed=bool(sphere.closed),
+    )
 
 
 def _sphere(n):
@@ -112,8 +122,9 @@ def linear_closed_form(n=2**14):
         e = get_element("tri3")
         xe = xp.stack([a, b, c], 1)
         xi0 = start_option_one(e, p, xe, xp)
-        xi, feature, local, _, _, _ = closest_point_face(e, p, xe, xi0, iterations=12,
-                                                          tol=1e-10, xp=xp)
+        xi, feature, local, _, _, _ = closest_point_face(
+            e, p, xe, xi0, iterations=12, tol=1e-10, xp=xp
+        )
         return xi, feature, local
 
     try:
@@ -121,24 +132,27 @@ def linear_closed_form(n=2**14):
         t_newton = _time(lambda: ac.detect(s.slave, s.master))
     finally:
         _projection.closest_point_triangle = real
-    return dict(skip="linear faces: closed form, no Newton (tri3)", with_skip_s=t_closed,
-                without_skip_s=t_newton)
+    return dict(
+        skip="linear faces: closed form, no Newton (tri3)",
+        with_skip_s=t_closed,
+        without_skip_s=t_newton,
+    )
 
 
 def static_master(n=2**16):
+    import arraycontact_warp as acw
     import warp as wp
 
-    import arraycontact_warp as acw
-
-    wp.config.quiet = True
+    quiet_warp()
     s = ac.scenes.rough_surfaces(n, seed=2)
     p = acw.plan(s.master, s.slave, device="cpu")
     xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device="cpu")
     xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device="cpu")
     moving = _time(lambda: (acw.detect(p, xs, xm), wp.synchronize()))
     still = _time(lambda: (acw.detect(p, xs), wp.synchronize()))
-    return dict(skip="master does not move: grid kept (warp, cpu)", with_skip_s=still,
-                without_skip_s=moving)
+    return dict(
+        skip="master does not move: grid kept (warp, cpu)", with_skip_s=still, without_skip_s=moving
+    )
 
 
 def main():
@@ -148,9 +162,12 @@ def main():
             r = fn()
             r["saved_fraction"] = 1 - r["with_skip_s"] / r["without_skip_s"]
             f.write(json.dumps(r) + "\n")
-            print(f"{r['skip']}: {r['with_skip_s'] * 1e3:.1f} ms with the skip, "
-                  f"{r['without_skip_s'] * 1e3:.1f} ms without ({r['saved_fraction'] * 100:.0f} % "
-                  f"saved)", flush=True)
+            print(
+                f"{r['skip']}: {r['with_skip_s'] * 1e3:.1f} ms with the skip, "
+                f"{r['without_skip_s'] * 1e3:.1f} ms without ({r['saved_fraction'] * 100:.0f} % "
+                f"saved)",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import arraycontact as ac
+from arraycontact._backends import quiet_warp
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))
@@ -49,13 +50,17 @@ def suite(k: int):
     """(label, scene factory, d_max factor) for 2^k nodes a surface."""
     n = 2**k
     s = ac.scenes
-    out = [("uniform", lambda: s.rough_surfaces(n), 1.0),
-           ("steep", lambda: s.steep_rough_surfaces(n), 1.0)]
+    out = [
+        ("uniform", lambda: s.rough_surfaces(n), 1.0),
+        ("steep", lambda: s.steep_rough_surfaces(n), 1.0),
+    ]
     for r in (1, 10, 100, 1000):
         out.append((f"graded_{r}", lambda r=r: s.graded_surfaces(n, ratio=float(r)), 1.0))
-    out += [("fine_patch", lambda: s.fine_patch(2 ** ((k - 2) // 2)), 1.0),
-            ("tyre", lambda: s.cylinder_on_road(n, radius=40.0), 1.0),
-            ("apart", lambda: s.rough_surfaces(n, gap=50.0), 1.0)]
+    out += [
+        ("fine_patch", lambda: s.fine_patch(2 ** ((k - 2) // 2)), 1.0),
+        ("tyre", lambda: s.cylinder_on_road(n, radius=40.0), 1.0),
+        ("apart", lambda: s.rough_surfaces(n, gap=50.0), 1.0),
+    ]
     for f in (0.25, 4.0, 10.0):
         out.append((f"dmax_{f:g}", lambda: s.rough_surfaces(n), f))
     for path in sorted(SCENE_DIR.glob("ball_block_*.npz")):
@@ -98,7 +103,7 @@ def ball_block(refine: float, coarse=1.0, radius=2.0, depth=0.05):
 
     def surface_of(volume):
         tris = []
-        for dim, tag in gmsh.model.getBoundary([(3, volume)], oriented=True):
+        for _, tag in gmsh.model.getBoundary([(3, volume)], oriented=True):
             types, _, conn = gmsh.model.mesh.getElements(2, abs(tag))
             t = conn[list(types).index(2)].reshape(-1, 3).astype(int)
             tris.append(t if tag > 0 else t[:, ::-1])
@@ -118,18 +123,21 @@ def make_scenes(refines=(100, 300, 1000)):
         t = x[faces]
         if np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() < 0:
             faces = faces[:, ::-1]
-        np.savez_compressed(SCENE_DIR / f"ball_block_{r}.npz", points=x, faces=faces,
-                            slave=slave)
+        np.savez_compressed(SCENE_DIR / f"ball_block_{r}.npz", points=x, faces=faces, slave=slave)
         print(f"ball_block_{r}: {len(faces)} master faces, {len(slave)} slaves")
 
 
 def _meta(a):
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=HERE).stdout.strip()
-    return dict(run=a.run or datetime.datetime.now().strftime("%Y%m%d-%H%M%S"),
-                date=datetime.date.today().isoformat(), commit=commit,
-                command="python benchmarks/suite.py " + " ".join(sys.argv[1:]),
-                host=platform.node())
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
+    ).stdout.strip()
+    return dict(
+        run=a.run or datetime.datetime.now().strftime("%Y%m%d-%H%M%S"),
+        date=datetime.date.today().isoformat(),
+        commit=commit,
+        command="python benchmarks/suite.py " + " ".join(sys.argv[1:]),
+        host=platform.node(),
+    )
 
 
 def _median_time(fn, repeats, sync=lambda: None):
@@ -148,8 +156,18 @@ def topology_time(master):
     """Seconds to derive, on a fresh Surface, everything a detection reads from it."""
     t0 = time.perf_counter()
     m = ac.Surface(master.points, master.faces, master.element.name)
-    for name in ("nodes", "node_faces", "edges", "edge_faces", "boundary_nodes", "closed",
-                 "longest_edge", "face_normals", "face_bounds", "node_normals"):
+    for name in (
+        "nodes",
+        "node_faces",
+        "edges",
+        "edge_faces",
+        "boundary_nodes",
+        "closed",
+        "longest_edge",
+        "face_normals",
+        "face_bounds",
+        "node_normals",
+    ):
         getattr(m, name)
     return time.perf_counter() - t0
 
@@ -157,10 +175,9 @@ def topology_time(master):
 def jax_search(scene, d_max, repeats, check):
     """The JAX back end with search="jax" (no Warp), float32, exact: plan, first call,
     steady detection, and the steady value_and_grad of a gap energy (both coordinate arrays)."""
+    import arraycontact_jax as acj
     import jax
     import jax.numpy as jnp
-
-    import arraycontact_jax as acj
 
     t0 = time.perf_counter()
     p = acj.plan(scene.master, scene.slave, d_max=d_max, dtype=np.float32, search="jax")
@@ -180,20 +197,24 @@ def jax_search(scene, d_max, repeats, check):
     jax.block_until_ready(vg(xs, xm))
     grad_s = _median_time(lambda: jax.block_until_ready(vg(xs, xm)), repeats)
     c = jax.tree.map(np.asarray, c)
-    return dict(jax_plan_s=plan_s, jax_first_s=first_s, jax_steady_s=steady,
-                jax_value_and_grad_s=grad_s, jax_overflow=bool(c.overflow),
-                jax_counts={k: int(v) for k, v in c.counts.count.items()},
-                jax_capacity=dict(c.counts.capacity),
-                jax_errors=errors(c, scene, check, "float32"))
+    return dict(
+        jax_plan_s=plan_s,
+        jax_first_s=first_s,
+        jax_steady_s=steady,
+        jax_value_and_grad_s=grad_s,
+        jax_overflow=bool(c.overflow),
+        jax_counts={k: int(v) for k, v in c.counts.count.items()},
+        jax_capacity=dict(c.counts.capacity),
+        jax_errors=errors(c, scene, check, "float32"),
+    )
 
 
 def run_gpu(a):
-    import warp as wp
-
     import arraycontact_warp as acw
+    import warp as wp
     from peers_warp import mesh_peers
 
-    wp.config.quiet = True
+    quiet_warp()
     dev = "cuda"
     meta = dict(_meta(a), device=wp.get_device(dev).name)
     for label, make, f in suite(a.log2):
@@ -204,8 +225,9 @@ def run_gpu(a):
         t0 = time.perf_counter()
         p = acw.plan(scene.master, scene.slave, d_max=d_max, device=dev)
         xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=dev)
-        xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3,
-                      device=dev)
+        xm = wp.array(
+            (scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3, device=dev
+        )
         p.origin = np.zeros(3)
         wp.synchronize_device(dev)
         plan_s = time.perf_counter() - t0
@@ -213,23 +235,43 @@ def run_gpu(a):
         acw.detect(p, xs, xm)
         wp.synchronize_device(dev)
         first_s = time.perf_counter() - t0
-        steady = _median_time(lambda: acw.detect(p, xs, xm), a.repeats,
-                              lambda: wp.synchronize_device(dev))
+        steady = _median_time(
+            lambda: acw.detect(p, xs, xm), a.repeats, lambda: wp.synchronize_device(dev)
+        )
         out = {k: v.numpy() for k, v in p.out.items()}
-        c = ac.Contacts(active=out["active"].astype(bool), face=out["face"], xi=out["xi"],
-                        point=out["point"], gap=out["gap"], distance=out["distance"],
-                        normal=out["normal"], feature=out["feature"],
-                        master_node=out["master_node"], status=out["status"],
-                        slave_ids=np.arange(len(scene.slave)), d_max=d_max)
+        c = ac.Contacts(
+            active=out["active"].astype(bool),
+            face=out["face"],
+            xi=out["xi"],
+            point=out["point"],
+            gap=out["gap"],
+            distance=out["distance"],
+            normal=out["normal"],
+            feature=out["feature"],
+            master_node=out["master_node"],
+            status=out["status"],
+            slave_ids=np.arange(len(scene.slave)),
+            d_max=d_max,
+        )
         err = errors(c, scene, a.check, "float32")
         peers = mesh_peers(scene.master, scene.slave, d_max, repeats=a.repeats, device=dev)
-        rec = dict(meta, scene=label, log2=a.log2, n_slaves=len(scene.slave),
-                   n_faces=scene.master.n_faces, d_max=d_max, ours="warp float32 exact",
-                   plan_s=plan_s, first_s=first_s, steady_s=steady, errors=err,
-                   mesh_build_query_s=peers["build_query"][1],
-                   mesh_refit_query_s=peers["refit_query"][1],
-                   mesh_refit_query_graph_s=peers.get("refit_query_graph", (0, None))[1],
-                   active=int(c.active.sum()))
+        rec = dict(
+            meta,
+            scene=label,
+            log2=a.log2,
+            n_slaves=len(scene.slave),
+            n_faces=scene.master.n_faces,
+            d_max=d_max,
+            ours="warp float32 exact",
+            plan_s=plan_s,
+            first_s=first_s,
+            steady_s=steady,
+            errors=err,
+            mesh_build_query_s=peers["build_query"][1],
+            mesh_refit_query_s=peers["refit_query"][1],
+            mesh_refit_query_graph_s=peers.get("refit_query_graph", (0, None))[1],
+            active=int(c.active.sum()),
+        )
         rec["vs_refit"] = steady / rec["mesh_refit_query_s"]
         rec["vs_build"] = steady / rec["mesh_build_query_s"]
         rec["topology_s"] = topology_time(scene.master)
@@ -240,13 +282,11 @@ def run_gpu(a):
 
 
 def run_cpu(a):
+    import arraycontact_warp as acw
     import fcpw
     import igl
-    import warp as wp
 
-    import arraycontact_warp as acw
-
-    wp.config.quiet = True
+    quiet_warp()
     meta = dict(_meta(a), device=platform.processor() or platform.machine())
     for label, make, f in suite(a.log2):
         if a.only and not any(label.startswith(o) for o in a.only):
@@ -273,22 +313,35 @@ def run_cpu(a):
         ours = {}
         for dtype in ("float32", "float64"):
             # The one-shot call a user makes: plan (Morton order, trees) and detect.
-            fn = lambda dtype=dtype: ac.detect(scene.slave, m, backend="warp", d_max=d_max,
-                                               dtype=dtype)
+            def fn(dtype=dtype):
+                return ac.detect(scene.slave, m, backend="warp", d_max=d_max, dtype=dtype)
+
             ours[f"warp_cpu_{dtype}_s"] = _median_time(fn, a.repeats)
             t0 = time.perf_counter()
             p = acw.plan(m, scene.slave, d_max=d_max, device="cpu", dtype=dtype)
             ours[f"warp_cpu_{dtype}_plan_s"] = time.perf_counter() - t0
             acw.detect(p, scene.slave, m.points)
             ours[f"warp_cpu_{dtype}_detect_s"] = _median_time(
-                lambda p=p: acw.detect(p, scene.slave, m.points), a.repeats)
+                lambda p=p: acw.detect(p, scene.slave, m.points), a.repeats
+            )
         if not a.no_numpy:
             ours["numpy_float64_s"] = _median_time(
-                lambda: ac.detect(scene.slave, m, d_max=d_max), 1)
+                lambda: ac.detect(scene.slave, m, d_max=d_max), 1
+            )
         c = ac.detect(scene.slave, m, backend="warp", d_max=d_max, dtype="float32")
-        rec = dict(meta, scene=label, log2=a.log2, n_slaves=len(scene.slave),
-                   n_faces=m.n_faces, d_max=d_max, **ours, fcpw_s=t_fcpw, libigl_s=t_igl,
-                   errors=errors(c, scene, a.check, "float32"), active=int(c.active.sum()))
+        rec = dict(
+            meta,
+            scene=label,
+            log2=a.log2,
+            n_slaves=len(scene.slave),
+            n_faces=m.n_faces,
+            d_max=d_max,
+            **ours,
+            fcpw_s=t_fcpw,
+            libigl_s=t_igl,
+            errors=errors(c, scene, a.check, "float32"),
+            active=int(c.active.sum()),
+        )
         best = min(v for k, v in ours.items() if not k.endswith(("detect_s", "plan_s")))
         rec["vs_fcpw"] = best / t_fcpw
         # Set-up, each against fcpw's whole build + query of the scene.
@@ -300,8 +353,10 @@ def run_cpu(a):
             t0 = time.perf_counter()
             acj.plan(m, scene.slave, d_max=d_max, dtype=np.float32, search=search)
             rec[f"jax_{search}_plan_s"] = time.perf_counter() - t0
-        rec["setup_vs_fcpw"] = {k[:-2]: rec.get(k, ours.get(k)) / t_fcpw for k in (
-            "topology_s", "warp_cpu_float32_plan_s", "jax_jax_plan_s", "jax_warp_plan_s")}
+        rec["setup_vs_fcpw"] = {
+            k[:-2]: rec.get(k, ours.get(k)) / t_fcpw
+            for k in ("topology_s", "warp_cpu_float32_plan_s", "jax_jax_plan_s", "jax_warp_plan_s")
+        }
         _write(a, rec)
 
 
@@ -311,9 +366,15 @@ def _write(a, rec):
     with open(out / f"suite_{a.mode}.jsonl", "a") as fh:
         fh.write(json.dumps(rec) + "\n")
     keys = [k for k in rec if k.endswith("_s") or k.startswith("vs_")]
-    print(rec["scene"], rec["n_faces"], rec["n_slaves"],
-          " ".join(f"{k}={rec[k]:.4g}" for k in keys if rec[k] is not None),
-          "errors", {k: v for k, v in rec["errors"].items() if k != "checked"}, flush=True)
+    print(
+        rec["scene"],
+        rec["n_faces"],
+        rec["n_slaves"],
+        " ".join(f"{k}={rec[k]:.4g}" for k in keys if rec[k] is not None),
+        "errors",
+        {k: v for k, v in rec["errors"].items() if k != "checked"},
+        flush=True,
+    )
 
 
 def table(a):
@@ -329,45 +390,108 @@ def table(a):
         if not recs:
             continue
         r0 = recs[0]
-        print(f"\n{mode.upper()} run {run} ({r0['device']}, {r0['date']}, commit {r0['commit']}): "
-              f"`{r0['command']}`\n")
+        print(
+            f"\n{mode.upper()} run {run} ({r0['device']}, {r0['date']}, commit {r0['commit']}): "
+            f"`{r0['command']}`\n"
+        )
         if mode == "gpu":
-            print("| scene | faces | slaves | ours (Warp, graph) | wp.Mesh refit + query | "
-                  "build + query | ours / refit | ours / build | misses | wrong faces | "
-                  "gap error / edge |")
+            print(
+                "| scene | faces | slaves | ours (Warp, graph) | wp.Mesh refit + query | "
+                "build + query | ours / refit | ours / build | misses | wrong faces | "
+                "gap error / edge |"
+            )
             print("|---|---|---|---|---|---|---|---|---|---|---|")
             for r in recs:
                 e = r["errors"]
-                print(f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | "
-                      f"{1e3 * r['steady_s']:.2f} ms | {1e3 * r['mesh_refit_query_s']:.2f} ms | "
-                      f"{1e3 * r['mesh_build_query_s']:.2f} ms | {r['vs_refit']:.2f} | "
-                      f"{r['vs_build']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} "
-                      f"| {e['max_gap_error_rel']:.1e} |")
+                print(
+                    f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | "
+                    f"{1e3 * r['steady_s']:.2f} ms | {1e3 * r['mesh_refit_query_s']:.2f} ms | "
+                    f"{1e3 * r['mesh_build_query_s']:.2f} ms | {r['vs_refit']:.2f} | "
+                    f"{r['vs_build']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} "
+                    f"| {e['max_gap_error_rel']:.1e} |"
+                )
         else:
-            print("| scene | faces | slaves | ours (Warp CPU, one call) | fcpw build + query | "
-                  "libigl | ours / fcpw | misses | wrong faces |")
+            print(
+                "| scene | faces | slaves | ours (Warp CPU, one call) | fcpw build + query | "
+                "libigl | ours / fcpw | misses | wrong faces |"
+            )
             print("|---|---|---|---|---|---|---|---|---|")
             for r in recs:
-                best = min(v for k, v in r.items() if k.endswith("_s") and
-                           k.startswith(("warp_cpu", "numpy"))
-                           and not k.endswith(("detect_s", "plan_s")))
+                best = min(
+                    v
+                    for k, v in r.items()
+                    if k.endswith("_s")
+                    and k.startswith(("warp_cpu", "numpy"))
+                    and not k.endswith(("detect_s", "plan_s"))
+                )
                 e = r["errors"]
-                print(f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | {1e3 * best:.1f} ms | "
-                      f"{1e3 * r['fcpw_s']:.1f} ms | {1e3 * r['libigl_s']:.1f} ms | "
-                      f"{r['vs_fcpw']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} |")
+                print(
+                    f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | {1e3 * best:.1f} ms | "
+                    f"{1e3 * r['fcpw_s']:.1f} ms | {1e3 * r['libigl_s']:.1f} ms | "
+                    f"{r['vs_fcpw']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} |"
+                )
+        _setup_table(mode, recs)
+        if mode == "gpu" and any("jax_steady_s" in r for r in recs):
+            print(
+                '\nJAX without Warp (`search="jax"`), same run:\n\n'
+                "| scene | detect | value_and_grad | / Warp back end | plan | first call | "
+                "candidates a slave (max) | misses | wrong faces |\n"
+                "|---|---|---|---|---|---|---|---|---|"
+            )
+            for r in recs:
+                if "jax_steady_s" not in r:
+                    continue
+                e = r["jax_errors"]
+                print(
+                    f"| {r['scene']} | {1e3 * r['jax_steady_s']:.1f} ms | "
+                    f"{1e3 * r['jax_value_and_grad_s']:.1f} ms | {r['jax_vs_warp']:.1f} | "
+                    f"{r['jax_plan_s']:.2f} s | {r['jax_first_s']:.2f} s | "
+                    f"{r['jax_counts'].get('face_candidates', '-')} | {e['miss_rate']:.0%} | "
+                    f"{e['wrong_face_rate']:.0%} |"
+                )
+
+
+def _setup_table(mode, recs):
+    """Set-up times of the run: the Surface topology and the plans (and, on the CPU, their
+    ratio to fcpw's whole build + query)."""
+    if not any("topology_s" in r for r in recs):
+        return
+    if mode == "gpu":
+        print("\nSet-up, same run (host: topology; Warp plan on the GPU, with its topology):\n")
+        print("| scene | Surface topology | Warp plan | first detect | steady |")
+        print("|---|---|---|---|---|")
+        for r in recs:
+            if "topology_s" in r:
+                print(
+                    f"| {r['scene']} | {r['topology_s']:.2f} s | {r['plan_s']:.2f} s | "
+                    f"{1e3 * r['first_s']:.1f} ms | {1e3 * r['steady_s']:.2f} ms |"
+                )
+        return
+    print("\nSet-up against fcpw's whole build + query of the same scene, same run:\n")
+    print("| scene | Surface topology | Warp plan | JAX plan (jax) | JAX plan (warp) |")
+    print("|---|---|---|---|---|")
+    for r in recs:
+        if "setup_vs_fcpw" in r:
+            v = r["setup_vs_fcpw"]
+            print(
+                f"| {r['scene']} | {v['topology']:.2f}x | {v['warp_cpu_float32_plan']:.2f}x | "
+                f"{v['jax_jax_plan']:.2f}x | {v['jax_warp_plan']:.2f}x |"
+            )
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("mode", choices=("scenes", "gpu", "cpu", "table"))
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--check", type=int, default=64, help="slaves checked against the reference")
     ap.add_argument("--only", nargs="*", help="scene labels (prefixes) to run")
     ap.add_argument("--no-numpy", action="store_true")
-    ap.add_argument("--jax", action="store_true",
-                    help="gpu: also the JAX back end with search='jax' (no Warp)")
+    ap.add_argument(
+        "--jax", action="store_true", help="gpu: also the JAX back end with search='jax' (no Warp)"
+    )
     ap.add_argument("--run", help="run id recorded with every record")
     ap.add_argument("--out", help="folder for suite_<mode>.jsonl (default benchmarks/results)")
     a = ap.parse_args()

@@ -19,8 +19,12 @@ def pytest_sessionstart(session):
     from pathlib import Path
 
     here = Path(__file__).parent
-    r = subprocess.run([sys.executable, str(here / "warp_warmup.py")], cwd=here.parent,
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, str(here / "warp_warmup.py")],
+        cwd=here.parent,
+        capture_output=True,
+        text=True,
+    )
     if r.returncode != 0:
         raise RuntimeError("compiling the Warp kernels failed:\n" + r.stderr[-4000:])
 
@@ -37,9 +41,16 @@ def reference(slave, master):
     """The brute-force reference of (slave, master), computed once per session: the back-end
     parametrisations of a test share it (on curved faces it takes most of a test's time)."""
     slave = np.ascontiguousarray(slave, float)
-    key = hashlib.sha1(b"".join([slave.tobytes(), master.points.tobytes(),
-                                 np.ascontiguousarray(master.faces).tobytes(),
-                                 master.element.name.encode()])).hexdigest()
+    key = hashlib.sha1(
+        b"".join(
+            [
+                slave.tobytes(),
+                master.points.tobytes(),
+                np.ascontiguousarray(master.faces).tobytes(),
+                master.element.name.encode(),
+            ]
+        )
+    ).hexdigest()
     if key not in _REFERENCES:
         _REFERENCES[key] = ac.reference.closest_points(slave, master)
     return _REFERENCES[key]
@@ -58,8 +69,9 @@ def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
     tol = 1e-12 * max(L, 1) if dtype == np.float64 else 1e-5 * L
     border = np.abs(ref.distance - c.d_max) <= tol
     want = ref.distance <= c.d_max
-    assert np.array_equal(c.active[~border], want[~border]), \
+    assert np.array_equal(c.active[~border], want[~border]), (
         f"{(c.active != want)[~border].sum()} slaves differ in activity"
+    )
     a = c.active & want
     if not a.any():
         return ref

@@ -5,16 +5,18 @@ import sys
 
 import numpy as np
 import pytest
-
-import arraycontact as ac
-from arraycontact import scenes
 from conftest import assert_matches_reference
 from test_detect import random_scene
 
+import arraycontact as ac
+from arraycontact import scenes
+
 
 def test_import_loads_no_backend():
-    code = ("import sys, arraycontact, arraycontact.scenes, arraycontact.reference; "
-            "print(sorted(m for m in ('jax', 'warp') if m in sys.modules))")
+    code = (
+        "import sys, arraycontact, arraycontact.scenes, arraycontact.reference; "
+        "print(sorted(m for m in ('jax', 'warp') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
 
@@ -29,26 +31,32 @@ def test_backend_packages_importable():
 MASTER, SLAVE = random_scene(0, n=4)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(mode="fast"), "mode must be one of"),
-    (dict(backend="torch"), "backend must be .auto. or one of"),
-    (dict(d_max=0.0), "d_max must be a positive"),
-    (dict(d_max=np.nan), "d_max must be a positive"),
-    (dict(dtype=np.float16), "dtype must be float32 or float64"),
-    (dict(displacement=np.zeros((3, 2))), "displacement must be"),
-    (dict(displacement=np.full((3, 3), np.inf)), "displacement must be"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(mode="fast"), "mode must be one of"),
+        (dict(backend="torch"), "backend must be .auto. or one of"),
+        (dict(d_max=0.0), "d_max must be a positive"),
+        (dict(d_max=np.nan), "d_max must be a positive"),
+        (dict(dtype=np.float16), "dtype must be float32 or float64"),
+        (dict(displacement=np.zeros((3, 2))), "displacement must be"),
+        (dict(displacement=np.full((3, 3), np.inf)), "displacement must be"),
+    ],
+)
 def test_bad_options(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ac.detect(SLAVE, MASTER, **kwargs)
 
 
-@pytest.mark.parametrize("slave, match", [
-    (np.zeros((4, 2)), r"slave must have shape \[n, 3\]"),
-    (np.array([[0, 0, 0], [1, np.nan, 0]]), "slave row 1 is not finite"),
-    (np.array([[0, 0, "a"]]), "real numeric"),
-    (np.array([[0, 0, np.inf]]), "slave row 0 is not finite"),
-])
+@pytest.mark.parametrize(
+    "slave, match",
+    [
+        (np.zeros((4, 2)), r"slave must have shape \[n, 3\]"),
+        (np.array([[0, 0, 0], [1, np.nan, 0]]), "slave row 1 is not finite"),
+        (np.array([[0, 0, "a"]]), "real numeric"),
+        (np.array([[0, 0, np.inf]]), "slave row 0 is not finite"),
+    ],
+)
 @pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
 def test_bad_slaves(backend, slave, match):
     with pytest.raises(ValueError, match=match):
@@ -86,19 +94,20 @@ def test_jax_overflow_is_reported_and_replanned(monkeypatch):
 
 def test_jax_kernel_flags_overflow():
     """The low-level kernel reports counts above capacity instead of hiding them."""
+    import arraycontact_jax._detect as jd
     import jax
 
     from arraycontact._detect import Static, master_arrays, scalars
     from arraycontact._prepare import prepare
-    import arraycontact_jax._detect as jd
 
     with jax.enable_x64(True):
         prep = prepare(SLAVE, MASTER, MASTER.longest_edge)
         st = Static("tri3", "exact", prep.node_levels, prep.face_levels, 0, False)
         m = master_arrays(MASTER, prep, np.float64)
         sc = scalars(prep, MASTER, np.float64)
-        _, counts = jd._kernel(sc, m, SLAVE[prep.slave_rows], st=st,
-                               capacity=(("face_candidates", 2),))
+        _, counts = jd._kernel(
+            sc, m, SLAVE[prep.slave_rows], st=st, capacity=(("face_candidates", 2),)
+        )
     # The true count (the most candidate faces of one slave) next to the capacity it exceeds.
     assert int(counts["face_candidates"]) > 2
 
@@ -111,11 +120,17 @@ def test_contacts_summary_and_status():
     assert (c.feature[~c.active] == ac.Feature.NONE).all()
 
 
-@pytest.mark.parametrize("make", [
-    lambda: scenes.rough_surfaces(2**8), lambda: scenes.rough_surfaces(2**9, element="quad9"),
-    lambda: scenes.rough_layers(2**8, quadratic=True), lambda: scenes.sphere_on_plane(2**8),
-    lambda: scenes.cylinder_on_road(2**8), lambda: scenes.curved_patch(4, element="tri6"),
-])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: scenes.rough_surfaces(2**8),
+        lambda: scenes.rough_surfaces(2**9, element="quad9"),
+        lambda: scenes.rough_layers(2**8, quadratic=True),
+        lambda: scenes.sphere_on_plane(2**8),
+        lambda: scenes.cylinder_on_road(2**8),
+        lambda: scenes.curved_patch(4, element="tri6"),
+    ],
+)
 def test_scenes_are_deterministic(make):
     a, b = make(), make()
     assert np.array_equal(a.slave, b.slave) and np.array_equal(a.master.points, b.master.points)

@@ -12,6 +12,7 @@ def test_demo(tmp_path, capsys):
     assert main(["demo", "--nodes", "1024", "-o", str(stem)]) == 0
     out = capsys.readouterr().out
     assert "active:" in out and "time per stage" in out and "min gap" in out
+    assert "backend: warp on cpu, float64" in out  # the default: auto, float64
     mesh = meshio.read(f"{stem}.vtu")
     assert (stem.parent / "demo.png").stat().st_size > 1000
     n_active = int(out.split("active: ")[1].split()[0])
@@ -19,12 +20,36 @@ def test_demo(tmp_path, capsys):
     assert mesh.point_data["gap"].shape == (1024 + n_active,)
 
 
+def test_progress_lists_the_stages_of_a_long_run():
+    import io
+    import time
+
+    from arraycontact.cli import Progress
+
+    out = io.StringIO()
+    p = Progress(after=0.0, stream=out)
+    with p.stage("reading"):
+        time.sleep(0.3)
+    with p.stage("detecting"):
+        pass
+    lines = [line.split("\r")[-1].strip() for line in out.getvalue().split("\n") if line]
+    assert lines[0].startswith("reading: 0.3") and lines[-1].startswith("detecting: 0.0")
+    quiet = io.StringIO()
+    with Progress(after=60.0, stream=quiet).stage("reading"):
+        pass
+    assert quiet.getvalue() == ""
+
+
 def test_detect_files(tmp_path, capsys):
     s = ac.scenes.rough_surfaces(2**8, gap=0.5)
     mpath, spath = tmp_path / "master.vtu", tmp_path / "slave.msh"
     meshio.write(mpath, meshio.Mesh(s.master.points, [("triangle", s.master.faces)]))
-    meshio.write(spath, meshio.Mesh(s.slave_surface.points, [("triangle", s.slave_surface.faces)]),
-                 file_format="gmsh22", binary=False)
+    meshio.write(
+        spath,
+        meshio.Mesh(s.slave_surface.points, [("triangle", s.slave_surface.faces)]),
+        file_format="gmsh22",
+        binary=False,
+    )
     out = tmp_path / "contacts.vtu"
     assert main(["detect", str(mpath), str(spath), "-o", str(out), "--mode", "node"]) == 0
     mesh = meshio.read(out)
@@ -37,8 +62,9 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys):
     s = ac.scenes.rough_surfaces(2**8)
     path = tmp_path / "m.vtu"
     meshio.write(path, meshio.Mesh(s.master.points, [("triangle", s.master.faces)]))
-    assert main(["detect", str(path), str(path), "-o", str(tmp_path / "o.vtu"),
-                 "--d-max", "-1"]) == 2
+    assert (
+        main(["detect", str(path), str(path), "-o", str(tmp_path / "o.vtu"), "--d-max", "-1"]) == 2
+    )
     assert "d_max must be a positive" in capsys.readouterr().err
 
 
@@ -54,8 +80,12 @@ def test_file_errors_are_one_line_and_status_2(tmp_path, capsys):
     no_faces = tmp_path / "lines.vtu"
     meshio.write(no_faces, lines)
     out = str(tmp_path / "o.vtu")
-    cases = [(tmp_path / "missing.vtu", "no such file"), (garbage, "cannot read"),
-             (unknown, "unknown mesh format"), (no_faces, str(no_faces))]
+    cases = [
+        (tmp_path / "missing.vtu", "no such file"),
+        (garbage, "cannot read"),
+        (unknown, "unknown mesh format"),
+        (no_faces, str(no_faces)),
+    ]
     for path, words in cases:
         assert main(["detect", str(good), str(path), "-o", out]) == 2
         err = capsys.readouterr().err

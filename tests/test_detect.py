@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from conftest import assert_matches_reference, reference
 
 import arraycontact as ac
 from arraycontact import scenes
-from conftest import assert_matches_reference, reference
 
 
 def random_scene(seed, element="tri3", n=8):
@@ -73,8 +73,16 @@ def test_far_from_origin(backend, element):
 def test_fig2a_closest_face_not_attached_to_closest_node(backend):
     # Seed 003 Fig. 2a: the slave hovers over the middle of a large face whose nodes are far,
     # while a small face nearby has a node closer than any of them but is itself farther.
-    pts = np.array([[-5.0, -5, 0], [5.0, -5, 0], [0.0, 5, 0],  # large face 0, 1 below
-                    [1.2, 0, 1], [1.5, 0.3, 1], [1.5, -0.3, 1]])  # small face 1, 1.2 away
+    pts = np.array(
+        [
+            [-5.0, -5, 0],
+            [5.0, -5, 0],
+            [0.0, 5, 0],  # large face 0, 1 below
+            [1.2, 0, 1],
+            [1.5, 0.3, 1],
+            [1.5, -0.3, 1],
+        ]
+    )  # small face 1, 1.2 away
     master = ac.Surface(pts, [[0, 1, 2], [3, 4, 5]], "tri3")
     slave = np.array([[0.0, 0.0, 1.0]])
     # The closest node is on face 1, but face 0 holds the closest point.
@@ -107,12 +115,18 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
     # extent, and the answer is the reference's.
     master, slave = random_scene(5, "tri3", n=4)
     far = np.array([1e6 * 6.0, 0, 0])
-    m2 = ac.Surface(np.r_[master.points, master.points + far],
-                    np.r_[master.faces, master.faces + len(master.points)], "tri3")
+    m2 = ac.Surface(
+        np.r_[master.points, master.points + far],
+        np.r_[master.faces, master.faces + len(master.points)],
+        "tri3",
+    )
     s2 = np.r_[slave, slave + far]
     near = np.array([12.0, 0, 0])
-    m3 = ac.Surface(np.r_[master.points, master.points + near],
-                    np.r_[master.faces, master.faces + len(master.points)], "tri3")
+    m3 = ac.Surface(
+        np.r_[master.points, master.points + near],
+        np.r_[master.faces, master.faces + len(master.points)],
+        "tri3",
+    )
     s3 = np.r_[slave, slave + near]
     from arraycontact._prepare import prepare
 
@@ -124,8 +138,7 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
     # The pairs each tree level keeps differ only by the rounding slack of the pruning test
     # (proportional to the coordinates).
     for tree in ("node_level", "face_level"):
-        n2, n3 = (sum(v for k, v in c.counts.count.items() if k.startswith(tree))
-                  for c in (c2, c3))
+        n2, n3 = (sum(v for k, v in c.counts.count.items() if k.startswith(tree)) for c in (c2, c3))
         assert 0.8 < n2 / n3 < 1.25
     assert_matches_reference(c2, s2, m2)
 

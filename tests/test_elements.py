@@ -3,8 +3,13 @@
 import numpy as np
 import pytest
 
-from arraycontact._elements import (ELEMENTS, get_element, shape_derivatives, shape_functions,
-                                    shape_second_derivatives)
+from arraycontact._elements import (
+    ELEMENTS,
+    get_element,
+    shape_derivatives,
+    shape_functions,
+    shape_second_derivatives,
+)
 
 NAMES = sorted(ELEMENTS)
 
@@ -53,8 +58,17 @@ def test_closed_forms():
     x, y = t[:, 0], t[:, 1]
     L0, L1, L2 = 1 - x - y, x, y
     tri3 = np.stack([L0, L1, L2], -1)
-    tri6 = np.stack([L0 * (2 * L0 - 1), L1 * (2 * L1 - 1), L2 * (2 * L2 - 1),
-                     4 * L0 * L1, 4 * L1 * L2, 4 * L2 * L0], -1)
+    tri6 = np.stack(
+        [
+            L0 * (2 * L0 - 1),
+            L1 * (2 * L1 - 1),
+            L2 * (2 * L2 - 1),
+            4 * L0 * L1,
+            4 * L1 * L2,
+            4 * L2 * L0,
+        ],
+        -1,
+    )
     assert np.allclose(shape_functions(get_element("tri3"), t), tri3)
     assert np.allclose(shape_functions(get_element("tri6"), t), tri6)
     q = rng.uniform(-1, 1, (10, 2))
@@ -62,16 +76,20 @@ def test_closed_forms():
     c = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
     quad4 = np.stack([(1 + x * a) * (1 + y * b) / 4 for a, b in c], -1)
     corners8 = [(1 + x * a) * (1 + y * b) * (x * a + y * b - 1) / 4 for a, b in c]
-    mids8 = [(1 - x**2) * (1 - y) / 2, (1 + x) * (1 - y**2) / 2, (1 - x**2) * (1 + y) / 2,
-             (1 - x) * (1 - y**2) / 2]
+    mids8 = [
+        (1 - x**2) * (1 - y) / 2,
+        (1 + x) * (1 - y**2) / 2,
+        (1 - x**2) * (1 + y) / 2,
+        (1 - x) * (1 - y**2) / 2,
+    ]
     assert np.allclose(shape_functions(get_element("quad4"), q), quad4)
     assert np.allclose(shape_functions(get_element("quad8"), q), np.stack(corners8 + mids8, -1))
 
-    def l(s, k):  # 1-D quadratic Lagrange polynomials at -1, 0, 1
+    def lagrange(s, k):  # 1-D quadratic Lagrange polynomials at -1, 0, 1
         return [s * (s - 1) / 2, 1 - s**2, s * (s + 1) / 2][k]
 
     idx = [(0, 0), (2, 0), (2, 2), (0, 2), (1, 0), (2, 1), (1, 2), (0, 1), (1, 1)]
-    quad9 = np.stack([l(x, i) * l(y, j) for i, j in idx], -1)
+    quad9 = np.stack([lagrange(x, i) * lagrange(y, j) for i, j in idx], -1)
     assert np.allclose(shape_functions(get_element("quad9"), q), quad9)
 
 
@@ -101,7 +119,13 @@ def test_same_code_on_jax():
         for name in NAMES:
             e = get_element(name)
             xi = _samples(e)
-            assert np.allclose(np.asarray(shape_functions(e, jnp.asarray(xi), jnp)),
-                               shape_functions(e, xi), atol=1e-14)
-            assert np.allclose(np.asarray(shape_second_derivatives(e, jnp.asarray(xi), jnp)),
-                               shape_second_derivatives(e, xi), atol=1e-13)
+            assert np.allclose(
+                np.asarray(shape_functions(e, jnp.asarray(xi), jnp)),
+                shape_functions(e, xi),
+                atol=1e-14,
+            )
+            assert np.allclose(
+                np.asarray(shape_second_derivatives(e, jnp.asarray(xi), jnp)),
+                shape_second_derivatives(e, xi),
+                atol=1e-13,
+            )

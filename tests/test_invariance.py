@@ -1,17 +1,22 @@
 """Property-based invariances: translation, rotation, scaling, permutation of nodes and faces."""
 
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_detect import random_scene
 
 import arraycontact as ac
 from arraycontact.reference import _closest_on_faces
-from test_detect import random_scene
 
 MASTER, SLAVE = random_scene(7, "tri3", n=5)
 MASTER_Q, SLAVE_Q = random_scene(8, "quad4", n=4)
-BASE = {b: {e: ac.detect(s, m, backend=b) for e, (m, s) in
-            {"tri3": (MASTER, SLAVE), "quad4": (MASTER_Q, SLAVE_Q)}.items()}
-        for b in ("numpy", "jax")}
+BASE = {
+    b: {
+        e: ac.detect(s, m, backend=b)
+        for e, (m, s) in {"tri3": (MASTER, SLAVE), "quad4": (MASTER_Q, SLAVE_Q)}.items()
+    }
+    for b in ("numpy", "jax")
+}
 
 
 def _rotation(seed):
@@ -31,8 +36,12 @@ def _same(c, base, master, slave, scale=1.0):
     assert np.allclose(np.sqrt(d2), c.distance[a], atol=1e-9 * L)
 
 
-transforms = st.tuples(st.integers(0, 2**31 - 1), st.floats(-3, 3), st.floats(-3, 3),
-                       st.sampled_from(["tri3", "quad4"]))
+transforms = st.tuples(
+    st.integers(0, 2**31 - 1),
+    st.floats(-3, 3),
+    st.floats(-3, 3),
+    st.sampled_from(["tri3", "quad4"]),
+)
 
 
 def _check(backend, seed, log_shift, log_scale, element):
@@ -57,8 +66,12 @@ def _check(backend, seed, log_shift, log_scale, element):
     c = ac.detect(slave[ps], m, backend=backend)
     back = np.empty_like(ps)
     back[ps] = np.arange(len(ps))
-    c = ac.Contacts(**{k: (v[back] if isinstance(v, np.ndarray) and len(v) == len(ps) else v)
-                       for k, v in c.__dict__.items()})
+    c = ac.Contacts(
+        **{
+            k: (v[back] if isinstance(v, np.ndarray) and len(v) == len(ps) else v)
+            for k, v in c.__dict__.items()
+        }
+    )
     _same(c, base, m, slave)
 
 

@@ -7,8 +7,16 @@ import pytest
 import arraycontact as ac
 from arraycontact._elements import interpolate
 
-HEX_CORNERS = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1),
-               (0, 1, 1)]
+HEX_CORNERS = [
+    (0, 0, 0),
+    (1, 0, 0),
+    (1, 1, 0),
+    (0, 1, 0),
+    (0, 0, 1),
+    (1, 0, 1),
+    (1, 1, 1),
+    (0, 1, 1),
+]
 KUHN = [(0, 1, 2, 6), (0, 2, 3, 6), (0, 3, 7, 6), (0, 7, 4, 6), (0, 4, 5, 6), (0, 5, 1, 6)]
 
 
@@ -17,8 +25,12 @@ def hex_block(n=3, size=2.0):
     g = np.arange(n + 1)
     idx = lambda i, j, k: (i * (n + 1) + j) * (n + 1) + k  # noqa: E731
     pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) * size / n
-    cells = [[idx(i + a, j + b, k + c) for a, b, c in HEX_CORNERS]
-             for i in range(n) for j in range(n) for k in range(n)]
+    cells = [
+        [idx(i + a, j + b, k + c) for a, b, c in HEX_CORNERS]
+        for i in range(n)
+        for j in range(n)
+        for k in range(n)
+    ]
     return pts.astype(float), np.array(cells)
 
 
@@ -50,8 +62,20 @@ def add_mid_nodes(pts, cells, edges, faces=(), centre=False):
 
 
 TET10_EDGES = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
-HEX20_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5),
-               (2, 6), (3, 7)]
+HEX20_EDGES = [
+    (0, 1),
+    (1, 2),
+    (2, 3),
+    (3, 0),
+    (4, 5),
+    (5, 6),
+    (6, 7),
+    (7, 4),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+]
 HEX27_FACES = [(0, 3, 7, 4), (1, 2, 6, 5), (0, 1, 5, 4), (3, 2, 6, 7), (0, 1, 2, 3), (4, 5, 6, 7)]
 
 
@@ -86,14 +110,21 @@ def check_mid_nodes(s):
         assert np.allclose(x[:, 8], x[:, :4].mean(1))
 
 
-@pytest.mark.parametrize("cell_type, make, element, n_faces", [
-    ("hexahedron", lambda: hex_block(3), "quad4", 54),
-    ("tetra", lambda: tet_cube(3), "tri3", 108),
-    ("tetra10", lambda: add_mid_nodes(*tet_cube(2), TET10_EDGES), "tri6", 48),
-    ("hexahedron20", lambda: add_mid_nodes(*hex_block(2), HEX20_EDGES), "quad8", 24),
-    ("hexahedron27", lambda: add_mid_nodes(*hex_block(2), HEX20_EDGES, HEX27_FACES, True),
-     "quad9", 24),
-])
+@pytest.mark.parametrize(
+    "cell_type, make, element, n_faces",
+    [
+        ("hexahedron", lambda: hex_block(3), "quad4", 54),
+        ("tetra", lambda: tet_cube(3), "tri3", 108),
+        ("tetra10", lambda: add_mid_nodes(*tet_cube(2), TET10_EDGES), "tri6", 48),
+        ("hexahedron20", lambda: add_mid_nodes(*hex_block(2), HEX20_EDGES), "quad8", 24),
+        (
+            "hexahedron27",
+            lambda: add_mid_nodes(*hex_block(2), HEX20_EDGES, HEX27_FACES, True),
+            "quad9",
+            24,
+        ),
+    ],
+)
 def test_exterior_of_volume_meshes(cell_type, make, element, n_faces):
     pts, cells = make()
     s = ac.surface_from_meshio(meshio.Mesh(pts, [(cell_type, cells)]))
@@ -126,9 +157,14 @@ def test_wedges_need_an_element_choice():
 def test_surface_cells_and_selection():
     pts, hexes = hex_block(2)
     tris = np.array([[0, 1, 3]])
-    mesh = meshio.Mesh(pts, [("hexahedron", hexes), ("triangle", tris)],
-                       cell_sets={"top": [np.array([1, 3]), np.array([], int)],
-                                  "skin": [np.array([], int), np.array([0])]})
+    mesh = meshio.Mesh(
+        pts,
+        [("hexahedron", hexes), ("triangle", tris)],
+        cell_sets={
+            "top": [np.array([1, 3]), np.array([], int)],
+            "skin": [np.array([], int), np.array([0])],
+        },
+    )
     assert ac.surface_from_meshio(mesh, cell_blocks="triangle").n_faces == 1
     assert ac.surface_from_meshio(mesh, cell_blocks=[0]).n_faces == 24
     assert ac.surface_from_meshio(mesh, cell_set="skin").element.name == "tri3"
@@ -152,8 +188,12 @@ def _two_bodies():
     tris = np.array([[k, k + 1, k + 2], [k, k + 2, k + 3]])
     cells = [("hexahedron", hexes), ("triangle", tris)]
     tags = [np.full(len(hexes), 1), np.full(2, 2)]
-    return meshio.Mesh(pts, cells, cell_data={"gmsh:physical": tags, "gmsh:geometrical": tags},
-                       field_data={"block": np.array([1, 3]), "patch": np.array([2, 2])})
+    return meshio.Mesh(
+        pts,
+        cells,
+        cell_data={"gmsh:physical": tags, "gmsh:geometrical": tags},
+        field_data={"block": np.array([1, 3]), "patch": np.array([2, 2])},
+    )
 
 
 def test_gmsh_round_trip(tmp_path):
@@ -181,8 +221,7 @@ def test_vtu_round_trip(tmp_path):
 
 def test_abaqus_round_trip(tmp_path):
     pts, hexes = hex_block(2)
-    mesh = meshio.Mesh(pts, [("hexahedron", hexes)],
-                       cell_sets={"LEFT": [np.array([0, 1, 2, 3])]})
+    mesh = meshio.Mesh(pts, [("hexahedron", hexes)], cell_sets={"LEFT": [np.array([0, 1, 2, 3])]})
     path = tmp_path / "block.inp"
     meshio.write(path, mesh)
     assert ac.read_surface(path).n_faces == 24

@@ -1,17 +1,16 @@
 """The JAX plan / detect API: static shapes, no recompilation, vmap, exact gradients."""
 
+import arraycontact_jax as acj
 import jax
 import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import assert_matches_reference
 
 import arraycontact as ac
-import arraycontact_jax as acj
 from arraycontact import scenes
 from arraycontact._contacts import Feature
-
-from conftest import assert_matches_reference
 
 ELEMENTS = ["tri3", "quad4", "tri6", "quad8", "quad9"]
 
@@ -33,9 +32,14 @@ def _compare(c, r):
 
 
 @pytest.mark.parametrize("mode", ["exact", "node"])
-@pytest.mark.parametrize("make", [lambda: scenes.rough_surfaces(2**10, seed=3),
-                                  lambda: scenes.rough_layers(2**8, quadratic=True, seed=1)],
-                         ids=["rough_tri3", "layers_tri6"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: scenes.rough_surfaces(2**10, seed=3),
+        lambda: scenes.rough_layers(2**8, quadratic=True, seed=1),
+    ],
+    ids=["rough_tri3", "layers_tri6"],
+)
 def test_plan_detect_equals_numpy(make, mode):
     s = make()
     p = acj.plan(s.master, s.slave, mode=mode)
@@ -75,8 +79,10 @@ def test_no_recompilation_over_20_steps_of_a_moving_scene(search="jax"):
         steps.append((jax.device_put(slave), jax.device_put(master)))
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(
-        lambda name, *a, **kw: compiles.append(name)
-        if name == "/jax/core/compile/backend_compile_duration" else None)
+        lambda name, *a, **kw: (
+            compiles.append(name) if name == "/jax/core/compile/backend_compile_duration" else None
+        )
+    )
     first = None
     for k, (slave, master) in enumerate(steps):
         c = acj.detect(p, slave, master)
@@ -84,7 +90,12 @@ def test_no_recompilation_over_20_steps_of_a_moving_scene(search="jax"):
         if k == 0:
             first = len(compiles)
         if k in (0, 19):
-            r = ac.detect(np.asarray(slave), s.master.with_points(np.asarray(master)), d_max=p.d_max, backend="numpy")
+            r = ac.detect(
+                np.asarray(slave),
+                s.master.with_points(np.asarray(master)),
+                d_max=p.d_max,
+                backend="numpy",
+            )
             _compare(c, r)
     assert first >= 1 and len(compiles) == first, f"{len(compiles) - first} recompilations"
 
@@ -159,9 +170,20 @@ def test_warp_search_in_its_own_process():
     from pathlib import Path
 
     here = Path(__file__).parent
-    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                        str(here / "warp_search_checks.py")], cwd=here.parent,
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            str(here / "warp_search_checks.py"),
+        ],
+        cwd=here.parent,
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
     assert "5 passed" in r.stdout
 
@@ -179,21 +201,31 @@ def _grid_master(element, z):
 def _z(slope):
     """A peak (slope < 0) or a pit (slope > 0) at the origin, gently curved; flat for 0."""
     c = 0 if slope == 0 else 1
-    return lambda x, y: slope * (np.abs(x) + np.abs(y)) + c * (0.1 * x**2 + 0.05 * y**2
-                                                              + 0.05 * x * y)
+    return lambda x, y: (
+        slope * (np.abs(x) + np.abs(y)) + c * (0.1 * x**2 + 0.05 * y**2 + 0.05 * x * y)
+    )
 
 
 # (slope, x, y, dz, feature, gap sign): a peak for vertex and edge at positive gaps, a pit for
 # them at negative gaps (below a pit's bottom the closest feature is that vertex or edge);
 # faces on both sides.
-CASES = {-0.8: [(0.0, 0.0, 0.3, Feature.VERTEX, 1), (0.25, 0.01, 0.3, Feature.EDGE, 1),
-                (0.4, 0.55, 0.15, Feature.FACE, 1)],
-         0.8: [(0.01, 0.02, -0.3, Feature.VERTEX, -1), (0.25, 0.01, -0.3, Feature.EDGE, -1),
-               (0.4, 0.55, -0.15, Feature.FACE, -1)]}
+CASES = {
+    -0.8: [
+        (0.0, 0.0, 0.3, Feature.VERTEX, 1),
+        (0.25, 0.01, 0.3, Feature.EDGE, 1),
+        (0.4, 0.55, 0.15, Feature.FACE, 1),
+    ],
+    0.8: [
+        (0.01, 0.02, -0.3, Feature.VERTEX, -1),
+        (0.25, 0.01, -0.3, Feature.EDGE, -1),
+        (0.4, 0.55, -0.15, Feature.FACE, -1),
+    ],
+}
 
 
-def _fd_check(fn, slave, master_points, h=1e-6, tol=2e-8, outs=("gap", "point", "normal", "xi"),
-              skip=()):
+def _fd_check(
+    fn, slave, master_points, h=1e-6, tol=2e-8, outs=("gap", "point", "normal", "xi"), skip=()
+):
     """jacrev of the differentiable outputs with respect to slave and master coordinates against
     central differences of the whole detection; returns the detection and the Jacobians
     {("x" | "m", output): array}. Master nodes off the faces touching the chosen faces must get
@@ -222,10 +254,16 @@ def _fd_check(fn, slave, master_points, h=1e-6, tol=2e-8, outs=("gap", "point", 
             for k in range(3):
                 e = np.zeros(x.shape)
                 e[i, k] = h
-                pm = [fn(slave + sg * e, master_points) if which == "x" else
-                      fn(slave, master_points + sg * e) for sg in (1, -1)]
+                pm = [
+                    fn(slave + sg * e, master_points)
+                    if which == "x"
+                    else fn(slave, master_points + sg * e)
+                    for sg in (1, -1)
+                ]
                 for out in (o for o in outs if (which, o) not in skip):
-                    fd = (np.asarray(getattr(pm[0], out)) - np.asarray(getattr(pm[1], out))) / (2 * h)
+                    fd = (np.asarray(getattr(pm[0], out)) - np.asarray(getattr(pm[1], out))) / (
+                        2 * h
+                    )
                     err = np.abs(jac[which, out][..., i, k] - fd).max()
                     assert err <= tol, f"d{out}/d{which}[{i},{k}] off by {err:.2g}"
     return val, jac
@@ -238,8 +276,9 @@ def test_gradients_match_finite_differences_for_every_feature_and_at_zero_gap(el
     differences of the signed distance, smooth there). One plan serves the three masters (same
     connectivity), so each derivative compiles once."""
     peak = _grid_master(element, _z(-0.8))
-    slaves = {sl: np.array([[x, y, _z(sl)(x, y) + dz] for x, y, dz, _, _ in c])
-              for sl, c in CASES.items()}
+    slaves = {
+        sl: np.array([[x, y, _z(sl)(x, y) + dz] for x, y, dz, _, _ in c]) for sl, c in CASES.items()
+    }
     p = acj.plan(peak, slaves[-0.8], d_max=2.0, growth=2.0)
 
     def fn(s, m):
@@ -255,18 +294,28 @@ def test_gradients_match_finite_differences_for_every_feature_and_at_zero_gap(el
 
     flat = _grid_master(element, _z(0))
     k = 0.5 if flat.element.linear else 1.0  # a corner node next to the centre
-    on = jnp.asarray([[0.0, 0.0, 0.0], [k / 2 if element[:3] == "tri" else k / 3, 0, 0],
-                      [0.3, 0.2, 0.0]])
+    on = jnp.asarray(
+        [[0.0, 0.0, 0.0], [k / 2 if element[:3] == "tri" else k / 3, 0, 0], [0.3, 0.2, 0.0]]
+    )
     # Differenced except where the function has a kink: xi (a slave moving off an edge or
     # vertex changes faces) and the normal against master nodes (moving the vertex a slave sits
     # on up or down makes a peak or a pit: one-sided derivatives differ). Wider steps: above a
     # flat edge the normal is the direction of a tiny offset, whose solver-tolerance noise
     # would swamp a 1e-6 difference quotient.
-    c, jac = _fd_check(fn, on, jnp.asarray(flat.points), h=1e-4, tol=1e-6,
-                       skip=(("m", "normal"), ("x", "xi"), ("m", "xi")))
+    c, jac = _fd_check(
+        fn,
+        on,
+        jnp.asarray(flat.points),
+        h=1e-4,
+        tol=1e-6,
+        skip=(("m", "normal"), ("x", "xi"), ("m", "xi")),
+    )
     assert np.asarray(c.active).all() and np.abs(np.asarray(c.gap)).max() == 0
-    assert list(np.asarray(c.feature)) == [int(Feature.VERTEX), int(Feature.EDGE),
-                                           int(Feature.FACE)]
+    assert list(np.asarray(c.feature)) == [
+        int(Feature.VERTEX),
+        int(Feature.EDGE),
+        int(Feature.FACE),
+    ]
     dgap = np.einsum("iik->ik", jac["x", "gap"])  # d gap_i / d slave_i
     assert np.allclose(dgap, [[0, 0, 1]] * 3)
 
@@ -279,8 +328,13 @@ def test_vertex_normals_per_slave_equal_the_node_normals(element):
 
     m = _grid_master(element, _z(-0.8))
     corners = np.unique(m.faces[:, : m.element.n_corners])
-    got = vertex_normals(m.element, jnp.asarray(m.points), jnp.asarray(m.faces),
-                         jnp.asarray(padded_node_faces(m)), jnp.asarray(corners))
+    got = vertex_normals(
+        m.element,
+        jnp.asarray(m.points),
+        jnp.asarray(m.faces),
+        jnp.asarray(padded_node_faces(m)),
+        jnp.asarray(corners),
+    )
     assert np.allclose(got, m.node_normals[corners], atol=1e-12)
 
 

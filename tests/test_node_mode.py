@@ -52,15 +52,19 @@ def node_mode_direct(slave, surface, d_max):
             continue
         m = nodes[np.argmin(d)]
         attached = np.nonzero((surface.faces == m).any(1))[0]
-        proj = [(p[0], f) for f in attached
-                if (p := _projection(e, r, surface.points[surface.faces[f]])) is not None]
+        proj = [
+            (p[0], f)
+            for f in attached
+            if (p := _projection(e, r, surface.points[surface.faces[f]])) is not None
+        ]
         tie = 1e-10 * surface.longest_edge  # the documented tie rule: smallest id wins
         if proj:
             dmin = min(p[0] for p in proj)
             out.append((S.OK, min(f for dist, f in proj if dist <= dmin + tie)))
             continue
-        _, d2 = _closest_on_faces(e, np.repeat(r[None], len(attached), 0),
-                                  surface.points[surface.faces[attached]])
+        _, d2 = _closest_on_faces(
+            e, np.repeat(r[None], len(attached), 0), surface.points[surface.faces[attached]]
+        )
         closest = attached[np.sqrt(d2) <= np.sqrt(d2.min()) + tie].min()
         if m not in nxt:
             out.append((S.BLIND_SPOT, closest))
@@ -99,8 +103,12 @@ def flat_square(element="quad4"):
     return scenes.grid_surface(x, y, 0 * x, element)
 
 
-CASES = {"convex_square": flat_square, "convex_square_tri": lambda: flat_square("tri3"),
-         "concave_l": l_shape, "roof": roof}
+CASES = {
+    "convex_square": flat_square,
+    "convex_square_tri": lambda: flat_square("tri3"),
+    "concave_l": l_shape,
+    "roof": roof,
+}
 
 
 @pytest.mark.parametrize("case", sorted(CASES))

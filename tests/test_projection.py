@@ -5,15 +5,22 @@ import pytest
 
 import arraycontact as ac
 from arraycontact._elements import get_element, interpolate, shape_functions
-from arraycontact._geometry import (closest_point_edge, closest_point_face, closest_point_triangle,
-                                    start_option_one, start_option_two)
+from arraycontact._geometry import (
+    closest_point_edge,
+    closest_point_face,
+    closest_point_triangle,
+    start_option_one,
+    start_option_two,
+)
 from arraycontact._projection import _best_of_starts
 
 
 def _face(element, noise, seed):
     e = get_element(element)
     rng = np.random.default_rng(seed)
-    pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + noise * rng.normal(size=(e.nodes_per_face, 3))
+    pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + noise * rng.normal(
+        size=(e.nodes_per_face, 3)
+    )
     return e, pts, ac.Surface(pts, [np.arange(e.nodes_per_face)], element)
 
 
@@ -60,8 +67,9 @@ def test_curved_and_distorted_faces_equal_the_reference(element):
     for trial in range(40):
         noise = (0.1, 0.3)[trial % 2]
         pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + noise * rng.normal(
-            size=(e.nodes_per_face, 3))
-        pts[e.n_corners:, 2] += 0.35 * rng.choice([-1.0, 1.0], e.nodes_per_face - e.n_corners)
+            size=(e.nodes_per_face, 3)
+        )
+        pts[e.n_corners :, 2] += 0.35 * rng.choice([-1.0, 1.0], e.nodes_per_face - e.n_corners)
         if _folded(e, pts) <= 0:
             continue
         missed, conv, same_feature = _check_face(e, pts, _points_near(e, 300, trial))
@@ -83,7 +91,8 @@ def test_folded_faces_miss_rarely(element):
     misses = total = 0
     while total < 1000:
         pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(
-            size=(e.nodes_per_face, 3))
+            size=(e.nodes_per_face, 3)
+        )
         if _folded(e, pts) > -0.3:
             continue
         missed, conv, _ = _check_face(e, pts, _points_near(e, 500, total))
@@ -98,9 +107,10 @@ def test_closest_point_edge_is_the_global_minimum_on_the_edge(element):
     the solver may only be closer than the sampled minimum, never farther)."""
     e = get_element(element)
     rng = np.random.default_rng(8)
-    for trial in range(4):
+    for _ in range(4):
         pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.5 * rng.normal(
-            size=(e.nodes_per_face, 3))
+            size=(e.nodes_per_face, 3)
+        )
         q = rng.normal(size=(300, 3))
         xe = np.broadcast_to(pts, (len(q),) + pts.shape)
         ts = np.linspace(0, 1, 5001)
@@ -125,7 +135,8 @@ def test_linear_faces_both_methods_both_starts(method, element):
     xe = np.broadcast_to(pts, (len(q),) + pts.shape)
     for start in (start_option_one, start_option_two):
         xi, feat, loc, conv, it, kkt = closest_point_face(
-            e, q, xe, start(e, q, xe), iterations=30, tol=1e-12, method=method)
+            e, q, xe, start(e, q, xe), iterations=30, tol=1e-12, method=method
+        )
         d = np.linalg.norm(shape_functions(e, xi) @ pts - q, axis=1)
         assert conv.all() and (kkt <= 1e-12).all() and (it >= 1).all()
         assert np.abs(d - ref.distance).max() <= 1e-10
@@ -138,8 +149,9 @@ def test_vertex_regions_take_one_iteration():
     q = np.array([[-1.0, -1.0, 0.5], [2.0, -0.5, 0.0], [-0.3, 2.0, 1.0]])
     xe = np.broadcast_to(pts, (3, 3, 3))
     for method in ("active_set", "sqp"):
-        *_, conv, it, _ = closest_point_face(e, q, xe, start_option_one(e, q, xe),
-                                             iterations=10, tol=1e-12, method=method)
+        *_, conv, it, _ = closest_point_face(
+            e, q, xe, start_option_one(e, q, xe), iterations=10, tol=1e-12, method=method
+        )
         assert conv.all() and (it == 1).all()
 
 

@@ -2,11 +2,11 @@
 
 import numpy as np
 import pytest
+from test_surface import cube
 
 import arraycontact as ac
 from arraycontact._elements import get_element, shape_functions
 from arraycontact._geometry import closest_point_triangle
-from test_surface import cube
 
 
 def _dense(e, pts, q, m):
@@ -23,9 +23,10 @@ def test_against_dense_sampling(element):
     """Sampling never beats the reference, and its excess shrinks as sampling gets denser."""
     rng = np.random.default_rng(1)
     e = get_element(element)
-    for trial in range(3):
+    for _ in range(3):
         pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(
-            size=(e.nodes_per_face, 3))
+            size=(e.nodes_per_face, 3)
+        )
         s = ac.Surface(pts, [np.arange(e.nodes_per_face)], element)
         q = 1.5 * rng.normal(size=(60, 3))
         d = ac.reference.closest_points(q, s).distance
@@ -37,18 +38,30 @@ def test_against_dense_sampling(element):
 
 def test_square_closed_forms():
     s = ac.Surface([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2, 3]], "quad4")
-    q = np.array([[0.3, 0.6, 0.5],    # above the face
-                  [0.3, 0.6, -0.2],   # below it: negative gap
-                  [1.5, 0.5, 0.0],    # beside edge x = 1
-                  [-1.0, -2.0, 2.0],  # beyond the corner (0, 0)
-                  [1.0, 0.4, 0.0]])   # exactly on an edge
+    q = np.array(
+        [
+            [0.3, 0.6, 0.5],  # above the face
+            [0.3, 0.6, -0.2],  # below it: negative gap
+            [1.5, 0.5, 0.0],  # beside edge x = 1
+            [-1.0, -2.0, 2.0],  # beyond the corner (0, 0)
+            [1.0, 0.4, 0.0],
+        ]
+    )  # exactly on an edge
     r = ac.reference.closest_points(q, s)
     assert np.allclose(r.distance, [0.5, 0.2, 0.5, 3.0, 0.0], atol=1e-14)
     assert np.allclose(r.gap, [0.5, -0.2, 0.5, 3.0, 0.0], atol=1e-14)
-    assert list(r.feature) == [ac.Feature.FACE, ac.Feature.FACE, ac.Feature.EDGE, ac.Feature.VERTEX, ac.Feature.EDGE]
+    assert list(r.feature) == [
+        ac.Feature.FACE,
+        ac.Feature.FACE,
+        ac.Feature.EDGE,
+        ac.Feature.VERTEX,
+        ac.Feature.EDGE,
+    ]
     assert np.allclose(r.point[2], [1, 0.5, 0]) and np.allclose(r.point[3], 0)
     assert np.allclose(r.xi[0], [-0.4, 0.2])
-    assert np.allclose(r.normal[:2], [0, 0, 1]) and np.allclose(r.normal[3], np.array([-1, -2, 2]) / 3.0)
+    assert np.allclose(r.normal[:2], [0, 0, 1]) and np.allclose(
+        r.normal[3], np.array([-1, -2, 2]) / 3.0
+    )
 
 
 def test_cube_signed_distance():
@@ -80,13 +93,14 @@ def test_voronoi_and_reference_agree_on_random_triangles():
     xi, feat, _ = closest_point_triangle(q, tri[:, 0], tri[:, 1], tri[:, 2])
     x = tri[:, 0] + xi[:, :1] * (tri[:, 1] - tri[:, 0]) + xi[:, 1:] * (tri[:, 2] - tri[:, 0])
     for k in range(0, 2000, 500):
-        s = ac.Surface(tri[k:k + 500].reshape(-1, 3), np.arange(1500).reshape(-1, 3), "tri3")
+        s = ac.Surface(tri[k : k + 500].reshape(-1, 3), np.arange(1500).reshape(-1, 3), "tri3")
         # one point per triangle: compare against that triangle alone
         from arraycontact.reference import _closest_on_faces
 
-        _, d2 = _closest_on_faces(s.element, q[k:k + 500], tri[k:k + 500])
-        assert np.allclose(np.linalg.norm(x[k:k + 500] - q[k:k + 500], axis=1), np.sqrt(d2),
-                           atol=1e-12)
+        _, d2 = _closest_on_faces(s.element, q[k : k + 500], tri[k : k + 500])
+        assert np.allclose(
+            np.linalg.norm(x[k : k + 500] - q[k : k + 500], axis=1), np.sqrt(d2), atol=1e-12
+        )
 
 
 def test_chunking_does_not_change_the_answer():

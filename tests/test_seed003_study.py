@@ -15,11 +15,13 @@ PAPER = {"tri3": (1.6, 2.8), "quad4": (2.4, 4.7), "tri6": (1.8, 3.2), "quad8": (
 def test_lattice_converges_everywhere(element, method):
     surface, q = scenes.single_element_study(element)
     e = surface.element
-    xe = np.broadcast_to(surface.points[surface.faces[0]], (len(q),) + surface.points[
-        surface.faces[0]].shape)
+    xe = np.broadcast_to(
+        surface.points[surface.faces[0]], (len(q),) + surface.points[surface.faces[0]].shape
+    )
     for k, start in enumerate((start_option_one, start_option_two)):
-        *_, conv, it, kkt = closest_point_face(e, q, xe, start(e, q, xe), iterations=25,
-                                               tol=1e-12, method=method)
+        *_, conv, it, kkt = closest_point_face(
+            e, q, xe, start(e, q, xe), iterations=25, tol=1e-12, method=method
+        )
         assert conv.all() and (kkt <= 1e-12).all()
         if method == "sqp":
             # No worse than the paper, except quad8 from start I: 1.87 against 1.7 (the open
@@ -33,6 +35,7 @@ def test_three_d_case_converges():
     e = surface.element
     xe = np.broadcast_to(surface.points[surface.faces[0]], (len(q), 3, 3))
     for method in ("sqp", "active_set"):
-        *_, conv, it, _ = closest_point_face(e, q, xe, start_option_one(e, q, xe),
-                                             iterations=25, tol=1e-12, method=method)
+        *_, conv, it, _ = closest_point_face(
+            e, q, xe, start_option_one(e, q, xe), iterations=25, tol=1e-12, method=method
+        )
         assert conv.all() and it.mean() <= 1.6

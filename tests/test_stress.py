@@ -5,13 +5,18 @@ the brute-force reference or closed forms."""
 
 import numpy as np
 import pytest
+from conftest import reference
 
 import arraycontact as ac
 from arraycontact import scenes
-from conftest import reference
 
-RUNS = [("numpy", "float64"), ("numpy", "float32"), ("jax", "float64"), ("jax", "float32"),
-        ("warp", "float32")]
+RUNS = [
+    ("numpy", "float64"),
+    ("numpy", "float32"),
+    ("jax", "float64"),
+    ("jax", "float32"),
+    ("warp", "float32"),
+]
 
 
 def _tol(dtype, L, offset=0.0):
@@ -34,8 +39,9 @@ def _check(c, slave, master, dtype, offset=0.0, ref=None):
     a = c.active & want
     assert np.abs(c.distance[a] - ref.distance[a]).max() <= tol
     assert np.abs(c.gap[a] - ref.gap[a]).max() <= tol
-    _, d2 = ac.reference._closest_on_faces(master.element, slave[a],
-                                           master.points[master.faces[c.face[a]]])
+    _, d2 = ac.reference._closest_on_faces(
+        master.element, slave[a], master.points[master.faces[c.face[a]]]
+    )
     assert np.abs(np.sqrt(d2) - ref.distance[a]).max() <= tol
     return ref
 
@@ -97,8 +103,9 @@ def test_slaves_exactly_on_vertices_and_edges(small, backend, dtype):
     c = ac.detect(slave, m, backend=backend, dtype=dtype)
     assert c.active.all()
     assert np.abs(c.gap).max() <= _tol(dtype, m.longest_edge) * 10
-    assert np.isfinite(c.normal).all() and np.allclose(np.linalg.norm(c.normal, axis=1), 1,
-                                                       atol=1e-5)
+    assert np.isfinite(c.normal).all() and np.allclose(
+        np.linalg.norm(c.normal, axis=1), 1, atol=1e-5
+    )
 
 
 @pytest.mark.parametrize("backend, dtype", RUNS)

@@ -9,8 +9,9 @@ from arraycontact._elements import get_element, shape_functions
 
 CUBE_PTS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
 # Outward-oriented quads of the unit cube (node i = x + 2 y + 4 z).
-CUBE_QUADS = np.array([[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2],
-                       [1, 3, 7, 5]])
+CUBE_QUADS = np.array(
+    [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
+)
 
 
 def cube():
@@ -23,13 +24,14 @@ def test_cube_topology_and_normals():
     assert (s.edge_faces >= 0).all()
     c = s.points[s.faces].mean(1)
     assert np.allclose(s.face_normals, 2 * (c - 0.5))  # outward unit normals
-    assert np.allclose(s.node_normals, (CUBE_PTS - 0.5) / np.linalg.norm(CUBE_PTS - 0.5, axis=1,
-                                                                          keepdims=True))
+    assert np.allclose(
+        s.node_normals, (CUBE_PTS - 0.5) / np.linalg.norm(CUBE_PTS - 0.5, axis=1, keepdims=True)
+    )
     assert s.longest_edge == pytest.approx(np.sqrt(2))  # the face diagonal (eq. 2)
     offsets, ids = s.node_faces
     assert (np.diff(offsets) == 3).all()
     for node in range(8):
-        assert set(ids[offsets[node]:offsets[node + 1]]) == set(np.nonzero(s.faces == node)[0])
+        assert set(ids[offsets[node] : offsets[node + 1]]) == set(np.nonzero(s.faces == node)[0])
 
 
 def test_open_grid_boundary():
@@ -67,21 +69,24 @@ def test_global_ids_and_unused_points():
     assert np.allclose(s.node_normals[8], 0)
 
 
-@pytest.mark.parametrize("points, faces, element, match", [
-    (np.zeros((3, 2)), [[0, 1, 2]], None, r"shape \[n, 3\]"),
-    ([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], [[0, 1, 2]], None, "points row 2 is not finite"),
-    ([[0, 0, 0], [1, 0, 0], [0, np.inf, 0]], [[0, 1, 2]], None, "points row 2"),
-    (np.array([["a", "b", "c"]]), [[0, 0, 0]], None, "real numeric"),
-    (np.eye(3), [[0, 1, 3]], None, "faces row 0 references a node outside"),
-    (np.eye(3), [[0, 1, 2], [0, -1, 2]], None, "faces row 1 references"),
-    (np.eye(3), [[0, 1, 1]], None, "faces row 0 repeats a node"),
-    (np.eye(3), [[0, 1, 1.5]], None, "faces row 0 holds a non-integral"),
-    (np.eye(3), [[0, 1, 2]], "quad4", "has 4 nodes per face"),
-    (np.eye(3), [[0, 1, 2]], "hex8", "unknown element"),
-    (np.eye(3), [0, 1, 2], None, r"shape \[n_faces"),
-    (np.eye(3), [[0, 1]], None, "no element has 2 nodes"),
-    (np.eye(3), np.array([["0", "1", "2"]]), None, "integer array"),
-])
+@pytest.mark.parametrize(
+    "points, faces, element, match",
+    [
+        (np.zeros((3, 2)), [[0, 1, 2]], None, r"shape \[n, 3\]"),
+        ([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], [[0, 1, 2]], None, "points row 2 is not finite"),
+        ([[0, 0, 0], [1, 0, 0], [0, np.inf, 0]], [[0, 1, 2]], None, "points row 2"),
+        (np.array([["a", "b", "c"]]), [[0, 0, 0]], None, "real numeric"),
+        (np.eye(3), [[0, 1, 3]], None, "faces row 0 references a node outside"),
+        (np.eye(3), [[0, 1, 2], [0, -1, 2]], None, "faces row 1 references"),
+        (np.eye(3), [[0, 1, 1]], None, "faces row 0 repeats a node"),
+        (np.eye(3), [[0, 1, 1.5]], None, "faces row 0 holds a non-integral"),
+        (np.eye(3), [[0, 1, 2]], "quad4", "has 4 nodes per face"),
+        (np.eye(3), [[0, 1, 2]], "hex8", "unknown element"),
+        (np.eye(3), [0, 1, 2], None, r"shape \[n_faces"),
+        (np.eye(3), [[0, 1]], None, "no element has 2 nodes"),
+        (np.eye(3), np.array([["0", "1", "2"]]), None, "integer array"),
+    ],
+)
 def test_bad_input(points, faces, element, match):
     with pytest.raises(ValueError, match=match):
         ac.Surface(points, faces, element)

@@ -1,17 +1,17 @@
 """The Warp back end against the NumPy back end and the reference (Warp's CPU device in CI; the
 same tests capture and replay CUDA graphs where a GPU is present)."""
 
+import arraycontact_warp as acw
 import numpy as np
 import pytest
 import warp as wp
-
-import arraycontact as ac
-import arraycontact_warp as acw
-from arraycontact import scenes
-
 from conftest import assert_matches_reference
 
-wp.config.quiet = True
+import arraycontact as ac
+from arraycontact import scenes
+from arraycontact._backends import quiet_warp
+
+quiet_warp()
 DEVICE = "cuda" if wp.is_cuda_available() else "cpu"
 
 SCENES = {
@@ -87,8 +87,10 @@ def test_slave_order_does_not_change_the_result():
     x = s.slave[np.random.default_rng(1).permutation(len(s.slave))]
     moved = x + np.random.default_rng(2).normal(scale=0.3, size=x.shape)
     for y in (x, moved):
-        outs = [acw.detect(acw.plan(s.master, x, device=DEVICE, sort_slaves=v), y,
-                           s.master.points) for v in ("plan", "detect", False)]
+        outs = [
+            acw.detect(acw.plan(s.master, x, device=DEVICE, sort_slaves=v), y, s.master.points)
+            for v in ("plan", "detect", False)
+        ]
         for o in outs[1:]:
             for k in outs[0]:
                 assert np.array_equal(outs[0][k], o[k], equal_nan=True), k
@@ -137,7 +139,7 @@ def test_slaves_on_master_corners_get_the_node_pseudo_normal(name):
     """On a vertex the normal is the node's angle-weighted pseudo-normal, which Warp computes
     per slave from the faces around the node: equal to the Surface's."""
     m = SCENES[name]().master
-    corners = np.unique(m.faces[:, :m.element.n_corners])
+    corners = np.unique(m.faces[:, : m.element.n_corners])
     x = m.points[corners]
     o = acw.detect(acw.plan(m, x, device=DEVICE), x, m.points)
     assert (o["feature"] == 2).all() and (o["distance"] <= 1e-5 * m.longest_edge).all()
@@ -151,8 +153,9 @@ def test_closest_node_tie_rule():
     gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
     pts = np.c_[gx.ravel(), gy.ravel(), np.zeros(n * n)]
     ids = np.arange(n * n).reshape(n, n)
-    quads = np.c_[ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(),
-                  ids[:-1, 1:].ravel()]
+    quads = np.c_[
+        ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
+    ]
     faces = np.r_[quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]
     # node ids shuffled, so that the smaller id is not always met first
     perm = np.random.default_rng(2).permutation(n * n)
@@ -160,7 +163,7 @@ def test_closest_node_tie_rule():
     rng = np.random.default_rng(5)
     # the first edge of each first-half triangle: along a grid line (the diagonals' midpoints
     # would be equidistant from four nodes)
-    a, b = master.faces[:len(quads), 0], master.faces[:len(quads), 1]
+    a, b = master.faces[: len(quads), 0], master.faces[: len(quads), 1]
     mid = 0.5 * (master.points[a] + master.points[b])
     slaves = mid + np.c_[np.zeros((len(mid), 2)), rng.uniform(0.1, 0.6, len(mid))]
     da = np.linalg.norm(slaves - master.points[a], axis=1)
@@ -178,7 +181,14 @@ def test_warp_node_mode_equals_numpy(name):
     s = SCENES[name]()
     p = acw.plan(s.master, s.slave, device=DEVICE, mode="node")
     o = acw.detect(p, s.slave, s.master.points)
-    r = ac.detect(s.slave, s.master, dtype=np.float32, mode="node", d_max=p.constants["d_max"], backend="numpy")
+    r = ac.detect(
+        s.slave,
+        s.master,
+        dtype=np.float32,
+        mode="node",
+        d_max=p.constants["d_max"],
+        backend="numpy",
+    )
     assert np.array_equal(o["status"], r.status)
     seen = set(r.status.tolist())
     assert int(ac.Status.OK) in seen
@@ -217,8 +227,12 @@ def test_worlds_equal_running_each_world_alone():
         assert np.array_equal(got_face, np.where(alone["face"] >= 0, alone["face"] + off, -1))
         assert np.allclose(o["gap"][rows], alone["gap"], equal_nan=True, atol=1e-6)
     # A master without world ids is shared by every world.
-    p = acw.plan(a.master, np.concatenate([a.slave, a.slave]), slave_world=np.r_[
-        np.zeros(len(a.slave), int), np.full(len(a.slave), 5)], device=DEVICE)
+    p = acw.plan(
+        a.master,
+        np.concatenate([a.slave, a.slave]),
+        slave_world=np.r_[np.zeros(len(a.slave), int), np.full(len(a.slave), 5)],
+        device=DEVICE,
+    )
     o = acw.detect(p, np.concatenate([a.slave, a.slave]), a.master.points)
     n = len(a.slave)
     assert np.array_equal(o["face"][:n], o["face"][n:]) and (o["face"] >= 0).any()
@@ -254,8 +268,13 @@ def test_a_master_deformed_far_from_the_plan_stays_exact():
     acw.detect(p, s.slave, s.master.points)
     stretched = s.master.points * [1.5, 1.5, 1.0]
     o = acw.detect(p, s.slave, stretched)
-    r = ac.detect(s.slave, s.master.with_points(stretched), d_max=p.constants["d_max"],
-                  dtype=np.float32, backend="numpy")
+    r = ac.detect(
+        s.slave,
+        s.master.with_points(stretched),
+        d_max=p.constants["d_max"],
+        dtype=np.float32,
+        backend="numpy",
+    )
     _same_as_numpy(o, r, s.master.longest_edge)
 
 
@@ -293,8 +312,9 @@ def test_a_master_that_does_not_move_keeps_its_grid():
     moved = s.slave + [0.05, 0.0, -0.2]
     again = acw.detect(p, moved)  # master stages skipped
     r = ac.detect(moved, s.master, dtype=np.float32, backend="numpy")
-    assert np.array_equal(again["face"], r.face) and not np.array_equal(again["face"],
-                                                                        first["face"])
+    assert np.array_equal(again["face"], r.face) and not np.array_equal(
+        again["face"], first["face"]
+    )
 
 
 def test_grid_refit_and_rebuild():
@@ -322,15 +342,20 @@ def test_grid_refit_and_rebuild():
     assert margin > 0 and float(p.face_grid.margin) == margin
     rng = np.random.default_rng(3)
     shift = np.array([0.013, -0.007, 0.02]) * L
-    for step, moved in enumerate([
+    for step, moved in enumerate(
+        [
             s.master.points + shift + rng.normal(0, 0.002 * L, s.master.points.shape),
-            s.master.points + [1.7 * L, 0.4 * L, -0.05 * L]]):
+            s.master.points + [1.7 * L, 0.4 * L, -0.05 * L],
+        ]
+    ):
         master = ac.Surface(moved, s.master.faces, element=s.master.element.name)
         slave = s.slave + (moved - s.master.points).mean(0)
         c, r = master.face_bounds
         x = moved[s.master.nodes]
-        stale = bool((np.linalg.norm(c - c0, axis=1) > margin).any()
-                     or (np.linalg.norm(x - x0, axis=1) > margin).any())
+        stale = bool(
+            (np.linalg.norm(c - c0, axis=1) > margin).any()
+            or (np.linalg.norm(x - x0, axis=1) > margin).any()
+        )
         assert stale == (step == 1)  # the first motion stays within the margin, the second not
         xs.assign(slave.astype(np.float32))
         xm.assign(moved.astype(np.float32))
@@ -350,6 +375,9 @@ def test_grid_refit_and_rebuild():
 def test_exported_geometry_in_a_user_kernel():
     """The README's example: a simulator's own kernel calls the exported @wp.func."""
 
+    # fmt: off
+    # (Warp 1.19 read this nested kernel's body past its end when the signature took one line
+    # a parameter, as the formatter writes it: the test's next lines became kernel code.)
     @wp.kernel
     def nearest_on_triangles(q: wp.array(dtype=wp.vec3), tri: wp.array(dtype=wp.vec3),
                              xi_out: wp.array(dtype=wp.vec2), feature_out: wp.array(dtype=int)):
@@ -357,15 +385,23 @@ def test_exported_geometry_in_a_user_kernel():
         xi, feature, local = acw.closest_point_triangle(q[i], tri[0], tri[1], tri[2])
         xi_out[i] = xi
         feature_out[i] = feature
+    # fmt: on
 
     rng = np.random.default_rng(0)
     q = rng.uniform(-1, 2, (200, 3)).astype(np.float32)
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
     xi = wp.zeros(200, dtype=wp.vec2, device=DEVICE)
     feat = wp.zeros(200, dtype=int, device=DEVICE)
-    wp.launch(nearest_on_triangles, 200, inputs=[wp.array(q, dtype=wp.vec3, device=DEVICE),
-                                                  wp.array(tri, dtype=wp.vec3, device=DEVICE)],
-              outputs=[xi, feat], device=DEVICE)
+    wp.launch(
+        nearest_on_triangles,
+        200,
+        inputs=[
+            wp.array(q, dtype=wp.vec3, device=DEVICE),
+            wp.array(tri, dtype=wp.vec3, device=DEVICE),
+        ],
+        outputs=[xi, feat],
+        device=DEVICE,
+    )
     master = ac.Surface(tri, [[0, 1, 2]], "tri3")
     ref = ac.reference.closest_points(q.astype(float), master)
     assert np.allclose(xi.numpy(), ref.xi, atol=1e-6)
@@ -375,6 +411,8 @@ def test_exported_geometry_in_a_user_kernel():
 def _edges_kernel(g, real, vec3):
     """A user kernel calling the exported edge solver of geometry module g."""
 
+    # (A compact signature: see test_exported_geometry_in_a_user_kernel.)
+    # fmt: off
     @wp.kernel(module="unique")
     def edges(el: g.Element, pts: wp.array(dtype=vec3), q: wp.array(dtype=vec3),
               t_out: wp.array2d(dtype=real), d_out: wp.array2d(dtype=real)):
@@ -388,13 +426,21 @@ def _edges_kernel(g, real, vec3):
             t, d = g.closest_point_edge(el, q[i], xe, e)
             t_out[i, e] = t
             d_out[i, e] = d
+    # fmt: on
 
     return edges
 
 
-@pytest.mark.parametrize("element,dtype", [("quad4", "float32"), ("tri6", "float32"),
-                                           ("quad8", "float32"), ("quad9", "float32"),
-                                           ("quad8", "float64")])
+@pytest.mark.parametrize(
+    "element,dtype",
+    [
+        ("quad4", "float32"),
+        ("tri6", "float32"),
+        ("quad8", "float32"),
+        ("quad9", "float32"),
+        ("quad8", "float64"),
+    ],
+)
 def test_exported_closest_point_edge(element, dtype):
     """The exact edge solver as a @wp.func: the same minimum as dense sampling of each edge."""
     from arraycontact._elements import get_element, shape_functions
@@ -404,8 +450,7 @@ def test_exported_closest_point_edge(element, dtype):
 
     e = get_element(element)
     rng = np.random.default_rng(4)
-    pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(
-        size=(e.nodes_per_face, 3))
+    pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.3 * rng.normal(size=(e.nodes_per_face, 3))
     q = rng.normal(size=(300, 3))
     t = wp.zeros((300, e.n_corners), dtype=real, device=DEVICE)
     d = wp.zeros((300, e.n_corners), dtype=real, device=DEVICE)
@@ -413,9 +458,13 @@ def test_exported_closest_point_edge(element, dtype):
     def arr(a):
         return wp.array(a.astype(dtype), dtype=vec3, device=DEVICE)
 
-    wp.launch(_edges_kernel(g, real, vec3), 300,
-              inputs=[g.element_data(element, DEVICE), arr(pts), arr(q)], outputs=[t, d],
-              device=DEVICE)
+    wp.launch(
+        _edges_kernel(g, real, vec3),
+        300,
+        inputs=[g.element_data(element, DEVICE), arr(pts), arr(q)],
+        outputs=[t, d],
+        device=DEVICE,
+    )
     ts = np.linspace(0, 1, 4001)
     for k in range(e.n_corners):
         a, b = e.edge_nodes[k, :2]
@@ -431,6 +480,7 @@ def test_exported_closest_point_edge(element, dtype):
 
 def test_jax_arrays_in_and_out():
     import jax.numpy as jnp  # a core dependency: never skipped
+
     s = scenes.rough_surfaces(2**9, seed=7)
     p = acw.plan(s.master, s.slave, device=DEVICE)
     xs, xm = (jnp.asarray((v - p.origin).astype(np.float32)) for v in (s.slave, s.master.points))

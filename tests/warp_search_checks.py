@@ -1,16 +1,15 @@
 """The JAX back end's search="warp" (Warp kernels inside XLA through Warp's FFI), run by
 test_jax.test_warp_search_in_its_own_process in a process of its own."""
 
+import arraycontact_jax as acj
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import arraycontact_jax as acj
-from arraycontact import scenes
-
 import test_jax
 from test_jax import _compare
+
+from arraycontact import scenes
 
 
 @pytest.fixture(autouse=True)
@@ -27,8 +26,13 @@ def test_vmap_with_the_warp_search():
     test_jax.test_vmap_over_scenes_equals_one_by_one(search="warp")
 
 
-@pytest.mark.parametrize("make", [lambda: scenes.rough_surfaces(2**9, seed=11),
-                                  lambda: scenes.curved_patch(3, element="quad8", n_slaves=200)])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: scenes.rough_surfaces(2**9, seed=11),
+        lambda: scenes.curved_patch(3, element="quad8", n_slaves=200),
+    ],
+)
 def test_warp_search_equals_the_jax_search_with_the_same_gradients(make):
     """search="warp" (the Warp kernels through Warp's JAX FFI) finds the same contacts as the
     JAX stages, and the smooth outputs built on them have the same gradients."""
@@ -43,6 +47,7 @@ def test_warp_search_equals_the_jax_search_with_the_same_gradients(make):
         def e(x, m):
             c = acj.detect(p, x, m)
             return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.1) ** 2, 0.0))
+
         return e
 
     gj = jax.grad(energy(pj), argnums=(0, 1))(x, m)

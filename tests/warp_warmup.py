@@ -4,17 +4,18 @@ compiling them. (It does not prevent the late XLA crash that one process running
 suite met in test_stress, segfault or abort in backend_compile; the two workers, each
 compiling half the suite's XLA programs, avoid that one. Its cause is not found.)"""
 
-import numpy as np
-import warp as wp
-
 import arraycontact as ac
 from arraycontact import scenes
+from arraycontact._backends import quiet_warp
 
-wp.config.quiet = True
-cases = [scenes.rough_surfaces(2**6), scenes.rough_surfaces(2**6, element="quad4"),
-         scenes.rough_layers(2**6, quadratic=True),
-         scenes.curved_patch(2, element="quad8", n_slaves=20),
-         scenes.curved_patch(2, element="quad9", n_slaves=20)]
+quiet_warp()
+cases = [
+    scenes.rough_surfaces(2**6),
+    scenes.rough_surfaces(2**6, element="quad4"),
+    scenes.rough_layers(2**6, quadratic=True),
+    scenes.curved_patch(2, element="quad8", n_slaves=20),
+    scenes.curved_patch(2, element="quad9", n_slaves=20),
+]
 for s in cases:
     for dtype in ("float32", "float64"):
         for mode in ("exact", "node"):

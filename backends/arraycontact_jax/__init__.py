@@ -1,8 +1,8 @@
 """JAX back end of arraycontact: detection under `jax.jit` / `vmap`, differentiable.
 
-    plan(master, slave_points, ...) -> Plan       eager: sizes every buffer from the data
-    detect(plan, slave_points, master_points)     jitted: Contacts (a pytree) with overflow
-    update_plan(plan, contacts, slave_points, master_points) -> Plan   re-plan on overflow
+plan(master, slave_points, ...) -> Plan       eager: sizes every buffer from the data
+detect(plan, slave_points, master_points)     jitted: Contacts (a pytree) with overflow
+update_plan(plan, contacts, slave_points, master_points) -> Plan   re-plan on overflow
 """
 
 from ._detect import Plan as Plan

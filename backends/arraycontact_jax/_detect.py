@@ -35,9 +35,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from arraycontact._contacts import Contacts, Counts, Feature, Status
+from arraycontact._detect import (
+    ITERATIONS,
+    Static,
+    build_grids,
+    check_options,
+    master_arrays,
+    master_geometry,
+    master_topology,
+    run_stages,
+    scalars,
+)
 from arraycontact._elements import get_element
-from arraycontact._detect import (ITERATIONS, Static, build_grids, check_options, master_arrays,
-                                  master_geometry, master_topology, run_stages, scalars)
 from arraycontact._grid import level_sizes, morton_order
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, validate_points
@@ -66,12 +75,20 @@ def _count(sc, m, slave_x, *, st):
     candidate slots): the most candidate faces of one slave (exact mode), or the faces
     attached to the closest nodes (node mode)."""
     grids = build_grids(jnp, st, sc, m)
-    node, dn, _ = _grid.closest_node(jnp, grids["node"], m["nodes_x"], slave_x,
-                                     d_max=sc["d_max"], tie=sc["tie"], slack=sc["slack"])
+    node, dn, _ = _grid.closest_node(
+        jnp,
+        grids["node"],
+        m["nodes_x"],
+        slave_x,
+        d_max=sc["d_max"],
+        tie=sc["tie"],
+        slack=sc["slack"],
+    )
     if st.mode == "exact":
         rho = jnp.minimum(dn, sc["d_max"]) + sc["slack"]
-        counts = _grid.candidate_faces(jnp, grids["face"], slave_x, rho, slack=sc["slack"],
-                                       capacity={"face_candidates": 0})[3]
+        counts = _grid.candidate_faces(
+            jnp, grids["face"], slave_x, rho, slack=sc["slack"], capacity={"face_candidates": 0}
+        )[3]
         return {"face_candidates": counts["face_candidates"]}
     nd = jnp.maximum(node, 0)
     deg = m["nf_offsets"][nd + 1] - m["nf_offsets"][nd]
@@ -83,8 +100,10 @@ def _grown(counts, growth, n_slaves):
     at least 64 + 2 a slave for the attached faces of node mode (a total, which on a small
     scene a new configuration can double)."""
     floor = {"face_candidates": MIN_CANDIDATES}
-    return {k: max(int(np.ceil(int(v) * growth)), floor.get(k, 64 + 2 * n_slaves))
-            for k, v in counts.items()}
+    return {
+        k: max(int(np.ceil(int(v) * growth)), floor.get(k, 64 + 2 * n_slaves))
+        for k, v in counts.items()
+    }
 
 
 def run_one_shot(slave_x, master, prep, st, dtype):
@@ -139,13 +158,36 @@ class Plan:
 
 jax.tree_util.register_pytree_node(
     Plan,
-    lambda p: ((p.topology,), (p.master, p.static, p.capacity, p.constants, p.origin, p.dtype,
-                               p.n_slaves, p.growth, p.search)),
-    lambda aux, ch: Plan(ch[0], *aux))
+    lambda p: (
+        (p.topology,),
+        (
+            p.master,
+            p.static,
+            p.capacity,
+            p.constants,
+            p.origin,
+            p.dtype,
+            p.n_slaves,
+            p.growth,
+            p.search,
+        ),
+    ),
+    lambda aux, ch: Plan(ch[0], *aux),
+)
 
 
-def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, dtype=None,
-         growth=GROWTH, minimum=None, search="jax") -> Plan:
+def plan(
+    master,
+    slave_points,
+    *,
+    mode="exact",
+    d_max=None,
+    displacement=None,
+    dtype=None,
+    growth=GROWTH,
+    minimum=None,
+    search="jax",
+) -> Plan:
     """Size every buffer of `detect` from the current coordinates (eager, on the host).
 
     master: a Surface (its connectivity is fixed for the plan's life; its coordinates are only
@@ -159,8 +201,9 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
         dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
     if dtype == np.float64 and not jax.config.jax_enable_x64:
-        raise ValueError("dtype float64 needs jax_enable_x64 (jax.config.update or "
-                         "jax.enable_x64())")
+        raise ValueError(
+            "dtype float64 needs jax_enable_x64 (jax.config.update or jax.enable_x64())"
+        )
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
     if search not in ("jax", "warp"):
@@ -181,31 +224,60 @@ def plan(master, slave_points, *, mode="exact", d_max=None, displacement=None, d
     prep = Prepared(
         slave_rows=np.arange(len(slave_x)),
         node_ids=master.nodes[morton_order(master.points[master.nodes], lo, extent)],
-        face_ids=morton_order(centres, lo, extent), origin=origin, d_max=d_max,
-        r_max=float(radii.max()) * growth, node_levels=level_sizes(len(master.nodes)),
+        face_ids=morton_order(centres, lo, extent),
+        origin=origin,
+        d_max=d_max,
+        r_max=float(radii.max()) * growth,
+        node_levels=level_sizes(len(master.nodes)),
         face_levels=level_sizes(master.n_faces),
-        extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()))
-    st = Static(element=master.element.name, mode=mode, node_levels=prep.node_levels,
-                face_levels=prep.face_levels, iterations=ITERATIONS.get(master.element.name, 0),
-                passing_by=mode == "node" and not master.closed)
+        extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
+    )
+    st = Static(
+        element=master.element.name,
+        mode=mode,
+        node_levels=prep.node_levels,
+        face_levels=prep.face_levels,
+        iterations=ITERATIONS.get(master.element.name, 0),
+        passing_by=mode == "node" and not master.closed,
+    )
     sc = scalars(prep, master, dtype)
     if search == "warp":
         # No pair counts to size: only the topology that the smooth outputs read.
         engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin)
         topo = _topology(master, prep)
-        return Plan(topo, master, st, (), tuple(sorted(sc.items())),
-                    tuple(float(v) for v in origin), np.dtype(dtype).name, len(slave_x), growth,
-                    engine)
+        return Plan(
+            topo,
+            master,
+            st,
+            (),
+            tuple(sorted(sc.items())),
+            tuple(float(v) for v in origin),
+            np.dtype(dtype).name,
+            len(slave_x),
+            growth,
+            engine,
+        )
     m = master_arrays(master, prep, dtype)
     sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
-    cap = _grown(_count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), st=st),
-                 growth, len(slave_x))
+    cap = _grown(
+        _count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), st=st),
+        growth,
+        len(slave_x),
+    )
     for k, v in (minimum or {}).items():
         if k in cap:
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
-    return Plan(_topology(master, prep), master, st, tuple(sorted(cap.items())),
-                tuple(sorted(sc.items())), tuple(float(v) for v in origin), np.dtype(dtype).name,
-                len(slave_x), growth)
+    return Plan(
+        _topology(master, prep),
+        master,
+        st,
+        tuple(sorted(cap.items())),
+        tuple(sorted(sc.items())),
+        tuple(float(v) for v in origin),
+        np.dtype(dtype).name,
+        len(slave_x),
+        growth,
+    )
 
 
 def _topology(master, prep):
@@ -222,8 +294,10 @@ def _check(p: Plan, slave_points, master_points):
     if slave_points.ndim != 2 or slave_points.shape[1] != 3:
         raise ValueError(f"slave_points must have shape [n, 3], got {slave_points.shape}")
     if master_points.shape != p.master.points.shape:
-        raise ValueError(f"master_points must have shape {p.master.points.shape} (the plan's "
-                         f"master), got {master_points.shape}")
+        raise ValueError(
+            f"master_points must have shape {p.master.points.shape} (the plan's "
+            f"master), got {master_points.shape}"
+        )
 
 
 @jax.jit
@@ -246,13 +320,22 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     else:
         m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
         grids = build_grids(jnp, st, sc, m)
-        out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap,
-                                 search=_grid)
+        out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap, search=_grid)
     keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
     face = jnp.where(keep, out["face"], -1)
     feature = jnp.where(keep, out["feature"], int(Feature.NONE))
-    xi, point, gap, normal = smooth(get_element(st.element), s, xm, topo, face, feature,
-                                    out["local"], out["xi"], out["gap"], sc["tie"])
+    xi, point, gap, normal = smooth(
+        get_element(st.element),
+        s,
+        xm,
+        topo,
+        face,
+        feature,
+        out["local"],
+        out["xi"],
+        out["gap"],
+        sc["tie"],
+    )
     nan = jnp.asarray(jnp.nan, dtype)
 
     def masked(v):
@@ -260,13 +343,28 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
 
     n = s.shape[0]
     return Contacts(
-        active=out["active"], face=face, xi=masked(xi), point=masked(point + origin),
-        gap=masked(gap), distance=masked(jnp.abs(gap)), normal=masked(normal), feature=feature,
-        master_node=out["master_node"], status=out["status"],
-        slave_ids=jnp.arange(n, dtype=jnp.int32), d_max=p.d_max,
-        counts=Counts(slaves_in_box=n, master_nodes_in_box=len(p.master.nodes),
-                      master_faces_in_box=p.master.n_faces, count=counts, capacity=cap),
-        backend="jax", dtype=np.dtype(dtype).name)
+        active=out["active"],
+        face=face,
+        xi=masked(xi),
+        point=masked(point + origin),
+        gap=masked(gap),
+        distance=masked(jnp.abs(gap)),
+        normal=masked(normal),
+        feature=feature,
+        master_node=out["master_node"],
+        status=out["status"],
+        slave_ids=jnp.arange(n, dtype=jnp.int32),
+        d_max=p.d_max,
+        counts=Counts(
+            slaves_in_box=n,
+            master_nodes_in_box=len(p.master.nodes),
+            master_faces_in_box=p.master.n_faces,
+            count=counts,
+            capacity=cap,
+        ),
+        backend="jax",
+        dtype=np.dtype(dtype).name,
+    )
 
 
 class _WarpSearch:
@@ -275,20 +373,28 @@ class _WarpSearch:
     (active, face, feature, local, xi, gap, master_node, status) as JAX arrays."""
 
     def __init__(self, master, slave_x, d_max, dtype, growth, origin):
+        import arraycontact_warp as acw
         import warp as wp
 
-        import arraycontact_warp as acw
-
         device = wp.device_from_jax(jax.devices()[0])
-        self.plan = acw.plan(master, slave_x, d_max=d_max, device=device, dtype=dtype,
-                             growth=growth)
+        self.plan = acw.plan(
+            master, slave_x, d_max=d_max, device=device, dtype=dtype, growth=growth
+        )
         # The inputs come in the JAX plan's frame: the kernels subtract the difference.
         self.plan.origin = self.plan.origin - np.asarray(origin)
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
         self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
-        kinds = dict(active=wp.int32, face=int, feature=int, local=int, xi=vec2, gap=real,
-                     master_node=int, status=int)
+        kinds = dict(
+            active=wp.int32,
+            face=int,
+            feature=int,
+            local=int,
+            xi=vec2,
+            gap=real,
+            master_node=int,
+            status=int,
+        )
         plan = self.plan
 
         def search(slaves, master_points, *outs):
@@ -297,20 +403,27 @@ class _WarpSearch:
                 wp.copy(a, o[name])
 
         # jax_callable reads the Warp types from the annotations.
-        search.__annotations__ = {"slaves": wp.array(dtype=vec3),
-                                  "master_points": wp.array(dtype=vec3),
-                                  **{f"o_{k}": wp.array(dtype=kinds[k]) for k in self.names}}
-        search.__signature__ = _signature(["slaves", "master_points",
-                                           *[f"o_{k}" for k in self.names]])
+        search.__annotations__ = {
+            "slaves": wp.array(dtype=vec3),
+            "master_points": wp.array(dtype=vec3),
+            **{f"o_{k}": wp.array(dtype=kinds[k]) for k in self.names},
+        }
+        search.__signature__ = _signature(
+            ["slaves", "master_points", *[f"o_{k}" for k in self.names]]
+        )
         # On a GPU, Warp captures the search in a CUDA graph of its own, replayed on staging
         # buffers with the copies in and out outside it (JAX cannot take the radix sort's
         # temporary storage as a child graph); without the graph every call pays Python's
         # launch overhead. vmap over scenes calls the search once per scene (its plan holds
         # one scene's buffers).
-        mode = (wp.JaxCallableGraphMode.WARP_STAGED_EX if device.is_cuda
-                else wp.JaxCallableGraphMode.NONE)
-        self.call = wp.jax_callable(search, num_outputs=len(self.names), graph_mode=mode,
-                                    vmap_method="sequential")
+        mode = (
+            wp.JaxCallableGraphMode.WARP_STAGED_EX
+            if device.is_cuda
+            else wp.JaxCallableGraphMode.NONE
+        )
+        self.call = wp.jax_callable(
+            search, num_outputs=len(self.names), graph_mode=mode, vmap_method="sequential"
+        )
 
     def __call__(self, s, xm):
         n = s.shape[0]
@@ -327,8 +440,9 @@ class _WarpSearch:
 def _signature(names):
     import inspect
 
-    return inspect.Signature([inspect.Parameter(n, inspect.Parameter.POSITIONAL_OR_KEYWORD)
-                              for n in names])
+    return inspect.Signature(
+        [inspect.Parameter(n, inspect.Parameter.POSITIONAL_OR_KEYWORD) for n in names]
+    )
 
 
 def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Plan:
@@ -338,29 +452,58 @@ def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Pla
         return p
     count = {k: float(np.max(np.asarray(v))) for k, v in contacts.counts.count.items()}
     master = p.master.with_points(np.asarray(master_points, np.float64))
-    return plan(master, np.asarray(slave_points, np.float64), mode=p.static.mode,
-                d_max=p.d_max, dtype=p.dtype, growth=p.growth,
-                minimum=count,
-                search="jax" if p.search is None else "warp")
+    return plan(
+        master,
+        np.asarray(slave_points, np.float64),
+        mode=p.static.mode,
+        d_max=p.d_max,
+        dtype=p.dtype,
+        growth=p.growth,
+        minimum=count,
+        search="jax" if p.search is None else "warp",
+    )
 
 
 def _flatten_contacts(c):
     arrays = tuple(getattr(c, k) for k in _ARRAYS)
-    return (arrays, c.counts.count), (c.d_max, tuple(sorted(c.timings.items())),
-                                     c.counts.slaves_in_box, c.counts.master_nodes_in_box,
-                                     c.counts.master_faces_in_box,
-                                     tuple(sorted(c.counts.capacity.items())),
-                                     c.backend, c.device, c.dtype)
+    return (arrays, c.counts.count), (
+        c.d_max,
+        tuple(sorted(c.timings.items())),
+        c.counts.slaves_in_box,
+        c.counts.master_nodes_in_box,
+        c.counts.master_faces_in_box,
+        tuple(sorted(c.counts.capacity.items())),
+        c.backend,
+        c.device,
+        c.dtype,
+    )
 
 
 def _unflatten_contacts(aux, children):
     arrays, count = children
     d_max, timings, n_s, n_n, n_f, cap, backend, device, dtype = aux
-    return Contacts(**dict(zip(_ARRAYS, arrays)), d_max=d_max,
-                    counts=Counts(n_s, n_n, n_f, count=count, capacity=dict(cap)),
-                    timings=dict(timings), backend=backend, device=device, dtype=dtype)
+    return Contacts(
+        **dict(zip(_ARRAYS, arrays)),
+        d_max=d_max,
+        counts=Counts(n_s, n_n, n_f, count=count, capacity=dict(cap)),
+        timings=dict(timings),
+        backend=backend,
+        device=device,
+        dtype=dtype,
+    )
 
 
-_ARRAYS = ("active", "face", "xi", "point", "gap", "distance", "normal", "feature",
-           "master_node", "status", "slave_ids")
+_ARRAYS = (
+    "active",
+    "face",
+    "xi",
+    "point",
+    "gap",
+    "distance",
+    "normal",
+    "feature",
+    "master_node",
+    "status",
+    "slave_ids",
+)
 jax.tree_util.register_pytree_node(Contacts, _flatten_contacts, _unflatten_contacts)

@@ -51,8 +51,9 @@ def _root_jvp(element, primals, tangents):
     _, ds, dxe, _, _, _ = tangents
     u = _root(element, u0, s, xe, base, b, mask)
     h = jax.jacfwd(_residual, 1)(element, u, s, xe, base, b, mask)
-    _, rhs = jax.jvp(lambda s_, xe_: _residual(element, u, s_, xe_, base, b, mask),
-                     (s, xe), (ds, dxe))
+    _, rhs = jax.jvp(
+        lambda s_, xe_: _residual(element, u, s_, xe_, base, b, mask), (s, xe), (ds, dxe)
+    )
     return u, -_solve2(h, rhs, jnp)
 
 
@@ -78,8 +79,11 @@ def _feature_frame(element, feature, local, xi0):
     base = jnp.where(on_face, zero, a)  # the edge start or the vertex
     b_edge = jnp.stack([c - a, zero], -1)
     b = jnp.where(on_face, jnp.eye(2, dtype=xi0.dtype), jnp.where(on_edge, b_edge, 0 * b_edge))
-    mask = jnp.where(on_face, jnp.ones(2, xi0.dtype),
-                     jnp.where(on_edge, jnp.asarray([1.0, 0.0], xi0.dtype), zero))
+    mask = jnp.where(
+        on_face,
+        jnp.ones(2, xi0.dtype),
+        jnp.where(on_edge, jnp.asarray([1.0, 0.0], xi0.dtype), zero),
+    )
     u0 = jnp.where(on_face, xi0, jnp.where(on_edge, jnp.stack([t0, 0 * t0]), zero))
     return base, b, mask, u0
 
@@ -97,8 +101,7 @@ def _one(element, on_surface, s, xe, feature, local, xi0, n_pseudo, sign):
     on = r2 <= on_surface * on_surface  # on the surface: no direction but rounding noise
     dist = jnp.sqrt(jnp.where(on, 1, r2))
     along = jnp.dot(to_slave, n_pseudo)
-    gap = jnp.where(feature == FACE, jnp.dot(to_slave, n_face),
-                    jnp.where(on, along, sign * dist))
+    gap = jnp.where(feature == FACE, jnp.dot(to_slave, n_face), jnp.where(on, along, sign * dist))
     direction = to_slave / jnp.where(on, 1, dist)
     normal = jnp.where(feature == FACE, n_face, jnp.where(on, n_pseudo, sign * direction))
     # A slave on an edge or vertex (distance 0) sits on the surface: its closest point is
@@ -157,9 +160,20 @@ def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_su
         vertex = partial(vertex_normals, element, nodes_x, faces, topo["node_faces"])
     else:
         vertex = node_normals(element, faces, nodes_x, jnp)
-    n_pseudo = pseudo_normal(element, nodes_x, faces, topo["face_edges"], topo["edge_faces"],
-                             vertex, face, feature, jnp.maximum(local, 0),
-                             jax.lax.stop_gradient(xi), jnp)
+    n_pseudo = pseudo_normal(
+        element,
+        nodes_x,
+        faces,
+        topo["face_edges"],
+        topo["edge_faces"],
+        vertex,
+        face,
+        feature,
+        jnp.maximum(local, 0),
+        jax.lax.stop_gradient(xi),
+        jnp,
+    )
     xe = nodes_x[faces[face]]
-    return jax.vmap(partial(_one, element, on_surface))(slave_x, xe, feature, local, xi, n_pseudo,
-                                                         sign)
+    return jax.vmap(partial(_one, element, on_surface))(
+        slave_x, xe, feature, local, xi, n_pseudo, sign
+    )

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arraycontact._grid import W, Tree
+from arraycontact._grid import Tree, W
 
 BIG = np.iinfo(np.int32).max
 # The index of the lowest set bit of a W-bit mask (0 for an empty mask, never read).
@@ -53,9 +53,14 @@ def flatten(tree: Tree) -> Flat:
     for k in range(top):
         n = tree.lo[k].shape[0]
         pad = ((0, -n % W), (0, 0))
-        lv = jnp.concatenate([jnp.pad(tree.lo[k], pad, constant_values=big),
-                              jnp.pad(tree.hi[k], pad, constant_values=-big),
-                              jnp.pad(tree.rep[k], pad)], -1)
+        lv = jnp.concatenate(
+            [
+                jnp.pad(tree.lo[k], pad, constant_values=big),
+                jnp.pad(tree.hi[k], pad, constant_values=-big),
+                jnp.pad(tree.rep[k], pad),
+            ],
+            -1,
+        )
         rows.append(jnp.swapaxes(lv.reshape(-1, W, 9), 1, 2))
         offset.append(offset[-1] + rows[-1].shape[0])
     return Flat(jnp.concatenate(rows), jnp.asarray(offset[:-1], jnp.int32), top)
@@ -66,9 +71,10 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
 
     At each step every busy slave tests the W children of its entry; the reach becomes
     min(reach, nearest representative + slack); `visit(carry, pos, keep, dist)` is called
-    with, per slave, the W children's positions in their level `pos` [n, W], which of them are items within reach
-    (`keep`, false except where the children are items) and the representatives' distances
-    `dist` [n, W], and returns the new carry. Returns (carry, reach, steps)."""
+    with, per slave, the W children's positions in their level `pos` [n, W], which of them
+    are items within reach (`keep`, false except where the children are items) and the
+    representatives' distances `dist` [n, W], and returns the new carry. Returns (carry,
+    reach, steps)."""
     n = q.shape[0]
     top = flat.top
     lane = jnp.arange(W, dtype=jnp.int32)
@@ -76,8 +82,15 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
     bits = jnp.left_shift(1, lane)
     lowest = jnp.asarray(_LOWEST_BIT)
     done = jnp.zeros(n, bool) if active is None else ~active
-    state = (jnp.full(n, top, jnp.int32), jnp.zeros(n, jnp.int32),
-             jnp.zeros((n, top + 1), jnp.int32), reach, done, carry, jnp.int32(0))
+    state = (
+        jnp.full(n, top, jnp.int32),
+        jnp.zeros(n, jnp.int32),
+        jnp.zeros((n, top + 1), jnp.int32),
+        reach,
+        done,
+        carry,
+        jnp.int32(0),
+    )
 
     def step(state):
         k, j, stack, reach, done, carry, steps = state
@@ -113,12 +126,19 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
         j_new = jnp.where(down, W * j + near, j_up)
         stack_new = jnp.where(down[:, None], stack_down, stack_up)
         keep_old = done | finished
-        return (jnp.where(keep_old, k, k_new), jnp.where(keep_old, j, j_new),
-                jnp.where(keep_old[:, None], stack, stack_new), reach, done | finished, carry,
-                steps + 1)
+        return (
+            jnp.where(keep_old, k, k_new),
+            jnp.where(keep_old, j, j_new),
+            jnp.where(keep_old[:, None], stack, stack_new),
+            reach,
+            done | finished,
+            carry,
+            steps + 1,
+        )
 
     k, j, stack, reach, done, carry, steps = jax.lax.while_loop(
-        lambda s: ~jnp.all(s[4]), step, state)
+        lambda s: ~jnp.all(s[4]), step, state
+    )
     return carry, reach, steps
 
 
@@ -138,8 +158,7 @@ def closest_node(xp, tree: Tree, nodes_x, slave_x, *, d_max, tie, slack, capacit
         return jnp.minimum(dmin, jnp.min(jnp.where(keep, dist, jnp.inf), -1))
 
     reach = _shrinks_to(d_max, slack, n, slave_x.dtype)
-    dmin, _, steps = scan(flat, slave_x, reach, slack, nearest, jnp.full(n, jnp.inf,
-                                                                         slave_x.dtype))
+    dmin, _, steps = scan(flat, slave_x, reach, slack, nearest, jnp.full(n, jnp.inf, slave_x.dtype))
     dmin = jnp.where(dmin <= d_max, dmin, jnp.inf)
     has = dmin < jnp.inf
 
@@ -149,8 +168,9 @@ def closest_node(xp, tree: Tree, nodes_x, slave_x, *, d_max, tie, slack, capacit
         return jnp.minimum(best, jnp.min(jnp.where(ok, node, BIG), -1))
 
     band = jnp.where(has, dmin + slack, 0)
-    best, _, steps2 = scan(flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32),
-                           active=has)
+    best, _, steps2 = scan(
+        flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), active=has
+    )
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
 
@@ -175,5 +195,9 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity):
     valid = (jnp.arange(K) < count[:, None]).reshape(-1)
     face = tree.ids[found.reshape(-1)]
     slave = jnp.repeat(jnp.arange(n), K)
-    return slave, face, valid, {"face_candidates": jnp.max(count, initial=0),
-                                "face_scan_steps": steps}
+    return (
+        slave,
+        face,
+        valid,
+        {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps},
+    )

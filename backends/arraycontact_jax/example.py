@@ -86,9 +86,16 @@ def push_out(n_nodes=2**12, steps=40, k=1e3, sink=1.6, seed=0):
         c = contacts(p, q)
         return float(jnp.min(jnp.where(c.active, c.gap, jnp.inf)))
 
-    return dict(min_gap_before=min_gap(q0), min_gap_after=min_gap(q), energy_before=float(
-        energy(p, q0)), energy_after=float(energy(p, q)), motion=np.asarray(q), length=length,
-        overflow=bool(contacts(p, q).overflow), replans=replans)
+    return dict(
+        min_gap_before=min_gap(q0),
+        min_gap_after=min_gap(q),
+        energy_before=float(energy(p, q0)),
+        energy_after=float(energy(p, q)),
+        motion=np.asarray(q),
+        length=length,
+        overflow=bool(contacts(p, q).overflow),
+        replans=replans,
+    )
 
 
 if __name__ == "__main__":

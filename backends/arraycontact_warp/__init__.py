@@ -34,6 +34,20 @@ def geometry(dtype="float32"):
     return importlib.import_module(_precision(dtype).__package__ + "._geometry")
 
 
-__all__ = ["AVAILABLE", "Element", "FaceNodes", "Plan", "closest_point_edge", "closest_point_face",
-           "closest_point_triangle", "detect", "element_data", "face_nodes", "face_point",
-           "geometry", "plan", "run_one_shot", "start_option_one"]
+__all__ = [
+    "AVAILABLE",
+    "Element",
+    "FaceNodes",
+    "Plan",
+    "closest_point_edge",
+    "closest_point_face",
+    "closest_point_triangle",
+    "detect",
+    "element_data",
+    "face_nodes",
+    "face_point",
+    "geometry",
+    "plan",
+    "run_one_shot",
+    "start_option_one",
+]

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._grid import (W, Grid, children, enters, entry, item_lo, item_world,
-                    descend, next_pending)
+from ._grid import Grid, W, children, descend, enters, entry, item_lo, item_world, next_pending
 from ._real import real, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy their body many times).

@@ -24,9 +24,8 @@ serves both) in a local frame at the plan's box corner.
 
 from __future__ import annotations
 
-from typing import Any
-
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -38,8 +37,8 @@ from arraycontact._surface import Surface, validate_points
 from . import _grid, _prepare
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
-from ._real import NP_REAL, real, precision, vec2, vec3
 from ._projection import Master, project, scan_attached, scan_faces
+from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
@@ -50,9 +49,18 @@ GROWTH = 1.25
 
 
 @wp.kernel
-def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.array(dtype=int),
-                 slave_world: wp.array(dtype=int), shared: int, origin: vec3, d_max: real,
-                 tie: real, node_out: wp.array(dtype=int), dist: wp.array(dtype=real)):
+def _node_kernel(
+    node_grid: _grid.Grid,
+    slaves: wp.array(dtype=vec3),
+    order: wp.array(dtype=int),
+    slave_world: wp.array(dtype=int),
+    shared: int,
+    origin: vec3,
+    d_max: real,
+    tie: real,
+    node_out: wp.array(dtype=int),
+    dist: wp.array(dtype=real),
+):
     """Stage 3: each slave's closest node and its distance (into `dist`)."""
     i = order[wp.tid()]
     w = slave_world[i]
@@ -67,11 +75,24 @@ def _node_kernel(node_grid: _grid.Grid, slaves: wp.array(dtype=vec3), order: wp.
 # thread (face kernel at 2^20 on an H100, benchmarks/gpu_stages.py: 64: 3.18 ms, 80: 1.99,
 # 96: 1.49, 128: 1.47, no cap: 2.36 ms).
 @wp.kernel(cuda_max_registers=128)
-def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
-                 order: wp.array(dtype=int), slave_world: wp.array(dtype=int), shared: int,
-                 origin: vec3, d_max: real, tie: real, slack: real,
-                 iterations: int, tol: real, dist: wp.array(dtype=real),
-                 face_out: wp.array(dtype=int), item: wp.array(dtype=int)):
+def _face_kernel(
+    el: Any,
+    m: Master,
+    face_grid: _grid.Grid,
+    slaves: wp.array(dtype=vec3),
+    order: wp.array(dtype=int),
+    slave_world: wp.array(dtype=int),
+    shared: int,
+    origin: vec3,
+    d_max: real,
+    tie: real,
+    slack: real,
+    iterations: int,
+    tol: real,
+    dist: wp.array(dtype=real),
+    face_out: wp.array(dtype=int),
+    item: wp.array(dtype=int),
+):
     """Stage 4, exact mode: the smallest distance (into `dist`, replacing the closest node's),
     the face of the tie rule (into face_out) and its face-grid item."""
     i = order[wp.tid()]
@@ -90,8 +111,9 @@ def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dty
     k = int(-1)
     for scan in range(2):
         if scan == 0 or (dmin <= d_max and unsure == 1):
-            d, f, k, unsure = scan_faces(el, m, face_grid, s, w, shared, rho, tie, limit, slack,
-                                         iterations, tol)
+            d, f, k, unsure = scan_faces(
+                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol
+            )
             if scan == 0:
                 dmin = d
                 limit = dmin + tie
@@ -104,16 +126,32 @@ def _face_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dty
 # 64 registers (79 unbounded): 0.175 -> 0.148 ms at 2^20 on an H100 (40: 0.162, 48: 0.154,
 # 56: 0.148, 80: 0.174). The closest-node kernel gains nothing from a cap (55 registers).
 @wp.kernel(cuda_max_registers=64)
-def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(dtype=vec3),
-                   origin: vec3, d_max: real, tie: real,
-                   iterations: int, tol: real, mode: int, passing_by: int,
-                   dist: wp.array(dtype=real), item: wp.array(dtype=int),
-                   active_out: wp.array(dtype=wp.int32), face_out: wp.array(dtype=int),
-                   xi_out: wp.array(dtype=vec2), point_out: wp.array(dtype=vec3),
-                   gap_out: wp.array(dtype=real), dist_out: wp.array(dtype=real),
-                   normal_out: wp.array(dtype=vec3), feature_out: wp.array(dtype=int),
-                   node_out: wp.array(dtype=int), status_out: wp.array(dtype=int),
-                   local_out: wp.array(dtype=int)):
+def _finish_kernel(
+    el: Any,
+    m: Master,
+    face_grid: _grid.Grid,
+    slaves: wp.array(dtype=vec3),
+    origin: vec3,
+    d_max: real,
+    tie: real,
+    iterations: int,
+    tol: real,
+    mode: int,
+    passing_by: int,
+    dist: wp.array(dtype=real),
+    item: wp.array(dtype=int),
+    active_out: wp.array(dtype=wp.int32),
+    face_out: wp.array(dtype=int),
+    xi_out: wp.array(dtype=vec2),
+    point_out: wp.array(dtype=vec3),
+    gap_out: wp.array(dtype=real),
+    dist_out: wp.array(dtype=real),
+    normal_out: wp.array(dtype=vec3),
+    feature_out: wp.array(dtype=int),
+    node_out: wp.array(dtype=int),
+    status_out: wp.array(dtype=int),
+    local_out: wp.array(dtype=int),
+):
     """The chosen face's projection (exact mode) or the node-mode search on the faces around
     the closest node, then stage 5 and every output. Slaves in their own order, so that the
     outputs are written in whole cache lines."""
@@ -131,8 +169,9 @@ def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(d
     if mode == 0:
         f = face_out[i]
         if dist[i] <= d_max:
-            xi, feature, local, conv, diff = project(el, m, face_grid, item[i], s, f, iterations,
-                                                     tol)
+            xi, feature, local, conv, diff = project(
+                el, m, face_grid, item[i], s, f, iterations, tol
+            )
             active = 1
             status = 0
     elif node >= 0:
@@ -144,7 +183,8 @@ def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(d
         limit = real(-1.0)
         for scan in range(2):
             d_face, d_any, f, xi, feature, local, conv, diff = scan_attached(
-                el, m, face_grid, s, node, only_face, limit, iterations, tol)
+                el, m, face_grid, s, node, only_face, limit, iterations, tol
+            )
             if scan == 0:
                 limit = d_any + tie
                 if d_face < real(3.0e38):
@@ -186,9 +226,19 @@ def _finish_kernel(el: Any, m: Master, face_grid: _grid.Grid, slaves: wp.array(d
         status_out[i] = 1
 
 
-OUTPUTS = (("active", wp.int32), ("face", int), ("xi", vec2), ("point", vec3),
-           ("gap", real), ("distance", real), ("normal", vec3), ("feature", int),
-           ("master_node", int), ("status", int), ("local", int))
+OUTPUTS = (
+    ("active", wp.int32),
+    ("face", int),
+    ("xi", vec2),
+    ("point", vec3),
+    ("gap", real),
+    ("distance", real),
+    ("normal", vec3),
+    ("feature", int),
+    ("master_node", int),
+    ("status", int),
+    ("local", int),
+)
 
 
 @dataclass(eq=False)
@@ -233,16 +283,29 @@ def _worlds(world, n, what):
         return np.zeros(n, np.int32)
     w = np.asarray(world)
     if w.shape != (n,) or w.dtype.kind not in "iu":
-        raise ValueError(f"{what} must be an integer array of shape ({n},), got {w.dtype} "
-                         f"{w.shape}")
+        raise ValueError(
+            f"{what} must be an integer array of shape ({n},), got {w.dtype} {w.shape}"
+        )
     if len(w) and w.min() < 0:
         raise ValueError(f"{what} row {int(np.argmin(w))} is negative")
     return w.astype(np.int32)
 
 
-def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, d_max=None,
-         device=None, growth=GROWTH, dtype="float32", sort_slaves="plan", mode="exact",
-         graphs=True, refit=True) -> Plan:
+def plan(
+    master: Surface,
+    slave_points,
+    *,
+    slave_world=None,
+    master_world=None,
+    d_max=None,
+    device=None,
+    growth=GROWTH,
+    dtype="float32",
+    sort_slaves="plan",
+    mode="exact",
+    graphs=True,
+    refit=True,
+) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
     spots, passing-by nodes on an open master's boundary), as arraycontact.detect.
@@ -268,10 +331,20 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     skips the keys and the sorts. False: sorts in every call."""
     here = precision(dtype)
     if here.real is not real:
-        return here.plan(master, slave_points, slave_world=slave_world,
-                         master_world=master_world, d_max=d_max, device=device, growth=growth,
-                         dtype=dtype, sort_slaves=sort_slaves, mode=mode, graphs=graphs,
-                         refit=refit)
+        return here.plan(
+            master,
+            slave_points,
+            slave_world=slave_world,
+            master_world=master_world,
+            d_max=d_max,
+            device=device,
+            growth=growth,
+            dtype=dtype,
+            sort_slaves=sort_slaves,
+            mode=mode,
+            graphs=graphs,
+            refit=refit,
+        )
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if mode not in MODES:
@@ -311,10 +384,15 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     origin = x.min(0) - d_max
     eps = float(np.finfo(NP_REAL).eps)
     tie = TIE_RTOL[NP_REAL] * master.longest_edge
-    consts = dict(d_max=float(d_max), tie=tie, slack=tie + 16 * eps * (extent + d_max + r_max),
-                  tol=KKT_TOL[NP_REAL],
-                  iterations=ITERATIONS.get(e.name, 0), lebesgue=float(e.lebesgue),
-                  quantum=float((hi - lo).max()) / 1024)
+    consts = dict(
+        d_max=float(d_max),
+        tie=tie,
+        slack=tie + 16 * eps * (extent + d_max + r_max),
+        tol=KKT_TOL[NP_REAL],
+        iterations=ITERATIONS.get(e.name, 0),
+        lebesgue=float(e.lebesgue),
+        quantum=float((hi - lo).max()) / 1024,
+    )
 
     def arr(a, dtype):
         return wp.array(a, dtype=dtype, device=device)
@@ -329,41 +407,74 @@ def plan(master: Surface, slave_points, *, slave_world=None, master_world=None, 
     m.nf_offsets, m.nf_ids = arr(offsets.astype(np.int32), int), arr(ids.astype(np.int32), int)
     m.face_edges = arr(master.face_edges.astype(np.int32), int)
     prev_node, next_node, prev_face, next_face, _ = boundary_topology(master)
-    m.prev_node, m.next_node = arr(prev_node.astype(np.int32), int), arr(
-        next_node.astype(np.int32), int)
-    m.prev_face, m.next_face = arr(prev_face.astype(np.int32), int), arr(
-        next_face.astype(np.int32), int)
+    m.prev_node, m.next_node = (
+        arr(prev_node.astype(np.int32), int),
+        arr(next_node.astype(np.int32), int),
+    )
+    m.prev_face, m.next_face = (
+        arr(prev_face.astype(np.int32), int),
+        arr(next_face.astype(np.int32), int),
+    )
     m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
     element = element_data(e.name, device)
     # Morton keys over the plan's box in the local frame; worlds above them in the key.
     margin = (growth - 1) * float(np.quantile(radii, 0.1))
     n_worlds = 1 if shared else int(nw.max()) + 1
-    node_grid, world_bits = _grid.new_grid(len(master.nodes), lo - origin,
-                                           float((hi - lo).max()), device, margin, n_worlds)
-    face_grid, _ = _grid.new_grid(master.n_faces, lo - origin, float((hi - lo).max()), device,
-                                  margin, n_worlds, corners=e.name == "tri3")
-    p = Plan(device=device, master=master, n_slaves=len(x), element=element,
-             kernel_element=triangle_data(device) if e.name == "tri3" else element,
-             m=m, node_grid=node_grid, face_grid=face_grid, world_bits=world_bits,
-             node_ids=arr(master.nodes.astype(np.int32), int),
-             slave_world=arr(sw, int), shared=int(shared), origin=origin, constants=consts,
-             slave_in=wp.zeros(len(x), dtype=vec3, device=device),
-             master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
-             rebuild=wp.zeros(1, dtype=wp.int32, device=device), out=out,
-             dtype=NP_REAL, order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(
-                 np.int32), int),
-             order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
-             if sort_slaves == "detect" else None,
-             dist=wp.zeros(len(x), dtype=real, device=device),
-             item=wp.zeros(len(x), dtype=int, device=device), mode=MODES.index(mode),
-             passing_by=int(mode == "node" and not master.closed), graphs=bool(graphs),
-             refit=bool(refit))
+    node_grid, world_bits = _grid.new_grid(
+        len(master.nodes), lo - origin, float((hi - lo).max()), device, margin, n_worlds
+    )
+    face_grid, _ = _grid.new_grid(
+        master.n_faces,
+        lo - origin,
+        float((hi - lo).max()),
+        device,
+        margin,
+        n_worlds,
+        corners=e.name == "tri3",
+    )
+    p = Plan(
+        device=device,
+        master=master,
+        n_slaves=len(x),
+        element=element,
+        kernel_element=triangle_data(device) if e.name == "tri3" else element,
+        m=m,
+        node_grid=node_grid,
+        face_grid=face_grid,
+        world_bits=world_bits,
+        node_ids=arr(master.nodes.astype(np.int32), int),
+        slave_world=arr(sw, int),
+        shared=int(shared),
+        origin=origin,
+        constants=consts,
+        slave_in=wp.zeros(len(x), dtype=vec3, device=device),
+        master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
+        rebuild=wp.zeros(1, dtype=wp.int32, device=device),
+        out=out,
+        dtype=NP_REAL,
+        order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(np.int32), int),
+        order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
+        if sort_slaves == "detect"
+        else None,
+        dist=wp.zeros(len(x), dtype=real, device=device),
+        item=wp.zeros(len(x), dtype=int, device=device),
+        mode=MODES.index(mode),
+        passing_by=int(mode == "node" and not master.closed),
+        graphs=bool(graphs),
+        refit=bool(refit),
+    )
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
         p.slave_in.assign((x - origin).astype(NP_REAL))
-        _grid.spatial_order(p.slave_in, vec3(0.0, 0.0, 0.0), real(consts["quantum"]),
-                            wp.zeros(2 * len(x), dtype=int, device=device), p.order, len(x),
-                            device)
+        _grid.spatial_order(
+            p.slave_in,
+            vec3(0.0, 0.0, 0.0),
+            real(consts["quantum"]),
+            wp.zeros(2 * len(x), dtype=int, device=device),
+            p.order,
+            len(x),
+            device,
+        )
     return p
 
 
@@ -388,8 +499,10 @@ def _input(p: Plan, a, staging, what, n):
     if kind == "jax":
         a = wp.from_jax(a, dtype=vec3)  # DLPack: no copy on the same device
     if a.dtype != vec3 or a.shape != (n,):
-        raise ValueError(f"{what} must be a wp.array of {n} {vec3.__name__} (the plan's dtype), "
-                         f"got {a.dtype} {a.shape}")
+        raise ValueError(
+            f"{what} must be a wp.array of {n} {vec3.__name__} (the plan's dtype), "
+            f"got {a.dtype} {a.shape}"
+        )
     if a.device != p.device:
         raise ValueError(f"{what} is on {a.device}, the plan on {p.device}")
     return a, vec3(*[float(v) for v in p.origin])
@@ -400,19 +513,41 @@ def _build(p: Plan):
     c = p.constants
     dev = p.device
     m = p.m
-    _grid.build(p.node_grid, m.points, p.node_ids, m.node_world, len(p.master.nodes), dev,
-                p.rebuild, p.world_bits)
+    _grid.build(
+        p.node_grid,
+        m.points,
+        p.node_ids,
+        m.node_world,
+        len(p.master.nodes),
+        dev,
+        p.rebuild,
+        p.world_bits,
+    )
     if p.mode == 0:  # node mode reads no face grid
-        _grid.build_faces(p.face_grid, m.points, m.faces, c["lebesgue"], m.face_world, dev,
-                          p.master.element.name == "tri3", p.rebuild, p.world_bits)
+        _grid.build_faces(
+            p.face_grid,
+            m.points,
+            m.faces,
+            c["lebesgue"],
+            m.face_world,
+            dev,
+            p.master.element.name == "tri3",
+            p.rebuild,
+            p.world_bits,
+        )
 
 
 def _master_stages(p: Plan, xm, m_origin):
     c = p.constants
     dev = p.device
     m = p.m
-    wp.launch(_prepare.localise, len(p.master.points), inputs=[xm, m_origin], outputs=[m.points],
-              device=dev)
+    wp.launch(
+        _prepare.localise,
+        len(p.master.points),
+        inputs=[xm, m_origin],
+        outputs=[m.points],
+        device=dev,
+    )
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
     if p.refit and (dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())):
@@ -420,8 +555,16 @@ def _master_stages(p: Plan, xm, m_origin):
         p.rebuild.zero_()
         _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild)
         if p.mode == 0:
-            _grid.refit_faces(p.face_grid, m.points, m.faces, c["lebesgue"],
-                              m.face_world, dev, p.master.element.name == "tri3", p.rebuild)
+            _grid.refit_faces(
+                p.face_grid,
+                m.points,
+                m.faces,
+                c["lebesgue"],
+                m.face_world,
+                dev,
+                p.master.element.name == "tri3",
+                p.rebuild,
+            )
 
         def fill():
             _grid.fill(p.node_grid, n_nodes, dev)
@@ -441,25 +584,70 @@ def _launch(p: Plan, xs, s_origin, master):
     if master is not None:
         _master_stages(p, *master)
     if p.order_keys is not None:
-        _grid.spatial_order(xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves,
-                            dev)
+        _grid.spatial_order(
+            xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves, dev
+        )
     o = p.out
     n = p.n_slaves
-    wp.launch(_node_kernel, n,
-              inputs=[p.node_grid, xs, p.order, p.slave_world, p.shared, s_origin,
-                      real(c["d_max"]), real(c["tie"])],
-              outputs=[o["master_node"], p.dist], device=dev)
+    wp.launch(
+        _node_kernel,
+        n,
+        inputs=[
+            p.node_grid,
+            xs,
+            p.order,
+            p.slave_world,
+            p.shared,
+            s_origin,
+            real(c["d_max"]),
+            real(c["tie"]),
+        ],
+        outputs=[o["master_node"], p.dist],
+        device=dev,
+    )
     if p.mode == 0:
-        wp.launch(_face_kernel, n,
-                  inputs=[p.kernel_element, p.m, p.face_grid, xs, p.order, p.slave_world,
-                          p.shared, s_origin, real(c["d_max"]), real(c["tie"]),
-                          real(c["slack"]), c["iterations"], real(c["tol"])],
-                  outputs=[p.dist, o["face"], p.item], device=dev)
-    wp.launch(_finish_kernel, n,
-              inputs=[p.kernel_element, p.m, p.face_grid, xs, s_origin,
-                      real(c["d_max"]), real(c["tie"]), c["iterations"], real(c["tol"]), p.mode,
-                      p.passing_by, p.dist, p.item],
-              outputs=[o[k] for k, _ in OUTPUTS], device=dev)
+        wp.launch(
+            _face_kernel,
+            n,
+            inputs=[
+                p.kernel_element,
+                p.m,
+                p.face_grid,
+                xs,
+                p.order,
+                p.slave_world,
+                p.shared,
+                s_origin,
+                real(c["d_max"]),
+                real(c["tie"]),
+                real(c["slack"]),
+                c["iterations"],
+                real(c["tol"]),
+            ],
+            outputs=[p.dist, o["face"], p.item],
+            device=dev,
+        )
+    wp.launch(
+        _finish_kernel,
+        n,
+        inputs=[
+            p.kernel_element,
+            p.m,
+            p.face_grid,
+            xs,
+            s_origin,
+            real(c["d_max"]),
+            real(c["tie"]),
+            c["iterations"],
+            real(c["tol"]),
+            p.mode,
+            p.passing_by,
+            p.dist,
+            p.item,
+        ],
+        outputs=[o[k] for k, _ in OUTPUTS],
+        device=dev,
+    )
 
 
 def detect(p: Plan, slave_points, master_points=None):
@@ -488,8 +676,11 @@ def detect(p: Plan, slave_points, master_points=None):
         # Called again on the same buffers: the launches as one CUDA graph, captured on the
         # second such call and replayed from then on (no Python launch overhead). A caller
         # capturing detect in a graph of its own gets the launches themselves.
-        key = (xs.ptr, tuple(float(v) for v in s_origin),
-               None if master is None else (master[0].ptr, tuple(float(v) for v in master[1])))
+        key = (
+            xs.ptr,
+            tuple(float(v) for v in s_origin),
+            None if master is None else (master[0].ptr, tuple(float(v) for v in master[1])),
+        )
         if key != p.graph_key and key == p.last_key:
             with wp.ScopedCapture(device=dev) as cap:
                 _launch(p, xs, s_origin, master)

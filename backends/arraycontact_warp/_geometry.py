@@ -65,8 +65,7 @@ class FaceNodes:
 def triangle_data(device=None) -> Triangles:
     t = Triangles()
     t.n_corners = 3
-    t.nodes = wp.array(np.array([[0, 0], [1, 0], [0, 1]], NP_REAL), dtype=vec2,
-                       device=device)
+    t.nodes = wp.array(np.array([[0, 0], [1, 0], [0, 1]], NP_REAL), dtype=vec2, device=device)
     t.centre = vec2(1.0 / 3.0, 1.0 / 3.0)
     return t
 
@@ -160,8 +159,7 @@ def face_tangents(el: Element, xe: FaceNodes, xi: vec2):
 
 
 @wp.func
-def face_nodes(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int,
-               origin: vec3):
+def face_nodes(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, origin: vec3):
     """The nodes of face f relative to `origin` (nearby values subtract exactly)."""
     xe = FaceNodes()
     for i in range(faces.shape[1]):
@@ -222,8 +220,9 @@ def _objective(el: Element, xe: FaceNodes, r: vec3, xi: vec2):
 @wp.func
 def _solve2(m: mat22, v: vec2):
     det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    return vec2(_sdiv(v[0] * m[1, 1] - m[0, 1] * v[1], det),
-                   _sdiv(m[0, 0] * v[1] - m[1, 0] * v[0], det))
+    return vec2(
+        _sdiv(v[0] * m[1, 1] - m[0, 1] * v[1], det), _sdiv(m[0, 0] * v[1] - m[1, 0] * v[0], det)
+    )
 
 
 @wp.func
@@ -291,7 +290,7 @@ def closest_point_edge(el: Element, r: vec3, xe: FaceNodes, e: int):
             hi = b
             if fb > fa:
                 t = a - fa * (b - a) / (fb - fa)
-            for i in range(12):
+            for _ in range(12):
                 ft = _cubic(c3, c2, c1, c0, t)
                 if ft <= 0.0:
                     lo = t
@@ -313,8 +312,21 @@ def closest_point_edge(el: Element, r: vec3, xe: FaceNodes, e: int):
 
 
 @wp.func
-def _step(el: Element, r: vec3, xe: FaceNodes, xi: vec2, h: mat22, g: vec2,
-          t0: vec3, t1: vec3, s00: vec3, s01: vec3, s11: vec3, w1: int, w2: int):
+def _step(
+    el: Element,
+    r: vec3,
+    xe: FaceNodes,
+    xi: vec2,
+    h: mat22,
+    g: vec2,
+    t0: vec3,
+    t1: vec3,
+    s00: vec3,
+    s01: vec3,
+    s11: vec3,
+    w1: int,
+    w2: int,
+):
     """The step for the working set {w1, w2} (-1: empty slot). Empty: Newton (h positive
     definite or Gauss-Newton's) with its second-order correction where that stays on the face
     and is closer; one constraint: to the exact closest point of that edge; two: none."""
@@ -327,7 +339,10 @@ def _step(el: Element, r: vec3, xe: FaceNodes, xi: vec2, h: mat22, g: vec2,
         m0 = p[0] * s00 + p[1] * s01
         m1 = p[0] * s01 + p[1] * s11
         xpp = p[0] * m0 + p[1] * m1
-        c = vec2(real(2.0) * wp.dot(m0, jp) + wp.dot(t0, xpp), real(2.0) * wp.dot(m1, jp) + wp.dot(t1, xpp))
+        c = vec2(
+            real(2.0) * wp.dot(m0, jp) + wp.dot(t0, xpp),
+            real(2.0) * wp.dot(m1, jp) + wp.dot(t1, xpp),
+        )
         pc = p - _solve2(h, real(0.5) * c)
         if _objective(el, xe, r, xi + pc) < _objective(el, xe, r, xi + p):
             return pc
@@ -340,8 +355,7 @@ def _step(el: Element, r: vec3, xe: FaceNodes, xi: vec2, h: mat22, g: vec2,
 
 
 @wp.func
-def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iterations: int,
-                       tol: real):
+def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iterations: int, tol: real):
     """Active-set method on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8), the
     twin of the NumPy "active_set" method: exact Hessian (Gauss-Newton where it is not
     positive definite), steps from `_step`; the working set holds at most two constraints
@@ -383,8 +397,9 @@ def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iteration
         lam2 = real(0.0)
         proj = g
         if w1 >= 0 and w2 >= 0:
-            lam = _solve2(mat22(el.cons_a[w1][0], el.cons_a[w2][0],
-                                   el.cons_a[w1][1], el.cons_a[w2][1]), g)
+            lam = _solve2(
+                mat22(el.cons_a[w1][0], el.cons_a[w2][0], el.cons_a[w1][1], el.cons_a[w2][1]), g
+            )
             lam1 = lam[0]
             lam2 = lam[1]
             proj = g - lam1 * el.cons_a[w1] - lam2 * el.cons_a[w2]
@@ -440,7 +455,7 @@ def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iteration
         alpha = wp.min(amin, real(1.0))
         f0 = _objective(el, xe, r, xi)
         ftol = real(16.0) * EPS * (f0 + scale)
-        for k in range(4):
+        for _ in range(4):
             if _objective(el, xe, r, xi + alpha * p) > f0 + ftol:
                 alpha = real(0.5) * alpha
         new = xi + alpha * p

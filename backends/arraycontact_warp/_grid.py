@@ -166,6 +166,7 @@ if real is wp.float32:
     def write_box(grid: Grid, key: int, box: Box):
         _store_box(grid.boxes, key, box.lo, box.wmin, box.hi, box.wmax)
 else:
+
     @wp.func
     def item_lo(grid: Grid, k: int):
         return grid.items[k].lo
@@ -196,8 +197,6 @@ else:
         grid.boxes[key] = box
 
 
-
-
 @wp.func
 def entry(grid: Grid, k: int, j: int):
     """Entry j of level k >= 1."""
@@ -221,8 +220,9 @@ def enters(s: vec3, world: int, shared: int, box: Box, reach: real):
 
 
 @wp.func
-def children(grid: Grid, s: vec3, world: int, shared: int, k: int, j: int, reach: real,
-             centred: int):
+def children(
+    grid: Grid, s: vec3, world: int, shared: int, k: int, j: int, reach: real, centred: int
+):
     """Which children (level k - 1 >= 1) of entry j of level k a scan enters: a bit mask, and
     the child with the nearest box (-1 when none), which the scan visits first. centred = 1:
     among boxes that hold s (near the root, several), the one whose centre is nearest (node
@@ -308,8 +308,9 @@ def morton_key(c: vec3, world: int, quantum: real, bits: int):
 
 
 @wp.kernel
-def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int),
-          grid: Grid):
+def _keys(
+    x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int), grid: Grid
+):
     k = wp.tid()
     i = ids[k]
     grid.keys[k] = morton_key(x[i] - grid.corner, world[i], grid.quantum, grid.bits)
@@ -317,8 +318,13 @@ def _keys(x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dty
 
 
 @wp.kernel
-def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
-               world: wp.array(dtype=int), grid: Grid):
+def _face_keys(
+    points: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    lebesgue: real,
+    world: wp.array(dtype=int),
+    grid: Grid,
+):
     f = wp.tid()
     c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
     grid.keys[f] = morton_key(c - grid.corner, world[f], grid.quantum, grid.bits)
@@ -326,8 +332,13 @@ def _face_keys(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebes
 
 
 @wp.kernel
-def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), refit: int, grid: Grid,
-            rebuild: wp.array(dtype=wp.int32)):
+def _gather(
+    x: wp.array(dtype=vec3),
+    world: wp.array(dtype=int),
+    refit: int,
+    grid: Grid,
+    rebuild: wp.array(dtype=wp.int32),
+):
     """Each node's record in key order (a point: lo = hi). refit = 1: the order is the
     previous build's; rebuild[0] is raised when a node moved farther than grid.margin."""
     k = wp.tid()
@@ -341,9 +352,16 @@ def _gather(x: wp.array(dtype=vec3), world: wp.array(dtype=int), refit: int, gri
 
 
 @wp.kernel
-def _face_gather(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), lebesgue: real,
-                 world: wp.array(dtype=int), corners: int, refit: int, grid: Grid,
-                 rebuild: wp.array(dtype=wp.int32)):
+def _face_gather(
+    points: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    lebesgue: real,
+    world: wp.array(dtype=int),
+    corners: int,
+    refit: int,
+    grid: Grid,
+    rebuild: wp.array(dtype=wp.int32),
+):
     """Each face's record (its box) in key order, and (corners = 1, tri3) its corners.
     refit = 1: as _gather, for the faces' centres."""
     k = wp.tid()
@@ -420,8 +438,9 @@ def fill(grid: Grid, n: int, device):
 
 
 def _sort(grid: Grid, n: int, world_bits: int):
-    wp.utils.radix_sort_pairs(grid.keys, grid.sorted_ids, n,
-                              end_bit=3 * int(grid.bits) + world_bits)
+    wp.utils.radix_sort_pairs(
+        grid.keys, grid.sorted_ids, n, end_bit=3 * int(grid.bits) + world_bits
+    )
 
 
 def build(grid: Grid, x, ids, world, n: int, device, rebuild, world_bits: int):
@@ -432,15 +451,28 @@ def build(grid: Grid, x, ids, world, n: int, device, rebuild, world_bits: int):
     fill(grid, n, device)
 
 
-def build_faces(grid: Grid, points, faces, lebesgue: float, world, device, corners: bool,
-                rebuild, world_bits: int):
+def build_faces(
+    grid: Grid,
+    points,
+    faces,
+    lebesgue: float,
+    world,
+    device,
+    corners: bool,
+    rebuild,
+    world_bits: int,
+):
     """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
     corners in key order."""
     n = faces.shape[0]
     wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), world, grid], device=device)
     _sort(grid, n, world_bits)
-    wp.launch(_face_gather, n, inputs=[points, faces, real(lebesgue), world, int(corners), 0,
-                                       grid, rebuild], device=device)
+    wp.launch(
+        _face_gather,
+        n,
+        inputs=[points, faces, real(lebesgue), world, int(corners), 0, grid, rebuild],
+        device=device,
+    )
     fill(grid, n, device)
 
 
@@ -451,15 +483,18 @@ def refit(grid: Grid, x, world, n: int, device, rebuild):
     wp.launch(_gather, n, inputs=[x, world, 1, grid, rebuild], device=device)
 
 
-def refit_faces(grid: Grid, points, faces, lebesgue: float, world, device, corners: bool,
-                rebuild):
-    wp.launch(_face_gather, faces.shape[0], inputs=[points, faces, real(lebesgue), world,
-                                                    int(corners), 1, grid, rebuild],
-              device=device)
+def refit_faces(grid: Grid, points, faces, lebesgue: float, world, device, corners: bool, rebuild):
+    wp.launch(
+        _face_gather,
+        faces.shape[0],
+        inputs=[points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild],
+        device=device,
+    )
 
 
-def new_grid(n: int, corner, extent: float, device, margin: float, n_worlds: int = 1,
-             corners=False):
+def new_grid(
+    n: int, corner, extent: float, device, margin: float, n_worlds: int = 1, corners=False
+):
     """A tree for n items in the cube of side `extent` at `corner` (local frame), with
     `margin` the distance an item may move before a refit asks for a build. Returns (grid,
     world bits)."""
@@ -503,8 +538,13 @@ def _spread(v: int):
 
 
 @wp.kernel
-def _morton(x: wp.array(dtype=vec3), origin: vec3, quantum: real, keys: wp.array(dtype=int),
-            order: wp.array(dtype=int)):
+def _morton(
+    x: wp.array(dtype=vec3),
+    origin: vec3,
+    quantum: real,
+    keys: wp.array(dtype=int),
+    order: wp.array(dtype=int),
+):
     i = wp.tid()
     c = x[i] - origin
     cx = int(wp.floor(c[0] / quantum))

@@ -22,8 +22,7 @@ def localise(x: wp.array(dtype=vec3), origin: vec3, out: wp.array(dtype=vec3)):
 
 
 @wp.func
-def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int,
-                lebesgue: real):
+def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, lebesgue: real):
     """Face f's ball (c, r), which places it in the face grid, and its box [lo, hi], which a
     scan tests. Per axis, with m and w the middle and half-width of the nodes' range,
     x(xi) - m = sum_i N_i (x_i - m), so |x(xi) - m| <= lebesgue w: the box m +- lebesgue w

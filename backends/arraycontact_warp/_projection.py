@@ -12,11 +12,34 @@ from typing import Any
 
 import warp as wp
 
-from ._geometry import (EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, closest_point_edge,
-                        closest_point_face, closest_point_triangle, edge_xi, face_nodes,
-                        face_point, start_option_one)
-from ._grid import (W, Grid, box_gap_sq, children, enters, entry, item_hi, item_lo,
-                    item_world, descend, next_pending)
+from ._geometry import (
+    EDGE,
+    FACE,
+    VERTEX,
+    Element,
+    FaceNodes,
+    Triangles,
+    closest_point_edge,
+    closest_point_face,
+    closest_point_triangle,
+    edge_xi,
+    face_nodes,
+    face_point,
+    start_option_one,
+)
+from ._grid import (
+    Grid,
+    W,
+    box_gap_sq,
+    children,
+    descend,
+    enters,
+    entry,
+    item_hi,
+    item_lo,
+    item_world,
+    next_pending,
+)
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times).
@@ -42,8 +65,7 @@ class Master:
 
 
 @wp.func
-def exact_edges(el: Element, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int,
-                conv: int):
+def exact_edges(el: Element, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int, conv: int):
     """The exact closest point over the face's edges (closest_point_edge) replaces Newton's
     answer when at most as far: no start can miss a minimum on an edge, and on a degenerate
     quad4 Newton can stop at a stationary corner. The first edge wins a tie."""
@@ -88,8 +110,9 @@ def lattice_start(el: Element, r: vec3, xe: FaceNodes):
 
 
 @wp.func
-def project(el: Triangles, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int,
-            tol: real):
+def project(
+    el: Triangles, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int, tol: real
+):
     """tri3: Voronoi regions on the corners the face grid holds in key order (item k), read
     contiguously; a per-face node block would live in slow local memory."""
     return _on_triangle(s, grid.corners[k, 0], grid.corners[k, 1], grid.corners[k, 2])
@@ -106,23 +129,32 @@ def _on_triangle(s: vec3, x0: vec3, x1: vec3, x2: vec3):
 
 
 @wp.func
-def project_face(el: Triangles, m: Master, grid: Grid, s: vec3, f: int, iterations: int,
-                 tol: real):
+def project_face(el: Triangles, m: Master, grid: Grid, s: vec3, f: int, iterations: int, tol: real):
     """`project` by face id alone (node mode: the face's grid item is not known)."""
-    return _on_triangle(s, m.points[m.faces[f, 0]], m.points[m.faces[f, 1]],
-                        m.points[m.faces[f, 2]])
+    return _on_triangle(
+        s, m.points[m.faces[f, 0]], m.points[m.faces[f, 1]], m.points[m.faces[f, 2]]
+    )
 
 
 @wp.func
-def project_face(el: Element, m: Master, grid: Grid, s: vec3, f: int,  # noqa: F811
-                 iterations: int, tol: real):
+def project_face(  # noqa: F811 (a Warp overload)
+    el: Element, m: Master, grid: Grid, s: vec3, f: int, iterations: int, tol: real
+):
     return project(el, m, grid, -1, s, f, iterations, tol)
 
 
 # A Warp overload of the tri3 `project` above, chosen by the element struct's type.
 @wp.func
-def project(el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int,  # noqa: F811
-            iterations: int, tol: real):
+def project(  # noqa: F811 (a Warp overload)
+    el: Element,
+    m: Master,
+    grid: Grid,
+    k: int,
+    s: vec3,
+    f: int,
+    iterations: int,
+    tol: real,
+):
     """Closest point of s on face f in a frame at the face's first node: xi, feature, local,
     converged, s - point. (grid and k: the tri3 overload's data.)"""
     x0 = m.points[m.faces[f, 0]]
@@ -162,8 +194,20 @@ _candidates = wp.types.vector(length=W, dtype=int)
 
 
 @wp.func
-def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int, rho: real,
-               tie: real, limit: real, slack: real, iterations: int, tol: real):
+def scan_faces(
+    el: Any,
+    m: Master,
+    grid: Grid,
+    s: vec3,
+    world: int,
+    shared: int,
+    rho: real,
+    tie: real,
+    limit: real,
+    slack: real,
+    iterations: int,
+    tol: real,
+):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its tree item (its projection is computed
     again by the caller: keeping it through the scan costs registers that all threads pay).
@@ -172,8 +216,9 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
     The face tree depth first (_grid: a visit tests an entry's W children, goes on with the
     nearest, keeps the others in `stack`), within the reach; at a leaf, its faces within
     reach are collected, the nearest box's projected first, the others tested again against
-    the reach of the running minimum (which rejects most before their projection). The reach shrinks to the running minimum (plus rounding slack) after each
-    projection: no farther face can hold the answer.
+    the reach of the running minimum (which rejects most before their projection). The reach
+    shrinks to the running minimum (plus rounding slack) after each projection: no farther
+    face can hold the answer.
 
     limit < 0, the first scan: the tie rule applied as the faces come, from the face at the
     running minimum, the smallest distance of any other face seen and the chosen face. When a
@@ -267,8 +312,17 @@ def scan_faces(el: Any, m: Master, grid: Grid, s: vec3, world: int, shared: int,
 
 
 @wp.func
-def scan_attached(el: Any, m: Master, grid: Grid, s: vec3, node: int, only_face: int,
-                  limit: real, iterations: int, tol: real):
+def scan_attached(
+    el: Any,
+    m: Master,
+    grid: Grid,
+    s: vec3,
+    node: int,
+    only_face: int,
+    limit: real,
+    iterations: int,
+    tol: real,
+):
     """Node mode (seed 000 section 2.2): the projections of s on the faces attached to its
     closest node. Returns the smallest distance among the projections that land on a face's
     interior and among all, and the smallest face id at distance <= limit (only interior

@@ -18,8 +18,7 @@ import warp as wp
 
 _TYPES = {
     wp.float32: dict(real=wp.float32, vec2=wp.vec2, vec3=wp.vec3, vec4=wp.vec4, mat22=wp.mat22),
-    wp.float64: dict(real=wp.float64, vec2=wp.vec2d, vec3=wp.vec3d, vec4=wp.vec4d,
-                     mat22=wp.mat22d),
+    wp.float64: dict(real=wp.float64, vec2=wp.vec2d, vec3=wp.vec3d, vec4=wp.vec4d, mat22=wp.mat22d),
 }
 
 

@@ -108,8 +108,9 @@ def pseudo_normal(el: Any, m: Master, f: int, feature: int, local: int, xi: vec2
 
 
 @wp.func
-def classify(el: Any, m: Master, f: int, feature: int, local: int, xi: vec2,
-             diff: vec3, on_surface: real):
+def classify(
+    el: Any, m: Master, f: int, feature: int, local: int, xi: vec2, diff: vec3, on_surface: real
+):
     """gap, distance, normal (gap < 0: penetration)."""
     npse = pseudo_normal(el, m, f, feature, local, xi)
     dist = wp.length(diff)
