@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -128,7 +129,8 @@ def make_scenes(refines=(100, 300, 1000)):
 
 
 def _meta(a):
-    commit = subprocess.run(
+    # A copy of the tree on another machine may carry a stale .git: ARRAYCONTACT_COMMIT wins.
+    commit = os.environ.get("ARRAYCONTACT_COMMIT") or subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
     ).stdout.strip()
     return dict(
