@@ -130,9 +130,12 @@ def make_scenes(refines=(100, 300, 1000)):
 
 def _meta(a):
     # A copy of the tree on another machine may carry a stale .git: ARRAYCONTACT_COMMIT wins.
-    commit = os.environ.get("ARRAYCONTACT_COMMIT") or subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
-    ).stdout.strip()
+    commit = (
+        os.environ.get("ARRAYCONTACT_COMMIT")
+        or subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
+        ).stdout.strip()
+    )
     return dict(
         run=a.run or datetime.datetime.now().strftime("%Y%m%d-%H%M%S"),
         date=datetime.date.today().isoformat(),
