@@ -42,6 +42,18 @@ class Static:
     iterations: int
     passing_by: bool  # node mode on an open master: the boundary test of eqs. (12)-(13)
 
+    @classmethod
+    def of(cls, master: Surface, mode: str, prep: Prepared) -> "Static":
+        """The static configuration of detecting on `master` in `mode` with `prep`'s trees."""
+        return cls(
+            element=master.element.name,
+            mode=mode,
+            node_levels=prep.node_levels,
+            face_levels=prep.face_levels,
+            iterations=ITERATIONS.get(master.element.name, 0),
+            passing_by=mode == "node" and not master.closed,
+        )
+
 
 def master_topology(master: Surface, prep: Prepared):
     """Connectivity and topology of the master, int32 arrays keyed by global ids; the nodes and
@@ -378,14 +390,7 @@ def detect(
     answered = dict(backend=backend, dtype=dtype.name)
     if prep is None:  # the boxes do not meet: no grid, no contact
         return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0}, **answered)
-    st = Static(
-        element=master.element.name,
-        mode=mode,
-        node_levels=prep.node_levels,
-        face_levels=prep.face_levels,
-        iterations=ITERATIONS.get(master.element.name, 0),
-        passing_by=mode == "node" and not master.closed,
-    )
+    st = Static.of(master, mode, prep)
     if backend == "numpy":
         out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype)
         answered["device"] = "cpu"

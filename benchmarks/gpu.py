@@ -20,20 +20,21 @@ from pathlib import Path
 
 import numpy as np
 
-import arraycontact as ac
 from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
-from run import errors, make_scene  # noqa: E402
+from run import errors, make_scene, warp_contacts  # noqa: E402
 
 
-def bench_jax(scene, repeats, mode="exact", search="jax"):
+def bench_jax(scene, repeats, mode="exact", search="jax", d_max=None, grad=False):
+    """The JAX back end, float32: plan, first call, steady detection; grad: also the steady
+    value_and_grad of a gap energy with respect to both coordinate arrays."""
     import arraycontact_jax as acj
     import jax
     import jax.numpy as jnp
 
     t0 = time.perf_counter()
-    p = acj.plan(scene.master, scene.slave, mode=mode, dtype=np.float32, search=search)
+    p = acj.plan(scene.master, scene.slave, mode=mode, d_max=d_max, dtype=np.float32, search=search)
     plan_s = time.perf_counter() - t0
     s = jax.device_put(jnp.asarray(scene.slave, jnp.float32))
     m = jax.device_put(jnp.asarray(scene.master.points, jnp.float32))
@@ -46,6 +47,20 @@ def bench_jax(scene, repeats, mode="exact", search="jax"):
         c = jax.block_until_ready(acj.detect(p, s, m))
         times.append(time.perf_counter() - t0)
     extra = {}
+    if grad:
+
+        def energy(s, m):
+            c = acj.detect(p, s, m)
+            return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.0) ** 2, 0.0))
+
+        vg = jax.jit(jax.value_and_grad(energy, argnums=(0, 1)))
+        jax.block_until_ready(vg(s, m))
+        gt = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(vg(s, m))
+            gt.append(time.perf_counter() - t0)
+        extra["value_and_grad_s"] = statistics.median(gt)
     if search == "warp":
         # Split the time: the Warp search alone (inside jit), and the JAX side's parts.
         from arraycontact_jax._gradients import smooth
@@ -280,22 +295,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
             gt.append(time.perf_counter() - t0)
         graph_s = statistics.median(gt)
         kernels["resources"] = kernel_resources(device)
-    o = {k: v.numpy() for k, v in p.out.items()}
-    n = len(scene.slave)
-    c = ac.Contacts(
-        active=o["active"].astype(bool),
-        face=o["face"],
-        xi=o["xi"],
-        point=o["point"],
-        gap=o["gap"],
-        distance=o["distance"],
-        normal=o["normal"],
-        feature=o["feature"],
-        master_node=o["master_node"],
-        status=o["status"],
-        slave_ids=np.arange(n),
-        d_max=p.constants["d_max"],
-    )
+    c = warp_contacts(p)
     return c, dict(
         plan_s=plan_s,
         first_call_s=first,

@@ -103,6 +103,19 @@ def timed(fn, repeats):
     return out, first, statistics.median(times) if times else first
 
 
+def warp_contacts(p):
+    """The Contacts of a Warp plan's last detection (its output arrays, on the host)."""
+    o = {k: v.numpy() for k, v in p.out.items()}
+    names = ("face", "xi", "point", "gap", "distance", "normal", "feature", "master_node")
+    return ac.Contacts(
+        active=o["active"].astype(bool),
+        **{k: o[k] for k in names},
+        status=o["status"],
+        slave_ids=np.arange(p.n_slaves),
+        d_max=p.constants["d_max"],
+    )
+
+
 def errors(c, scene, n_check, dtype, seed=0):
     """Error against the brute-force reference on a random subset of slaves."""
     rng = np.random.default_rng(seed)

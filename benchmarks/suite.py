@@ -42,7 +42,7 @@ from arraycontact._backends import quiet_warp
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))
-from run import errors  # noqa: E402
+from run import errors, warp_contacts  # noqa: E402
 
 SCENE_DIR = HERE / "scenes"
 
@@ -179,37 +179,18 @@ def topology_time(master):
 
 def jax_search(scene, d_max, repeats, check):
     """The JAX back end with search="jax" (no Warp), float32, exact: plan, first call,
-    steady detection, and the steady value_and_grad of a gap energy (both coordinate arrays)."""
-    import arraycontact_jax as acj
-    import jax
-    import jax.numpy as jnp
+    steady detection, and the steady value_and_grad of a gap energy (gpu.bench_jax)."""
+    from gpu import bench_jax
 
-    t0 = time.perf_counter()
-    p = acj.plan(scene.master, scene.slave, d_max=d_max, dtype=np.float32, search="jax")
-    plan_s = time.perf_counter() - t0
-    xs = jax.device_put(jnp.asarray(scene.slave, jnp.float32))
-    xm = jax.device_put(jnp.asarray(scene.master.points, jnp.float32))
-    t0 = time.perf_counter()
-    c = jax.block_until_ready(acj.detect(p, xs, xm))
-    first_s = time.perf_counter() - t0
-    steady = _median_time(lambda: jax.block_until_ready(acj.detect(p, xs, xm)), repeats)
-
-    def energy(xs, xm):
-        c = acj.detect(p, xs, xm)
-        return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.0) ** 2, 0.0))
-
-    vg = jax.jit(jax.value_and_grad(energy, argnums=(0, 1)))
-    jax.block_until_ready(vg(xs, xm))
-    grad_s = _median_time(lambda: jax.block_until_ready(vg(xs, xm)), repeats)
-    c = jax.tree.map(np.asarray, c)
+    c, r = bench_jax(scene, repeats, search="jax", d_max=d_max, grad=True)
     return dict(
-        jax_plan_s=plan_s,
-        jax_first_s=first_s,
-        jax_steady_s=steady,
-        jax_value_and_grad_s=grad_s,
-        jax_overflow=bool(c.overflow),
-        jax_counts={k: int(v) for k, v in c.counts.count.items()},
-        jax_capacity=dict(c.counts.capacity),
+        jax_plan_s=r["plan_s"],
+        jax_first_s=r["first_call_s"],
+        jax_steady_s=r["steady_s"],
+        jax_value_and_grad_s=r["value_and_grad_s"],
+        jax_overflow=r["overflow"],
+        jax_counts={k: int(v) for k, v in r["counts"].items()},
+        jax_capacity=r["capacity"],
         jax_errors=errors(c, scene, check, "float32"),
     )
 
@@ -243,21 +224,7 @@ def run_gpu(a):
         steady = _median_time(
             lambda: acw.detect(p, xs, xm), a.repeats, lambda: wp.synchronize_device(dev)
         )
-        out = {k: v.numpy() for k, v in p.out.items()}
-        c = ac.Contacts(
-            active=out["active"].astype(bool),
-            face=out["face"],
-            xi=out["xi"],
-            point=out["point"],
-            gap=out["gap"],
-            distance=out["distance"],
-            normal=out["normal"],
-            feature=out["feature"],
-            master_node=out["master_node"],
-            status=out["status"],
-            slave_ids=np.arange(len(scene.slave)),
-            d_max=d_max,
-        )
+        c = warp_contacts(p)
         err = errors(c, scene, a.check, "float32")
         peers = mesh_peers(scene.master, scene.slave, d_max, repeats=a.repeats, device=dev)
         rec = dict(

@@ -36,7 +36,6 @@ import numpy as np
 
 from arraycontact._contacts import Contacts, Counts, Feature, Status
 from arraycontact._detect import (
-    ITERATIONS,
     Static,
     build_grids,
     check_options,
@@ -232,14 +231,7 @@ def plan(
         face_levels=level_sizes(master.n_faces),
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )
-    st = Static(
-        element=master.element.name,
-        mode=mode,
-        node_levels=prep.node_levels,
-        face_levels=prep.face_levels,
-        iterations=ITERATIONS.get(master.element.name, 0),
-        passing_by=mode == "node" and not master.closed,
-    )
+    st = Static.of(master, mode, prep)
     sc = scalars(prep, master, dtype)
     if search == "warp":
         # No pair counts to size: only the topology that the smooth outputs read.
