@@ -16,6 +16,8 @@ from functools import cached_property
 
 import numpy as np
 
+from ._xp import lead
+
 FACE, EDGE, VERTEX = 0, 1, 2
 
 
@@ -194,7 +196,9 @@ def _fused(xp, a, b, a_axes, b_axes, axis):
     each dot of tiny matrices batched over millions of points was a GEMM call of its own
     (2-3x slower smooth outputs). NumPy takes matmul (einsum's broadcast loops were 1.4-3x
     slower and most of the brute-force reference's time on curved faces)."""
-    return xp.sum(xp.expand_dims(a, a_axes) * xp.expand_dims(b, b_axes), axis)
+    a, b = xp.expand_dims(a, a_axes), xp.expand_dims(b, b_axes)
+    n = max(a.ndim, b.ndim)
+    return xp.sum(lead(xp, a, n) * lead(xp, b, n), axis)
 
 
 def shape_functions(element, xi, xp=np):

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._elements import EDGE, FACE, VERTEX, interpolate, shape_functions, shape_second_derivatives
-from ._xp import fori
+from ._xp import fori, lead
 
 
 def _dot(a, b, xp):
@@ -170,7 +170,8 @@ def start_option_one(element, r, xe, xp=np):
 
 def start_option_two(element, r, xe, xp=np):
     """Seed 003 start (II): the centre of the element."""
-    return xp.zeros(r.shape[:-1] + (2,), dtype=xe.dtype) + xp.asarray(element.centre, xe.dtype)
+    c = xp.asarray(element.centre, xe.dtype)
+    return xp.zeros(r.shape[:-1] + (2,), dtype=xe.dtype) + lead(xp, c, r.ndim)
 
 
 def closest_point_face(
@@ -200,8 +201,10 @@ def closest_point_face(
     iteration after which the KKT conditions held) and the final KKT residual (in natural
     coordinates: the projected gradient scaled by 1/|J|^2)."""
     A = xp.asarray(element.constraints_a, dtype=xe.dtype)  # [m, 2]
-    b = xp.asarray(element.constraints_b, dtype=xe.dtype)
+    # b and the constraint indices as rows over the leading axes of xi0 (explicit broadcasts).
+    b = lead(xp, xp.asarray(element.constraints_b, dtype=xe.dtype), xi0.ndim)
     m = A.shape[0]
+    ar = lead(xp, xp.arange(m), xi0.ndim)
     ce = element.constraint_edge
     feasible_tol = 64 * xp.finfo(xe.dtype).eps
 
@@ -260,7 +263,6 @@ def closest_point_face(
         both = _solve2(xp.stack([a1, a2], -1), g, xp)
         l1 = xp.where(nw == 2, both[..., 0], lam1)
         l2 = xp.where(nw == 2, both[..., 1], np.inf)
-        ar = xp.arange(m)
         lam = xp.where(ar == j1[..., None], l1[..., None], np.inf)
         lam = xp.where((ar == j2[..., None]) & (nw[..., None] == 2), l2[..., None], lam)
         return xp.where(w, lam, np.inf)
@@ -273,7 +275,8 @@ def closest_point_face(
         k = element.n_corners
         start = xp.asarray(element.corners, xe.dtype)
         end = xp.asarray(element.corners[(np.arange(k) + 1) % k], xe.dtype)
-        return start + t[..., None] * (end - start) - xi[..., None, :]
+        n = t.ndim + 1
+        return lead(xp, start, n) + t[..., None] * lead(xp, end - start, n) - xi[..., None, :]
 
     def step(xi, g, h, gn, w, p_edges):
         # Free: Newton with the exact curvature where it is positive definite, Gauss-Newton's
@@ -315,7 +318,7 @@ def closest_point_face(
         # smaller working set would lead straight back through it (then keep it, move along).
         jmin = xp.argmin(lam, -1)
         drop = (xp.min(lam, -1) < 0) & ~done
-        w_drop = w & ~((xp.arange(m) == jmin[..., None]) & drop[..., None])
+        w_drop = w & ~((ar == jmin[..., None]) & drop[..., None])
         p_edges = edge_points(xi)
         p_drop = step(xi, g, h, gn, w_drop, p_edges)
         drop = drop & (_dot(A[jmin], p_drop, xp) >= 0)
@@ -345,7 +348,7 @@ def closest_point_face(
         )
         new = xp.where(blocked[..., None], on_edge, new)
         w = w | (blocked[..., None] & (xp.abs(new @ A.T - b) <= feasible_tol))
-        w = w | ((xp.arange(m) == jb[..., None]) & blocked[..., None])
+        w = w | ((ar == jb[..., None]) & blocked[..., None])
         return xp.where(done[..., None], xi, new), w, done, iters
 
     def sqp_iteration(it, state):

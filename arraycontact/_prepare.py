@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._grid import level_sizes, morton_order
+from ._surface import bounds, in_box
 
 
 def default_d_max(master, displacement=None) -> float:
@@ -50,20 +51,22 @@ def prepare(slave_x, master, d_max, dtype=np.float64) -> Prepared | None:
     centres, radii = master.face_bounds
     used = master.points[master.nodes]
     if master.element.linear:
-        m_lo, m_hi = used.min(0), used.max(0)
+        m_lo, m_hi = master.node_box
     else:  # curved faces may bulge past their nodes; their balls hold them
-        m_lo, m_hi = (centres - radii[:, None]).min(0), (centres + radii[:, None]).max(0)
-    lo = np.maximum(slave_x.min(0), m_lo) - d_max
-    hi = np.minimum(slave_x.max(0), m_hi) + d_max
+        m_lo, m_hi = bounds(centres - radii[:, None])[0], bounds(centres + radii[:, None])[1]
+    s_lo, s_hi = bounds(slave_x)
+    lo = np.maximum(s_lo, m_lo) - d_max
+    hi = np.minimum(s_hi, m_hi) + d_max
     if (lo > hi).any():
         return None
-    slave_rows = np.nonzero(((slave_x >= lo) & (slave_x <= hi)).all(1))[0]
+    slave_rows = np.nonzero(in_box(slave_x, lo, hi))[0]
     if len(slave_rows) == 0:
         return None
     s = slave_x[slave_rows]
-    lo = np.maximum(lo, s.min(0) - d_max)  # shrink to the slaves actually inside
-    hi = np.minimum(hi, s.max(0) + d_max)
-    node_ids = master.nodes[((used >= lo) & (used <= hi)).all(1)]
+    s_lo, s_hi = bounds(s)
+    lo = np.maximum(lo, s_lo - d_max)  # shrink to the slaves actually inside
+    hi = np.minimum(hi, s_hi + d_max)
+    node_ids = master.nodes[in_box(used, lo, hi)]
     outside = np.maximum(np.maximum(lo - centres, centres - hi), 0)
     face_ids = np.nonzero(np.linalg.norm(outside, axis=1) <= radii + d_max)[0]
     r_max = float(radii[face_ids].max()) if len(face_ids) else 0.0

@@ -26,6 +26,7 @@ from ._geometry import (
     start_option_one,
     start_option_two,
 )
+from ._xp import lead
 
 
 def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity):
@@ -68,7 +69,7 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
         starts.append(start_option_two(element, r, xe, xp))
         k = element.n_corners
         starts += [
-            xp.zeros_like(starts[0]) + xp.asarray(element.nodes[i], xe.dtype)
+            xp.zeros_like(starts[0]) + lead(xp, xp.asarray(element.nodes[i], xe.dtype), r.ndim)
             for i in range(k, 2 * k)
         ]
         starts.append(_lattice_start(xp, element, r, xe))

@@ -13,6 +13,13 @@ def is_numpy(xp):
     return xp is np
 
 
+def lead(xp, a, ndim):
+    """`a` with leading axes of length 1 up to `ndim` axes: broadcasts written out (the tests
+    run JAX with implicit rank promotion turned into an error)."""
+    a = xp.asarray(a)
+    return xp.reshape(a, (1,) * (ndim - a.ndim) + tuple(a.shape))
+
+
 def norm(xp, v):
     """Euclidean norm over the last axis (einsum on NumPy: a reduce over an axis of 3 is slow)."""
     if is_numpy(xp):
@@ -74,7 +81,7 @@ def expand(xp, counts, size):
         seg = np.repeat(np.arange(len(counts)), counts)
         rank = np.arange(len(seg)) - np.repeat(ends - counts, counts)
         return seg, rank, np.ones(len(seg), bool), total
-    k = xp.arange(size)
+    k = xp.arange(size, dtype=counts.dtype)
     seg = xp.searchsorted(ends, k, side="right")
     seg = xp.minimum(seg, max(counts.shape[0] - 1, 0))
     rank = k - (ends[seg] - counts[seg]) if counts.shape[0] else k

@@ -1,5 +1,6 @@
 import hashlib
 
+import jax
 import numpy as np
 import pytest
 
@@ -7,6 +8,11 @@ import arraycontact as ac
 from arraycontact.reference import _closest_on_faces
 
 BACKENDS = ["numpy", "jax"]
+
+# JAX run strictly: an implicit broadcast across ranks or an implicit dtype promotion (a silent
+# float32 -> float64) in a kernel is a test failure, not a slowdown a user finds.
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
 def pytest_sessionstart(session):

@@ -202,7 +202,7 @@ def test_hessian_and_jacfwd_of_a_penalty_energy():
     mp = jnp.asarray(s.master.points)
 
     def energy(q):
-        c = acj.detect(p, jnp.asarray(slave) + q, mp)
+        c = acj.detect(p, jnp.asarray(slave) + q[None, :], mp)
         g = jnp.where(c.active, c.gap, 0.0)
         return 0.5 * 100.0 * jnp.sum(jnp.minimum(g, 0) ** 2)
 

@@ -48,7 +48,7 @@ from arraycontact._detect import (
 from arraycontact._elements import get_element
 from arraycontact._grid import level_sizes, morton_order
 from arraycontact._prepare import Prepared
-from arraycontact._surface import Surface, validate_points
+from arraycontact._surface import Surface, bounds, validate_points
 
 from . import _grid
 from ._gradients import padded_node_faces, smooth
@@ -214,8 +214,9 @@ def plan(
         raise ValueError("master has no faces")
     if len(slave_x) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
-    x_all = np.concatenate([slave_x, master.points[master.nodes]])
-    lo, hi = x_all.min(0) - d_max, x_all.max(0) + d_max
+    x_lo, x_hi = bounds(slave_x)
+    lo = np.minimum(x_lo, master.node_box[0]) - d_max
+    hi = np.maximum(x_hi, master.node_box[1]) + d_max
     # float32 computes in a frame at the scene's corner (DESIGN section 7); float64 globally.
     origin = lo if dtype == np.float32 else np.zeros(3)
     centres, radii = master.face_bounds
@@ -302,8 +303,11 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     _check(p, slave_points, master_points)
     dtype = jnp.dtype(p.dtype)
     origin = jnp.asarray(p.origin, dtype)
-    s = (slave_points - origin).astype(dtype)  # subtract in the input's precision, then cast
-    xm = (master_points - origin).astype(dtype)
+
+    def local(x):  # subtract in the input's precision, then cast
+        return (x - jnp.asarray(p.origin, x.dtype)[None, :]).astype(dtype)
+
+    s, xm = local(slave_points), local(master_points)
     st, topo, sc = p.static, p.topology, dict(p.constants)
     cap = dict(p.capacity)
     if p.search is not None:
@@ -338,7 +342,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         active=out["active"],
         face=face,
         xi=masked(xi),
-        point=masked(point + origin),
+        point=masked(point + origin[None]),
         gap=masked(gap),
         distance=masked(jnp.abs(gap)),
         normal=masked(normal),

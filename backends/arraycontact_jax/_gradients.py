@@ -32,10 +32,10 @@ def _residual(element, u, s, xe, base, b, mask):
     """Stationarity of |s - x(xi)|^2 / 2 along the feature's free directions (2 equations);
     a direction the feature does not have (mask 0) is pinned by u_k = 0."""
     # Products written as sums: XLA fuses them (a batched dot is a GEMM call on a GPU).
-    xi = base + jnp.sum(b * u, -1)
+    xi = base + jnp.sum(b * u[None, :], -1)
     n = shape_functions(element, xi, jnp)
     _, dx = interpolate(element, xe, xi, jnp)  # [3, 2]
-    to_slave = jnp.sum(n[:, None] * (xe - s), 0)  # x(xi) - s from nearby differences
+    to_slave = jnp.sum(n[:, None] * (xe - s[None, :]), 0)  # x(xi) - s from nearby differences
     g = jnp.sum(dx * to_slave[:, None], 0)
     return jnp.sum(b * g[:, None], 0) + (1 - mask) * u
 
@@ -92,9 +92,9 @@ def _one(element, on_surface, s, xe, feature, local, xi0, n_pseudo, sign):
     base, b, mask, u0 = _feature_frame(element, feature, local, jax.lax.stop_gradient(xi0))
     u0 = _polish(element, u0, jax.lax.stop_gradient(s), jax.lax.stop_gradient(xe), base, b, mask)
     u = _root(element, u0, s, xe, base, b, mask)
-    xi = base + jnp.sum(b * u, -1)
+    xi = base + jnp.sum(b * u[None, :], -1)
     # s - x(xi) from nearby differences (partition of unity)
-    to_slave = -jnp.sum(shape_functions(element, xi, jnp)[:, None] * (xe - s), 0)
+    to_slave = -jnp.sum(shape_functions(element, xi, jnp)[:, None] * (xe - s[None, :]), 0)
     _, dx = interpolate(element, xe, xi, jnp)
     n_face = _unit(jnp.cross(dx[:, 0], dx[:, 1]), jnp)
     r2 = jnp.dot(to_slave, to_slave)

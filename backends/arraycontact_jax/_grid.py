@@ -77,8 +77,9 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
     reach, steps)."""
     n = q.shape[0]
     top = flat.top
-    lane = jnp.arange(W, dtype=jnp.int32)
-    levels = jnp.arange(top + 1, dtype=jnp.int32)
+    # Row vectors: the tests run JAX with rank promotion off (broadcasts written out).
+    lane = jnp.arange(W, dtype=jnp.int32)[None, :]
+    levels = jnp.arange(top + 1, dtype=jnp.int32)[None, :]
     bits = jnp.left_shift(1, lane)
     lowest = jnp.asarray(_LOWEST_BIT)
     done = jnp.zeros(n, bool) if active is None else ~active
@@ -192,7 +193,7 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity):
 
     carry = (jnp.zeros((n, K), jnp.int32), jnp.zeros(n, jnp.int32))
     (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry)
-    valid = (jnp.arange(K) < count[:, None]).reshape(-1)
+    valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
     face = tree.ids[found.reshape(-1)]
     slave = jnp.repeat(jnp.arange(n), K)
     return (

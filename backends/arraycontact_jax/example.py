@@ -45,7 +45,7 @@ def push_out(n_nodes=2**12, steps=40, k=1e3, sink=1.6, seed=0):
     master = jnp.asarray(s.master.points)
 
     def contacts(p, q):
-        x = (jnp.asarray(body) - centre) @ rotation(q[3:]).T + centre + q[:3]
+        x = jnp.asarray(body - centre) @ rotation(q[3:]).T + (centre + q[:3])[None, :]
         return detect(p, x, master)
 
     def energy(p, q):

@@ -32,7 +32,7 @@ import warp as wp
 
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, TIE_RTOL
 from arraycontact._select import boundary_topology
-from arraycontact._surface import Surface, validate_points
+from arraycontact._surface import Surface, bounds, validate_points
 
 from . import _grid, _prepare
 from ._closest_node import closest_node
@@ -368,20 +368,23 @@ def plan(
     shared = master_world is None
     nw = _worlds(master_world, len(master.points), "master_world")
     fw = nw[master.faces[:, 0]]
-    bad = (nw[master.faces] != fw[:, None]).any(1)
-    if bad.any():
-        r = int(np.argmax(bad))
-        raise ValueError(f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}")
+    if not shared:
+        bad = (nw[master.faces] != fw[:, None]).any(1)
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise ValueError(
+                f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}"
+            )
     e = master.element
     _, radii = master.face_bounds
     r_max = float(radii.max())
-    pts = master.points[master.nodes]
-    lo = np.minimum(x.min(0), pts.min(0)) - d_max
-    hi = np.maximum(x.max(0), pts.max(0)) + d_max
+    x_lo, x_hi = bounds(x)
+    lo = np.minimum(x_lo, master.node_box[0]) - d_max
+    hi = np.maximum(x_hi, master.node_box[1]) + d_max
     extent = 2 * float((hi - lo).max())
     # The local frame at the slaves' box (less d_max): float32 keeps its precision where the
     # contacts are, however large the master is around them (a fine patch in a coarse plate).
-    origin = x.min(0) - d_max
+    origin = x_lo - d_max
     eps = float(np.finfo(NP_REAL).eps)
     tie = TIE_RTOL[NP_REAL] * master.longest_edge
     consts = dict(
@@ -453,7 +456,9 @@ def plan(
         rebuild=wp.zeros(1, dtype=wp.int32, device=device),
         out=out,
         dtype=NP_REAL,
-        order=arr(np.r_[np.arange(len(x)), np.zeros(len(x))].astype(np.int32), int),
+        order=arr(
+            np.concatenate([np.arange(len(x), dtype=np.int32), np.zeros(len(x), np.int32)]), int
+        ),
         order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
         if sort_slaves == "detect"
         else None,
