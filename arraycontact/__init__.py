@@ -12,6 +12,7 @@ from ._contacts import Counts as Counts
 from ._contacts import Feature as Feature
 from ._contacts import Status as Status
 from ._detect import detect as detect
+from ._detect import detect_self as detect_self
 from ._elements import ELEMENTS as ELEMENTS
 from ._io import read_surface as read_surface
 from ._io import surface_from_meshio as surface_from_meshio
@@ -26,6 +27,7 @@ __all__ = [
     "Status",
     "Surface",
     "detect",
+    "detect_self",
     "default_d_max",
     "read_surface",
     "surface_from_meshio",

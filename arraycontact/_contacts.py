@@ -27,6 +27,10 @@ class Status(IntEnum):
     BLIND_SPOT = 2  # node mode: no projection; contact with the closest attached face
     PASSING_BY = 3  # node mode: no projection and outside the proximal volume (eq. 13)
     NOT_CONVERGED = 4  # active, but the chosen projection did not meet its KKT tolerance
+    # Self-contact, node mode: this node is the master side of its pair (seed 000 section 3,
+    # item 5: its local mesh is coarser than its closest node's, or as fine with no
+    # projection and the larger id); the contact element is the other node's row.
+    MASTER_SIDE = 5
 
 
 @dataclass(frozen=True)
@@ -75,6 +79,9 @@ class Contacts:
     backend: str = ""  # the back end that answered ("numpy", "jax", "warp")
     device: str = ""  # where it ran ("cpu", "cuda:0", ...)
     dtype: str = ""  # the precision it computed in ("float64", "float32")
+    # Self-contact: the slave node's local mesh is at least as fine as the face's (seed 000
+    # section 3, item 5: keep the element of a pair from its finer side); None otherwise.
+    finer: np.ndarray | None = None
 
     @property
     def overflow(self) -> bool:

@@ -15,8 +15,18 @@ import numpy as np
 from . import _closest_node, _grid, _projection, _select
 from ._contacts import Contacts, Counts, Feature, Status
 from ._elements import get_element
+from ._normals import face_normal
 from ._prepare import Prepared, default_d_max, prepare
-from ._surface import Surface, face_boxes, face_normals, node_normals, validate_points
+from ._surface import (
+    Surface,
+    _dot,
+    face_boxes,
+    face_normals,
+    mesh_sizes,
+    node_normals,
+    normal_boxes,
+    validate_points,
+)
 from ._xp import expand, norm
 
 MODES = ("exact", "node")
@@ -29,6 +39,9 @@ TIE_RTOL = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 5e-6}
 #: KKT tolerance of the Newton projections, in natural coordinates.
 KKT_TOL = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 1e-4}
 ITERATIONS = {"quad4": 12, "tri6": 20, "quad8": 20, "quad9": 20}
+#: Self-contact: local mesh sizes within this relative difference are "as fine" (seed 000
+#: section 3, item 5; the `finer` flag).
+SIZE_RTOL = 1e-4
 
 
 @dataclass(frozen=True)
@@ -41,9 +54,10 @@ class Static:
     face_levels: tuple
     iterations: int
     passing_by: bool  # node mode on an open master: the boundary test of eqs. (12)-(13)
+    self_contact: bool = False  # the slaves are the master's own nodes (detect_self)
 
     @classmethod
-    def of(cls, master: Surface, mode: str, prep: Prepared) -> "Static":
+    def of(cls, master: Surface, mode: str, prep: Prepared, self_contact=False) -> "Static":
         """The static configuration of detecting on `master` in `mode` with `prep`'s trees."""
         return cls(
             element=master.element.name,
@@ -52,6 +66,7 @@ class Static:
             face_levels=prep.face_levels,
             iterations=ITERATIONS.get(master.element.name, 0),
             passing_by=mode == "node" and not master.closed,
+            self_contact=self_contact,
         )
 
 
@@ -151,23 +166,43 @@ class _Laps:
 
 def build_grids(xp, st: Static, sc: dict, m: dict):
     """Stage 2: the trees of the master nodes (points) and, in exact mode, of the faces (their
-    boxes), over node_ids and face_ids in the Morton order `prepare` gave them."""
+    boxes), over node_ids and face_ids in the Morton order `prepare` gave them. Self-contact:
+    with the normal boxes of the items (a node's pseudo-normal, a face's normal_boxes) and
+    the local mesh sizes (mesh_sizes)."""
+    element = get_element(st.element)
     x = m["nodes_x"][m["node_ids"]]
-    grids = {"node": _grid.build(xp, m["node_ids"], x, x, x)}
+    nodes_n = None
+    if st.self_contact:
+        n = m["node_normals"][m["node_ids"]]
+        nodes_n = (n, n)
+    grids = {"node": _grid.build(xp, m["node_ids"], x, x, x, nodes_n)}
     if st.mode == "exact":
         xe = m["nodes_x"][m["faces"][m["face_ids"]]]
-        lo, hi = face_boxes(get_element(st.element), xe, xp)
-        grids["face"] = _grid.build(xp, m["face_ids"], lo, hi, xe[:, 0])
+        lo, hi = face_boxes(element, xe, xp)
+        faces_n = normal_boxes(element, xe, xp) if st.self_contact else None
+        grids["face"] = _grid.build(xp, m["face_ids"], lo, hi, xe[:, 0], faces_n)
+    if st.self_contact:
+        grids["sizes"] = mesh_sizes(element, m["faces"], m["nodes_x"], xp)
     return grids
 
 
 def run_stages(
-    xp, st: Static, sc: dict, m: dict, grids: dict, slave_x, capacity: dict, lap=None, search=None
+    xp,
+    st: Static,
+    sc: dict,
+    m: dict,
+    grids: dict,
+    slave_x,
+    capacity: dict,
+    lap=None,
+    search=None,
+    slave_ids=None,
 ):
     """Stages 3-5 for slaves `slave_x` (local frame). Returns per-slave outputs and counts.
     search: what runs the tree searches of stages 3-4 (`closest_node`, `candidate_faces`):
     by default the level-by-level queries of _closest_node and _projection (NumPy); the JAX
-    back end passes its per-slave scans (arraycontact_jax._grid)."""
+    back end passes its per-slave scans (arraycontact_jax._grid). slave_ids (self-contact):
+    the slaves' node ids on the master."""
     lap = lap or (lambda name: None)
     node_search = search.closest_node if search else _closest_node.closest_node
     face_search = search.candidate_faces if search else _projection.candidate_faces
@@ -175,6 +210,9 @@ def run_stages(
     n = slave_x.shape[0]
     tie = sc["tie"]
     node_grid = grids["node"]
+    own = None
+    if st.self_contact:
+        own = (slave_ids, m["node_normals"][slave_ids], m["node_normals"])
     # 3. closest node
     node, dn, counts = node_search(
         xp,
@@ -185,14 +223,24 @@ def run_stages(
         tie=tie,
         slack=sc["slack"],
         capacity=capacity or None,
+        self_contact=own,
     )
     lap("closest_node")
     # 4. candidate faces and projections
     if st.mode == "exact":
         face_grid = grids["face"]
-        rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
+        if own is None:
+            rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
+        else:  # the closest node need not lie on an admissible face: no bound from it
+            rho = xp.zeros(n, slave_x.dtype) + (sc["d_max"] + sc["slack"])
         slave, face, valid, n_pairs = face_search(
-            xp, face_grid, slave_x, rho, slack=sc["slack"], capacity=capacity or None
+            xp,
+            face_grid,
+            slave_x,
+            rho,
+            slack=sc["slack"],
+            capacity=capacity or None,
+            normal=None if own is None else own[1],
         )
         counts.update(n_pairs)
     else:
@@ -216,6 +264,8 @@ def run_stages(
         iterations=st.iterations,
         tol=sc["tol"],
     )
+    if own is not None:
+        valid = valid & _admissible(xp, element, m, own, slave, face, xi, st.mode)
     lap("projection")
     # 5. selection and classification
     dist = norm(xp, diff)
@@ -247,6 +297,17 @@ def run_stages(
         active = (has_p | blind) & ~passing
         status = xp.where(blind, int(Status.BLIND_SPOT), status)
         status = xp.where(passing, int(Status.PASSING_BY), status)
+        if own is not None:
+            # Seed 000 section 3, item 5: the node with the coarser local mesh is the
+            # master; as fine, the element stands where a projection exists, and else the
+            # smaller node id is the slave.
+            h_node = grids["sizes"][1]
+            h_i, h_j = h_node[slave_ids], h_node[nd]
+            coarser = h_i > h_j * (1 + SIZE_RTOL)
+            finer = h_i * (1 + SIZE_RTOL) < h_j
+            master_side = active & (coarser | (~finer & ~has_p & (slave_ids > nd)))
+            active = active & ~master_side
+            status = xp.where(master_side, int(Status.MASTER_SIDE), status)
     face_out = face[pick]
     gap, dist_out, normal = _select.classify(
         xp,
@@ -264,8 +325,12 @@ def run_stages(
         tie,
     )
     status = xp.where(active & ~conv[pick], int(Status.NOT_CONVERGED), status)
-    status = xp.where(active | (status == int(Status.PASSING_BY)), status, int(Status.OUT_OF_RANGE))
+    kept = active | (status == int(Status.PASSING_BY)) | (status == int(Status.MASTER_SIDE))
+    status = xp.where(kept, status, int(Status.OUT_OF_RANGE))
     lap("select")
+    if own is not None:
+        h_face, h_node = grids["sizes"]
+        out_finer = active & (h_node[slave_ids] <= h_face[face_out] * (1 + SIZE_RTOL))
     out = dict(
         active=active,
         face=face_out,
@@ -279,7 +344,23 @@ def run_stages(
         status=status,
         local=local[pick],
     )
+    if own is not None:
+        out["finer"] = out_finer
     return out, counts
+
+
+def _admissible(xp, element, m, own, slave, face, xi, mode):
+    """Self-contact (seed 000 section 3, item 4, applied to faces): a candidate face counts
+    when it does not hold the slave's node and its normal at the closest point faces the
+    slave's normal (n_i . n_f(xi) < 0; node mode keeps the faces of the obtuse closest node
+    as they are, only those holding the slave's node drop)."""
+    ids, normal, _ = own
+    fn = m["faces"][face]
+    ok = ~xp.any(fn == ids[slave][:, None], -1)
+    if mode == "exact":
+        nf = face_normal(element, m["nodes_x"][fn], xi, xp)
+        ok = ok & (_dot(normal[slave], nf) < 0)
+    return ok
 
 
 def _slaves(slave):
@@ -327,19 +408,25 @@ def assemble(n, ids, prep, out, d_max, counts, timings, answered) -> Contacts:
     c.distance[r] = np.asarray(out["distance"], float)[keep]
     c.normal[r] = np.asarray(out["normal"], float)[keep]
     c.feature[r] = np.asarray(out["feature"])[keep]
+    if "finer" in out:
+        finer = np.zeros(n, bool)
+        finer[rows] = np.asarray(out["finer"], bool)
+        answered = {**answered, "finer": finer}
     return Contacts(**{**c.__dict__, "counts": counts, "timings": timings, **answered})
 
 
-def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15):
+def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15, slave_ids=None):
     m = master_arrays(master, prep, dtype)
     sc = scalars(prep, master, dtype)
     x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
+    ids = None if slave_ids is None else slave_ids[prep.slave_rows].astype(np.int32)
     lap = _Laps()
     grids = build_grids(np, st, sc, m)
     lap("grid")
     outs, totals = [], {}
     for i in range(0, len(x), chunk):
-        o, cnt = run_stages(np, st, sc, m, grids, x[i : i + chunk], {}, lap)
+        part = None if ids is None else ids[i : i + chunk]
+        o, cnt = run_stages(np, st, sc, m, grids, x[i : i + chunk], {}, lap, slave_ids=part)
         outs.append(o)
         for k, v in cnt.items():
             totals[k] = totals.get(k, 0) + int(v)
@@ -376,27 +463,64 @@ def detect(
     else NumPy), "numpy", "jax" or "warp". The answer's `backend`, `device` and `dtype` say
     which ran. dtype: float64 (default, on every back end) or float32 for the computation
     (inputs are always read in float64 and moved to a local frame first)."""
+    t0 = time.perf_counter()
+    d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
+    slave_x, ids = _slaves(slave)
+    return _detect(slave_x, ids, master, backend, mode, d_max, dtype, None, t0)
+
+
+def detect_self(surface, *, backend="auto", mode="exact", d_max=None, dtype=None) -> Contacts:
+    """Self-contact and contact between the bodies of one surface (seed 000 section 3): every
+    node used by the faces is a slave, every face a master; rows as in `detect` with the
+    surface as slave (`slave_ids` are the node ids).
+
+    Exact mode: for node i with pseudo-normal n_i (Surface.node_normals), a face is admissible
+    when it does not hold node i and its normal at its own closest point to x_i faces the
+    node, n_i . n_f(xi*) < 0; the answer is the closest admissible face within d_max (feature,
+    gap, normal and ties as in `detect`). `master_node` is the closest node j != i with
+    n_i . n_j <= 0 (item 4). Node mode, seed 000 as published: that closest node, the
+    projections on its faces, and the pair's master side chosen by local mesh density
+    (item 5): a node whose mesh is coarser than its closest node's gets status MASTER_SIDE
+    (the element is the other node's row). `finer` flags the rows whose node's local mesh
+    (mesh_sizes: the mean edge length of the faces around it) is at least as fine as the
+    face's: keep those to have one node-to-segment element per pair, from the finer side.
+
+    Thin structures (seed 000 Fig. 11): the back side of a plate of thickness t lies at
+    distance t behind a node, facing away from the node's side, so its normal is opposite to
+    the node's and it is admissible: it is reported (with gap -t, as a penetration) whenever
+    t <= d_max and nothing closer is. Nothing local tells it from a real contact partner at
+    that distance. Keep d_max below the smallest thickness (seed 000 section 3 limits it by
+    twice the thickness for its node-to-node test; with exact closest points the back side is
+    already at t)."""
+    t0 = time.perf_counter()
+    if not isinstance(surface, Surface):
+        raise ValueError("surface must be an arraycontact.Surface")
+    d_max, dtype = check_options(surface, mode, d_max, None, dtype)
+    ids = surface.nodes
+    return _detect(surface.points[ids], ids, surface, backend, mode, d_max, dtype, ids, t0)
+
+
+def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> Contacts:
     from ._backends import load, resolve
 
-    t0 = time.perf_counter()
     if backend not in BACKENDS + ("auto",):
         raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {backend!r}")
     backend = resolve(backend)
-    d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
-    slave_x, ids = _slaves(slave)
     n = len(slave_x)
     prep = prepare(slave_x, master, float(d_max), dtype)
     t1 = time.perf_counter()
     answered = dict(backend=backend, dtype=dtype.name)
+    if self_ids is not None:
+        answered["finer"] = np.zeros(n, bool)
     if prep is None:  # the boxes do not meet: no grid, no contact
         return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0}, **answered)
-    st = Static.of(master, mode, prep)
+    st = Static.of(master, mode, prep, self_contact=self_ids is not None)
     if backend == "numpy":
-        out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype)
+        out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype, slave_ids=self_ids)
         answered["device"] = "cpu"
     else:
         out, count, cap, answered["device"] = load(backend).run_one_shot(
-            slave_x, master, prep, st, dtype
+            slave_x, master, prep, st, dtype, slave_ids=self_ids
         )
         laps = {}
     t2 = time.perf_counter()

@@ -39,6 +39,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._surface import min_dot
 from ._xp import compact, segment_min
 
 #: Fan-out: children per entry (8 boxes of 32 bytes are two cache lines on a GPU).
@@ -56,6 +57,10 @@ class Tree(NamedTuple):
     lo: tuple
     hi: tuple
     rep: tuple
+    # Self-contact: per level, a box holding the unit normals of the items under each entry
+    # (_surface.normal_boxes), so a scan skips entries that nowhere face the query's normal.
+    nlo: tuple = ()
+    nhi: tuple = ()
 
 
 def level_sizes(n: int) -> tuple:
@@ -95,9 +100,10 @@ def _empty(dtype):
     return float(np.finfo(dtype).max) ** 0.25
 
 
-def build(xp, ids, lo, hi, rep) -> Tree:
+def build(xp, ids, lo, hi, rep, normals=None) -> Tree:
     """The tree over items already in Morton order: ids [n], boxes lo, hi [n, 3], points of
-    the surface inside them rep [n, 3]."""
+    the surface inside them rep [n, 3]; normals (self-contact): the items' normal boxes
+    (nlo, nhi) [n, 3] each."""
     n = lo.shape[0]
     sizes = level_sizes(n)
     big = _empty(lo.dtype)
@@ -112,17 +118,41 @@ def build(xp, ids, lo, hi, rep) -> Tree:
         los.append(xp.min(lo_k.reshape(size, W, 3), 1))
         his.append(xp.max(hi_k.reshape(size, W, 3), 1))
         reps.append(reps[-1][::W])  # the first child's point: a point of the surface
-    return Tree(ids, tuple(los), tuple(his), tuple(reps))
+    if normals is None:
+        return Tree(ids, tuple(los), tuple(his), tuple(reps))
+    nlos, nhis = [normals[0]], [normals[1]]
+    if n == 0:
+        nlos, nhis = [xp.ones((1, 3), lo.dtype)], [xp.ones((1, 3), lo.dtype)]
+    for size in sizes[1:]:
+        pad = size * W - nlos[-1].shape[0]
+        # Padding: lo = 1, hi = -1, neutral in the minimum and maximum.
+        nlo_k = xp.concatenate([nlos[-1], xp.ones((pad, 3), lo.dtype)])
+        nhi_k = xp.concatenate([nhis[-1], -xp.ones((pad, 3), lo.dtype)])
+        nlos.append(xp.min(nlo_k.reshape(size, W, 3), 1))
+        nhis.append(xp.max(nhi_k.reshape(size, W, 3), 1))
+    return Tree(ids, tuple(los), tuple(his), tuple(reps), tuple(nlos), tuple(nhis))
 
 
-def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level"):
+#: Self-contact skips an entry when every normal in its box has n_i . n >= FACING_MARGIN
+#: (above zero against rounding in the boxes; the exact test is made on each candidate).
+FACING_MARGIN = 1e-4
+
+
+def facing(normal, nlo, nhi):
+    """Whether some normal in the boxes [nlo, nhi] may face `normal` (n . v < 0)."""
+    return min_dot(normal, nlo, nhi) < FACING_MARGIN
+
+
+def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=None):
     """The items whose box is within reach of each query point, reach shrunk on the way to the
     smallest representative distance + slack (items farther than some point of the surface
     cannot hold the closest point, nor be within the tie band of it).
 
     q [n, 3], reach [n]. capacity: None (eager, exact sizes) or a dict of static sizes per
-    level (keys f"{name}{k}"). Returns (query row [P], item position in tree order [P], valid
-    [P], counts {key: true count}); pairs are grouped by query row in increasing order."""
+    level (keys f"{name}{k}"). normal [n, 3] (self-contact, a tree with normal boxes): only
+    entries that may face the query's normal, and no shrinking (a representative may lie on
+    a face that does not count). Returns (query row [P], item position in tree order [P],
+    valid [P], counts {key: true count}); pairs are grouped by query row in increasing order."""
     n = q.shape[0]
     top = len(tree.lo) - 1
     slave = xp.arange(n)
@@ -141,9 +171,12 @@ def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level"):
         g = xp.maximum(xp.maximum(lo - qs, qs - hi), 0)
         gap2 = xp.sum(g * g, -1)
         filled = ok & xp.all(lo <= hi, -1)
-        d = tree.rep[k - 1][c] - qs
-        ub = xp.where(filled, xp.sqrt(xp.sum(d * d, -1)), np.inf)
-        reach = xp.minimum(reach, segment_min(xp, ub, s, n, sorted=True) + slack)
+        if normal is None:
+            d = tree.rep[k - 1][c] - qs
+            ub = xp.where(filled, xp.sqrt(xp.sum(d * d, -1)), np.inf)
+            reach = xp.minimum(reach, segment_min(xp, ub, s, n, sorted=True) + slack)
+        else:
+            filled = filled & facing(normal[s], tree.nlo[k - 1][c], tree.nhi[k - 1][c])
         keep = filled & (gap2 <= reach[s] ** 2)
         key = f"{name}{k - 1}"
         idx, count = compact(xp, keep, None if capacity is None else capacity[key])

@@ -29,11 +29,14 @@ from ._geometry import (
 from ._xp import lead
 
 
-def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity):
+def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity, normal=None):
     """Candidate (slave, face) pairs, the faces whose box is within rho of the slave (shrunk
-    by the tree to the nearest surface point it meets): (slave [P], face [P], valid [P],
-    pair counts per tree level)."""
-    slave, pos, valid, counts = _grid.query(xp, tree, slave_x, rho, slack, capacity, "face_level")
+    by the tree to the nearest surface point it meets; self-contact, `normal` given: those
+    that may face the slave's normal): (slave [P], face [P], valid [P], pair counts per tree
+    level)."""
+    slave, pos, valid, counts = _grid.query(
+        xp, tree, slave_x, rho, slack, capacity, "face_level", normal
+    )
     return slave, tree.ids[pos], valid, counts
 
 

@@ -67,6 +67,62 @@ def face_boxes(element, xe, xp=np):
     return xp.maximum(m - w, c - r[:, None]), xp.minimum(m + w, c + r[:, None])
 
 
+def normal_boxes(element, xe, xp=np):
+    """Per face, a box [lo, hi] [F, 3] holding unit vectors whose convex hull, up to positive
+    factors, holds the face's normal x_xi x x_eta at every point: a face is nowhere facing a
+    direction n (n . normal >= 0 everywhere) when the box's smallest dot product with n is not
+    negative (self-contact's pruning, which must never drop an admissible face).
+
+    tri3: the one normal. quad4: x_xi x x_eta is affine in (xi, eta) (the xi eta term is
+    x_xi's b x b = 0), so the hull of its four corner values holds it. tri6: x_xi and x_eta
+    are affine, each in the hull of its corner values A_j, B_k, so the normal is in the hull of
+    the nine A_j x B_k. quad8, quad9: no bound (the box of all unit vectors)."""
+    if element.name == "tri3":
+        n = _unit(xp.cross(xe[:, 1] - xe[:, 0], xe[:, 2] - xe[:, 0]), xp)
+        return n, n
+    if element.name == "quad4":
+        gens = [
+            _unit(xp.cross(xe[:, (c + 1) % 4] - xe[:, c], xe[:, (c - 1) % 4] - xe[:, c]), xp)
+            for c in range(4)
+        ]
+    elif element.name == "tri6":
+        corners = xp.asarray(element.nodes[:3], xe.dtype)
+        _, dx = interpolate(
+            element, xe[:, None], xp.zeros((xe.shape[0], 3, 2), xe.dtype) + corners, xp
+        )
+        gens = [
+            _unit(xp.cross(dx[:, j, :, 0], dx[:, k, :, 1]), xp) for j in range(3) for k in range(3)
+        ]
+    else:
+        one = xp.ones((xe.shape[0], 3), xe.dtype)
+        return -one, one
+    lo, hi = gens[0], gens[0]
+    for g in gens[1:]:
+        lo, hi = xp.minimum(lo, g), xp.maximum(hi, g)
+    return lo, hi
+
+
+def min_dot(n, lo, hi):
+    """The smallest n . v over v in the box [lo, hi] (per row, arrays [..., 3])."""
+    return 0.5 * (_dot(n, lo + hi) - _dot(abs(n), hi - lo))
+
+
+def mesh_sizes(element, faces, points, xp=np):
+    """Local mesh sizes: per face the mean length of its edges (corner to corner), per node
+    the mean of that over the faces around it (zero for unused nodes). Self-contact's `finer`
+    flag and node mode compare them (seed 000 section 3, item 5)."""
+    k = element.n_corners
+    h = 0.0
+    for c in range(k):
+        d = points[faces[:, (c + 1) % k]] - points[faces[:, c]]
+        h = h + xp.sqrt(_dot(d, d))
+    h_face = h / k
+    nn = faces.shape[1]
+    total = segment_sum(xp, xp.repeat(h_face, nn), faces.reshape(-1), points.shape[0])
+    count = segment_sum(xp, xp.ones(faces.size, h_face.dtype), faces.reshape(-1), points.shape[0])
+    return h_face, total / xp.where(count > 0, count, 1)
+
+
 def corner_normal(element, dx, corner, xp=np):
     """A face's unit normal times its interior angle at a corner, from the tangents dx
     [..., 3, 2] at that corner (`corner`: an int or int array over the leading axes): the

@@ -232,6 +232,64 @@ def closest_points(points, surface: Surface, *, chunk_points=1024, chunk_faces=8
     return _finish(surface, r_all, face, xi, dist2)
 
 
+def closest_points_self(surface: Surface, *, d_max=None, chunk_points=512, chunk_faces=4096):
+    """Self-contact by brute force in float64: for every node used by the faces (in
+    `surface.nodes` order), the closest admissible face, the rule of `detect_self`: a face is
+    admissible when it does not hold the node and its unit normal x_xi x x_eta at its own
+    closest point to the node faces the node's pseudo-normal (n_i . n_f < 0). Ties: the
+    smallest face id within TIE_RTOL * longest edge. d_max: faces farther (by their balls) are
+    not examined (None: every face). Faces with no admissible face within reach get face -1.
+
+    Every (node, face) pair whose ball is within d_max is projected with the same
+    independent methods as `closest_points`; the admissibility test is applied per pair."""
+    if not isinstance(surface, Surface):
+        raise ValueError("surface must be an arraycontact.Surface")
+    e = surface.element
+    ids = surface.nodes
+    r_all = surface.points[ids]
+    n = len(ids)
+    face = np.full(n, -1, np.int64)
+    xi = np.full((n, 2), np.nan)
+    dist2 = np.full(n, np.inf)
+    if n == 0:
+        return _finish(surface, r_all, face, xi, dist2)
+    centres, radii = surface.face_bounds
+    normals = surface.node_normals[ids]
+    tie = TIE_RTOL * surface.longest_edge
+    reach = np.inf if d_max is None else float(d_max) * (1 + 1e-9) + tie
+    nf = surface.n_faces
+    for p0 in range(0, n, chunk_points):
+        r = r_all[p0 : p0 + chunk_points]
+        cand = []
+        for f0 in range(0, nf, chunk_faces):
+            f1 = min(f0 + chunk_faces, nf)
+            lb = np.linalg.norm(r[:, None] - centres[None, f0:f1], axis=-1) - radii[None, f0:f1]
+            holds = (surface.faces[None, f0:f1] == ids[p0 : p0 + len(r), None, None]).any(-1)
+            pi, fi = np.nonzero((lb <= reach) & ~holds)
+            if len(pi):
+                xe = surface.points[surface.faces[fi + f0]]
+                xq, dq = _closest_on_faces(e, r[pi], xe)
+                _, dx = interpolate(e, xe, xq)
+                nq = np.cross(dx[..., 0], dx[..., 1])
+                nq /= np.maximum(np.linalg.norm(nq, axis=-1, keepdims=True), 1e-300)
+                ok = np.einsum("pk,pk->p", normals[p0 + pi], nq) < 0
+                cand.append((pi[ok], fi[ok] + f0, xq[ok], np.sqrt(dq[ok])))
+        if not cand:
+            continue
+        pi, fi, xq, dq = (np.concatenate(c) for c in zip(*cand))
+        if not len(pi):
+            continue
+        dmin = np.full(len(r), np.inf)
+        np.minimum.at(dmin, pi, dq)
+        best_f = np.full(len(r), np.iinfo(np.int64).max)
+        near = dq <= dmin[pi] + tie
+        np.minimum.at(best_f, pi[near], fi[near])
+        k = np.nonzero(near & (fi == best_f[pi]))[0]
+        rows = p0 + pi[k]
+        face[rows], xi[rows], dist2[rows] = fi[k], xq[k], dq[k] ** 2
+    return _finish(surface, r_all, face, xi, dist2)
+
+
 def _finish(surface, r, face, xi, dist2):
     e = surface.element
     n = len(r)

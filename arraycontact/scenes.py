@@ -25,6 +25,12 @@ __all__ = [
     "graded_surfaces",
     "fine_patch",
     "steep_rough_surfaces",
+    "block_surface",
+    "spiral_strip",
+    "folded_sheet",
+    "coil_spring",
+    "crumpled_sheet",
+    "two_bodies",
 ]
 
 
@@ -413,3 +419,198 @@ def single_element_study(element, n=100, lift=None):
     x, y = np.meshgrid(s, s, indexing="ij")
     z = np.full_like(x, 2.0 if lift is not None else 0.0)
     return Surface(pts, [np.arange(len(xy))], element), np.stack([x, y, z], -1).reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Self-contact: thin bodies given as the closed surface of a mapped block (detect_self).
+
+
+def block_surface(mapping, shape, element="quad4") -> Surface:
+    """The closed surface of the block [0, 1]^3 sampled by a grid of `shape` = (nu, nv, nw)
+    nodes and mapped by `mapping(u, v, w) -> (x, y, z)` (arrays of one shape), outward
+    normals when the mapping preserves orientation. Quadratic elements need odd counts."""
+    nu, nv, nw = shape
+    u, v, w = np.meshgrid(*[np.linspace(0, 1, k) for k in shape], indexing="ij")
+    x = np.stack(mapping(u, v, w), -1)
+    ids = np.arange(x[..., 0].size).reshape(shape)
+    points = x.reshape(-1, 3)
+    faces = []
+    for a in range(3):
+        p, q = (a + 1) % 3, (a + 2) % 3  # e_p x e_q = e_a
+        for end in (0, shape[a] - 1):
+            side = np.moveaxis(ids, (a, p, q), (0, 1, 2))[end]
+            xs = points[side]
+            s = grid_surface(xs[..., 0], xs[..., 1], xs[..., 2], element, flip=end == 0)
+            faces.append(side.reshape(-1)[s.faces])
+    return Surface(points, np.concatenate(faces), element)
+
+
+def _orient(mapping, shape):
+    """`mapping` with w reversed where that makes its Jacobian positive (outward normals)."""
+    u, v, w = (np.array([a]) for a in (0.37, 0.41, 0.5))
+    eps = 1e-6
+    x0 = np.stack(mapping(u, v, w), -1)[0]
+    du, dv, dw = (
+        (np.stack(mapping(u + eps * (k == 0), v + eps * (k == 1), w + eps * (k == 2)), -1)[0] - x0)
+        for k in range(3)
+    )
+    if np.dot(np.cross(du, dv), dw) > 0:
+        return mapping
+    return lambda u, v, w: mapping(u, v, 1 - w)
+
+
+def _counts(n_nodes, aspect, quadratic, nw=2):
+    """(nu, nv, nw) with about n_nodes / 2 nodes a side and nu / nv = aspect."""
+    nv = max(int(round(np.sqrt(n_nodes / (nw * aspect)))), 3)
+    nu = max(int(round(n_nodes / (nw * nv))), 3)
+    if quadratic:
+        nu, nv, nw = nu + 1 - nu % 2, nv + 1 - nv % 2, max(nw + 1 - nw % 2, 3)
+    return nu, nv, nw
+
+
+def spiral_strip(
+    n_nodes=2**12, *, turns=4.0, thickness=1.0, gap=0.3, height=None, element="quad4"
+) -> Scene:
+    """A thin strip wound into a flat spiral with `gap` between its turns (the snail
+    operculum of seed 000 Fig. 12): a solid of `thickness`, its closed surface meshed with
+    about `n_nodes` nodes, elements about as long as the thickness. Every turn faces the next
+    across the gap; the back side of each turn lies `thickness` behind its front: detect with
+    gap < d_max < thickness (params["d_max"])."""
+    pitch = thickness + gap
+    r0 = 4 * pitch
+    quadratic = element in ("tri6", "quad8", "quad9")
+    # Arc length of the mid-curve r = r0 + pitch theta / 2 pi over `turns`.
+    theta_max = 2 * np.pi * turns
+    length = r0 * theta_max + pitch * theta_max**2 / (4 * np.pi)
+    h = np.sqrt(length * (height or 0.0) / (n_nodes / 2)) if height else None
+    if height is None:
+        height = max(4.0, np.sqrt(n_nodes / 2 * 0.5) * 0.5)
+        h = np.sqrt(length * height / (n_nodes / 2))
+    shape = _counts(n_nodes, length / height, quadratic)
+
+    def mapping(u, v, w):
+        th = theta_max * u
+        r = r0 + pitch * th / (2 * np.pi) + (w - 0.5) * thickness
+        return r * np.cos(th), r * np.sin(th), height * v
+
+    surface = block_surface(_orient(mapping, shape), shape, element)
+    return _self_scene("spiral_strip", surface, gap, thickness, h, element, turns=turns)
+
+
+def folded_sheet(
+    n_nodes=2**12, *, length=20.0, width=8.0, thickness=1.0, gap=0.3, element="quad4"
+) -> Scene:
+    """A plate of `thickness` folded back onto itself (a hairpin): two flat legs of `length`
+    joined by a half circle, their facing sides `gap` apart."""
+    quadratic = element in ("tri6", "quad8", "quad9")
+    radius = 0.5 * (gap + thickness)  # mid-surfaces 2 radius apart: facing sides `gap`
+    arc = np.pi * radius
+    total = 2 * length + arc
+    shape = _counts(n_nodes, total / width, quadratic)
+
+    def mapping(u, v, w):
+        s = u * total
+        off = (w - 0.5) * thickness
+        # Leg 1 along +x at z = -radius (normal -z outward), the arc, leg 2 back at z = +radius.
+        t = np.clip((s - length) / radius, 0.0, np.pi)
+        on1, on2 = s <= length, s >= length + arc
+        cx = np.where(
+            on1, s, np.where(on2, length - (s - length - arc), length + radius * np.sin(t))
+        )
+        cz = np.where(on1, -radius, np.where(on2, radius, -radius * np.cos(t)))
+        nx = np.where(on1 | on2, 0.0, np.sin(t))
+        nz = np.where(on1, -1.0, np.where(on2, 1.0, -np.cos(t)))
+        return cx + off * nx, width * v, cz + off * nz
+
+    surface = block_surface(_orient(mapping, shape), shape, element)
+    return _self_scene("folded_sheet", surface, gap, thickness, None, element)
+
+
+def coil_spring(
+    n_nodes=2**12, *, turns=3.0, radius=6.0, side=1.0, gap=0.05, element="quad4"
+) -> Scene:
+    """A coil spring of square wire (`side`) whose turns nearly touch (`gap` apart)."""
+    quadratic = element in ("tri6", "quad8", "quad9")
+    pitch = side + gap
+    length = turns * np.sqrt((2 * np.pi * radius) ** 2 + pitch**2)
+    n_side = 3 if quadratic else 2
+    nw = max(n_side, int(round(np.sqrt(n_nodes / (4 * length / side)) ** 0)))
+    shape = _counts(n_nodes, 0.5 * length / side, quadratic, nw=nw)
+    shape = (shape[0], max(shape[1] // 4 * 2 + 1 if quadratic else shape[1] // 4, 2), shape[2])
+
+    def mapping(u, v, w):
+        th = 2 * np.pi * turns * u
+        r = radius + (v - 0.5) * side
+        return r * np.cos(th), r * np.sin(th), pitch * th / (2 * np.pi) + (w - 0.5) * side
+
+    surface = block_surface(_orient(mapping, shape), shape, element)
+    return _self_scene("coil_spring", surface, gap, side, None, element, turns=turns)
+
+
+def crumpled_sheet(
+    n_nodes=2**12, *, thickness=0.5, amplitude=6.0, element="quad4", seed=0
+) -> Scene:
+    """A thin sheet crumpled by a steep random field: its folds lean over each other, some
+    closer than d_max, some through each other (negative gaps)."""
+    quadratic = element in ("tri6", "quad8", "quad9")
+    shape = _counts(n_nodes, 1.0, quadratic)
+    nu, nv, _ = shape
+    side = float(nu)
+    hx = rough_field(nu, nv, rms=amplitude, seed=seed, cutoff=max(nu / 4, 4))
+    hy = rough_field(nu, nv, rms=amplitude, seed=seed + 1, cutoff=max(nu / 4, 4))
+    hz = rough_field(nu, nv, rms=amplitude, seed=seed + 2, cutoff=max(nu / 4, 4))
+
+    def mapping(u, v, w):
+        i = np.clip(np.rint(u * (nu - 1)).astype(int), 0, nu - 1)
+        j = np.clip(np.rint(v * (nv - 1)).astype(int), 0, nv - 1)
+        x, y = side * u + hx[i, j], side * v + hy[i, j]
+        return x, y, hz[i, j] + (w - 0.5) * thickness
+
+    surface = block_surface(mapping, shape, element)
+    return _self_scene("crumpled_sheet", surface, None, thickness, None, element, seed=seed)
+
+
+def two_bodies(n_nodes=2**12, *, gap=0.3, thickness=1.0, element="quad4") -> Scene:
+    """Two thin plates in one surface, one above the other `gap` apart, the upper one turned
+    by 10 degrees: contact between bodies of one surface (the multibody case)."""
+    quadratic = element in ("tri6", "quad8", "quad9")
+    shape = _counts(n_nodes // 2, 1.0, quadratic)
+    side = float(shape[0])
+    turn = np.deg2rad(10.0)
+
+    def lower(u, v, w):
+        return side * (u - 0.5), side * (v - 0.5), thickness * (w - 1)
+
+    def upper(u, v, w):
+        x, y = side * (u - 0.5), side * (v - 0.5)
+        c, s = np.cos(turn), np.sin(turn)
+        return c * x - s * y, s * x + c * y, gap + thickness * w
+
+    a = block_surface(lower, shape, element)
+    b = block_surface(upper, shape, element)
+    surface = Surface(
+        np.concatenate([a.points, b.points]),
+        np.concatenate([a.faces, b.faces + len(a.points)]),
+        element,
+    )
+    return _self_scene("two_bodies", surface, gap, thickness, None, element)
+
+
+def _self_scene(name, surface, gap, thickness, h, element, **extra) -> Scene:
+    """A self-contact scene: the surface is master and slave; params["d_max"] lies between
+    the gap and the thickness (closer than the back side: detect_self's docstring)."""
+    d_max = 0.5 * ((gap or 0.0) + thickness) if gap is not None else 0.8 * thickness
+    return Scene(
+        name,
+        surface,
+        surface.points[surface.nodes],
+        surface,
+        dict(
+            n_nodes=len(surface.nodes),
+            gap=gap,
+            thickness=thickness,
+            d_max=d_max,
+            element=element,
+            **extra,
+        ),
+    )
