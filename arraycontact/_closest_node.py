@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _grid
+from ._grid import FACING_TOL
 from ._surface import _dot
 from ._xp import norm, segment_min
 
@@ -31,7 +32,7 @@ def closest_node(xp, tree, nodes_x, slave_x, *, d_max, tie, slack, capacity, sel
     ok = valid & (d <= d_max)
     if self_contact is not None:
         ids, normal, node_normals = self_contact
-        ok = ok & (node != ids[slave]) & (_dot(normal[slave], node_normals[node]) <= 0)
+        ok = ok & (node != ids[slave]) & (_dot(normal[slave], node_normals[node]) <= FACING_TOL)
     d = xp.where(ok, d, np.inf)
     dmin = segment_min(xp, d, slave, n, sorted=True)
     best = segment_min(

@@ -15,6 +15,7 @@ import numpy as np
 from . import _closest_node, _grid, _projection, _select
 from ._contacts import Contacts, Counts, Feature, Status
 from ._elements import get_element
+from ._grid import FACING_TOL
 from ._normals import face_normal
 from ._prepare import Prepared, default_d_max, prepare
 from ._surface import (
@@ -352,14 +353,14 @@ def run_stages(
 def _admissible(xp, element, m, own, slave, face, xi, mode):
     """Self-contact (seed 000 section 3, item 4, applied to faces): a candidate face counts
     when it does not hold the slave's node and its normal at the closest point faces the
-    slave's normal (n_i . n_f(xi) < 0; node mode keeps the faces of the obtuse closest node
-    as they are, only those holding the slave's node drop)."""
+    slave's normal (n_i . n_f(xi) < -FACING_TOL; node mode keeps the faces of the obtuse
+    closest node as they are, only those holding the slave's node drop)."""
     ids, normal, _ = own
     fn = m["faces"][face]
     ok = ~xp.any(fn == ids[slave][:, None], -1)
     if mode == "exact":
         nf = face_normal(element, m["nodes_x"][fn], xi, xp)
-        ok = ok & (_dot(normal[slave], nf) < 0)
+        ok = ok & (_dot(normal[slave], nf) < -FACING_TOL)
     return ok
 
 
@@ -478,9 +479,14 @@ def detect_self(surface, *, backend="auto", mode="exact", d_max=None, dtype=None
     when it does not hold node i and its normal at its own closest point to x_i faces the
     node, n_i . n_f(xi*) < 0; the answer is the closest admissible face within d_max (feature,
     gap, normal and ties as in `detect`). `master_node` is the closest node j != i with
-    n_i . n_j <= 0 (item 4). Node mode, seed 000 as published: that closest node, the
-    projections on its faces, and the pair's master side chosen by local mesh density
-    (item 5): a node whose mesh is coarser than its closest node's gets status MASTER_SIDE
+    n_i . n_j <= 0 (item 4). Both tests take a margin of FACING_TOL = 1e-6 (unit normals), so
+    that perpendicular normals, whose dot product is rounding noise, are decided alike
+    everywhere: a perpendicular face does not face the node, a perpendicular node is obtuse
+    (an element whose Jacobian vanishes at the closest point has no normal there: such
+    inverted elements are outside this rule).
+
+    Node mode, seed 000 as published: that closest node, the projections on its faces, and
+    the pair's master side chosen by local mesh density (item 5): a node whose mesh is coarser than its closest node's gets status MASTER_SIDE
     (the element is the other node's row). `finer` flags the rows whose node's local mesh
     (mesh_sizes: the mean edge length of the faces around it) is at least as fine as the
     face's: keep those to have one node-to-segment element per pair, from the finer side.

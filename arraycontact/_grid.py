@@ -133,6 +133,9 @@ def build(xp, ids, lo, hi, rep, normals=None) -> Tree:
     return Tree(ids, tuple(los), tuple(his), tuple(reps), tuple(nlos), tuple(nhis))
 
 
+#: Self-contact's rule (_detect.detect_self): faces count when n_i . n_f < -FACING_TOL, nodes
+#: when n_i . n_j <= FACING_TOL (unit normals).
+FACING_TOL = 1e-6
 #: Self-contact skips an entry when every normal in its box has n_i . n >= FACING_MARGIN
 #: (above zero against rounding in the boxes; the exact test is made on each candidate).
 FACING_MARGIN = 1e-4

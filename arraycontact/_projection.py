@@ -37,6 +37,8 @@ def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity, normal=None):
     slave, pos, valid, counts = _grid.query(
         xp, tree, slave_x, rho, slack, capacity, "face_level", normal
     )
+    if valid.shape[0] == 0:  # (NumPy, no pair at all) one invalid pair keeps the shapes
+        slave, pos, valid = xp.zeros(1, np.int32), xp.zeros(1, np.int32), xp.zeros(1, bool)
     return slave, tree.ids[pos], valid, counts
 
 

@@ -30,6 +30,9 @@ from ._surface import Surface, validate_points
 #: Two faces whose distances differ by at most TIE_RTOL * longest edge are a tie; the tie goes to
 #: the smaller face id (the rule of every back end).
 TIE_RTOL = 1e-10
+#: Self-contact: a face faces a node when n_i . n_f < -FACING_TOL (unit normals; perpendicular
+#: ones, a dot product of rounding noise, do not).
+FACING_TOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -236,7 +239,7 @@ def closest_points_self(surface: Surface, *, d_max=None, chunk_points=512, chunk
     """Self-contact by brute force in float64: for every node used by the faces (in
     `surface.nodes` order), the closest admissible face, the rule of `detect_self`: a face is
     admissible when it does not hold the node and its unit normal x_xi x x_eta at its own
-    closest point to the node faces the node's pseudo-normal (n_i . n_f < 0). Ties: the
+    closest point to the node faces the node's pseudo-normal (n_i . n_f < -FACING_TOL). Ties: the
     smallest face id within TIE_RTOL * longest edge. d_max: faces farther (by their balls) are
     not examined (None: every face). Faces with no admissible face within reach get face -1.
 
@@ -272,7 +275,7 @@ def closest_points_self(surface: Surface, *, d_max=None, chunk_points=512, chunk
                 _, dx = interpolate(e, xe, xq)
                 nq = np.cross(dx[..., 0], dx[..., 1])
                 nq /= np.maximum(np.linalg.norm(nq, axis=-1, keepdims=True), 1e-300)
-                ok = np.einsum("pk,pk->p", normals[p0 + pi], nq) < 0
+                ok = np.einsum("pk,pk->p", normals[p0 + pi], nq) < -FACING_TOL
                 cand.append((pi[ok], fi[ok] + f0, xq[ok], np.sqrt(dq[ok])))
         if not cand:
             continue

@@ -62,18 +62,21 @@ MIN_CANDIDATES = 8
 
 
 @partial(jax.jit, static_argnames=("st", "capacity"))
-def _kernel(sc, m, slave_x, *, st, capacity):
+def _kernel(sc, m, slave_x, ids=None, *, st, capacity):
     grids = build_grids(jnp, st, sc, m)
-    out, counts = run_stages(jnp, st, sc, m, grids, slave_x, dict(capacity), search=_grid)
+    out, counts = run_stages(
+        jnp, st, sc, m, grids, slave_x, dict(capacity), search=_grid, slave_ids=ids
+    )
     return out, counts
 
 
 @partial(jax.jit, static_argnames=("st",))
-def _count(sc, m, slave_x, *, st):
+def _count(sc, m, slave_x, ids=None, *, st):
     """The counts that size the capacities, on the device (the scans of stages 3-4 with no
     candidate slots): the most candidate faces of one slave (exact mode), or the faces
     attached to the closest nodes (node mode)."""
     grids = build_grids(jnp, st, sc, m)
+    own = None if ids is None else (ids, m["node_normals"][ids], m["node_normals"])
     node, dn, _ = _grid.closest_node(
         jnp,
         grids["node"],
@@ -82,11 +85,20 @@ def _count(sc, m, slave_x, *, st):
         d_max=sc["d_max"],
         tie=sc["tie"],
         slack=sc["slack"],
+        self_contact=own,
     )
     if st.mode == "exact":
         rho = jnp.minimum(dn, sc["d_max"]) + sc["slack"]
+        if own is not None:  # as run_stages: no bound from the closest node
+            rho = jnp.zeros_like(dn) + (sc["d_max"] + sc["slack"])
         counts = _grid.candidate_faces(
-            jnp, grids["face"], slave_x, rho, slack=sc["slack"], capacity={"face_candidates": 0}
+            jnp,
+            grids["face"],
+            slave_x,
+            rho,
+            slack=sc["slack"],
+            capacity={"face_candidates": 0},
+            normal=None if own is None else own[1],
         )[3]
         return {"face_candidates": counts["face_candidates"]}
     nd = jnp.maximum(node, 0)
@@ -105,8 +117,9 @@ def _grown(counts, growth, n_slaves):
     }
 
 
-def run_one_shot(slave_x, master, prep, st, dtype):
-    """Plan on the host, run jitted, re-plan and re-run on overflow. Host arrays out."""
+def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
+    """Plan on the host, run jitted, re-plan and re-run on overflow. Host arrays out.
+    slave_ids: the slaves' node ids (self-contact)."""
     x64 = np.dtype(dtype) == np.float64
     with jax.enable_x64(x64):
         m = master_arrays(master, prep, dtype)
@@ -115,10 +128,15 @@ def run_one_shot(slave_x, master, prep, st, dtype):
         m_dev = {k: jnp.asarray(v) for k, v in m.items()}
         sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
         x_dev = jnp.asarray(x)
+        ids = None
+        if slave_ids is not None:
+            ids = jnp.asarray(slave_ids[prep.slave_rows].astype(np.int32))
         # The counts of these very coordinates: no growth needed (the loop is a safeguard).
-        cap = _grown(_count(sc_dev, m_dev, x_dev, st=st), 1.0, len(x))
+        cap = _grown(_count(sc_dev, m_dev, x_dev, ids, st=st), 1.0, len(x))
         for _ in range(4):
-            out, counts = _kernel(sc_dev, m_dev, x_dev, st=st, capacity=tuple(sorted(cap.items())))
+            out, counts = _kernel(
+                sc_dev, m_dev, x_dev, ids, st=st, capacity=tuple(sorted(cap.items()))
+            )
             counts = {k: int(v) for k, v in counts.items()}
             over = {k: v for k, v in counts.items() if k in cap and v > cap[k]}
             if not over:

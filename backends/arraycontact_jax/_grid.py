@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arraycontact._grid import Tree, W
+from arraycontact._grid import FACING_MARGIN, FACING_TOL, Tree, W
 
 BIG = np.iinfo(np.int32).max
 # The index of the lowest set bit of a W-bit mask (0 for an empty mask, never read).
@@ -37,11 +37,12 @@ _LOWEST_BIT = np.array([(m & -m).bit_length() - 1 if m else 0 for m in range(1 <
 class Flat(NamedTuple):
     """A tree's levels 0 .. top-1 as groups of W siblings, each row the W children of one
     entry as [9, W] (box lo x, y, z, box hi x, y, z, representative point x, y, z; empty boxes
-    past a level's end): the children of entry j of level k are row offset[k - 1] + j. One
+    past a level's end; self-contact: [15, W], then the normal box's lo and hi): the children
+    of entry j of level k are row offset[k - 1] + j. One
     gather of 9 W contiguous values a step, and the arithmetic on [n, W] planes: as [W, 9] rows
     with reductions over the axis of 3, a step took 4x longer on the CPU."""
 
-    groups: jax.Array  # [rows, 9, W]
+    groups: jax.Array  # [rows, 9 or 15, W]
     offset: jax.Array  # [top] first row of each level
     top: int
 
@@ -53,24 +54,26 @@ def flatten(tree: Tree) -> Flat:
     for k in range(top):
         n = tree.lo[k].shape[0]
         pad = ((0, -n % W), (0, 0))
-        lv = jnp.concatenate(
-            [
-                jnp.pad(tree.lo[k], pad, constant_values=big),
-                jnp.pad(tree.hi[k], pad, constant_values=-big),
-                jnp.pad(tree.rep[k], pad),
-            ],
-            -1,
-        )
-        rows.append(jnp.swapaxes(lv.reshape(-1, W, 9), 1, 2))
+        parts = [
+            jnp.pad(tree.lo[k], pad, constant_values=big),
+            jnp.pad(tree.hi[k], pad, constant_values=-big),
+            jnp.pad(tree.rep[k], pad),
+        ]
+        if tree.nlo:
+            parts += [jnp.pad(tree.nlo[k], pad), jnp.pad(tree.nhi[k], pad)]
+        lv = jnp.concatenate(parts, -1)
+        rows.append(jnp.swapaxes(lv.reshape(-1, W, lv.shape[-1]), 1, 2))
         offset.append(offset[-1] + rows[-1].shape[0])
     return Flat(jnp.concatenate(rows), jnp.asarray(offset[:-1], jnp.int32), top)
 
 
-def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
+def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None):
     """Depth-first scans of `flat` from the root, one per query point q [n, 3], with reach [n].
 
     At each step every busy slave tests the W children of its entry; the reach becomes
-    min(reach, nearest representative + slack); `visit(carry, pos, keep, dist)` is called
+    min(reach, nearest representative + slack) (self-contact, `normal` [n, 3] given: the
+    reach stays, a representative may lie on a face that does not count, and only children
+    whose normal box may face the normal are entered); `visit(carry, pos, keep, dist)` is called
     with, per slave, the W children's positions in their level `pos` [n, W], which of them
     are items within reach (`keep`, false except where the children are items) and the
     representatives' distances `dist` [n, W], and returns the new carry. Returns (carry,
@@ -104,7 +107,13 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None):
         filled = (lo[:, 0] <= hi[:, 0]) & (lo[:, 1] <= hi[:, 1]) & (lo[:, 2] <= hi[:, 2])
         r = rep - qs
         dr = jnp.where(filled, jnp.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2 + r[:, 2] ** 2), jnp.inf)
-        reach = jnp.where(done, reach, jnp.minimum(reach, jnp.min(dr, -1) + slack))
+        if normal is None:
+            reach = jnp.where(done, reach, jnp.minimum(reach, jnp.min(dr, -1) + slack))
+        else:
+            nq = normal[:, :, None]
+            nlo, nhi = box[:, 9:12], box[:, 12:15]
+            low = 0.5 * jnp.sum(nq * (nlo + nhi) - jnp.abs(nq) * (nhi - nlo), 1)
+            filled = filled & (low < FACING_MARGIN)
         keep = filled & (d2 <= (reach * reach)[:, None]) & ~done[:, None]
         leaf = k == 1
         carry = visit(carry, pos, keep & leaf[:, None], dr)
@@ -147,37 +156,54 @@ def _shrinks_to(d_max, slack, n, dtype):
     return jnp.zeros(n, dtype) + (d_max + slack)
 
 
-def closest_node(xp, tree: Tree, nodes_x, slave_x, *, d_max, tie, slack, capacity=None):
+def closest_node(
+    xp, tree: Tree, nodes_x, slave_x, *, d_max, tie, slack, capacity=None, self_contact=None
+):
     """The closest master node within d_max of each slave (ties: the smallest node id within
     `tie` of the smallest distance), -1 and inf where none: (node [n], distance [n], counts).
-    The same answer as arraycontact._closest_node's."""
+    The same answer as arraycontact._closest_node's (self_contact: its rule too)."""
     n = slave_x.shape[0]
     flat = flatten(tree)
     ids = tree.ids
+    normal = None if self_contact is None else self_contact[1]
+
+    def counted(keep, pos):
+        """The nodes that count: all, or (self-contact, item 4) those other than the slave's
+        own with a normal at an obtuse angle to its normal."""
+        if self_contact is None:
+            return keep
+        own, normal, node_normals = self_contact
+        node = ids[jnp.minimum(pos, ids.shape[0] - 1)]
+        dot = jnp.sum(node_normals[node] * normal[:, None, :], -1)
+        return keep & (node != own[:, None]) & (dot <= FACING_TOL)
 
     def nearest(dmin, pos, keep, dist):
+        keep = counted(keep, pos)
         return jnp.minimum(dmin, jnp.min(jnp.where(keep, dist, jnp.inf), -1))
 
     reach = _shrinks_to(d_max, slack, n, slave_x.dtype)
-    dmin, _, steps = scan(flat, slave_x, reach, slack, nearest, jnp.full(n, jnp.inf, slave_x.dtype))
+    dmin, _, steps = scan(
+        flat, slave_x, reach, slack, nearest, jnp.full(n, jnp.inf, slave_x.dtype), None, normal
+    )
     dmin = jnp.where(dmin <= d_max, dmin, jnp.inf)
     has = dmin < jnp.inf
 
     def smallest_id(best, pos, keep, dist):
-        ok = keep & (dist <= (dmin + tie)[:, None]) & (dist <= d_max)
+        ok = counted(keep, pos) & (dist <= (dmin + tie)[:, None]) & (dist <= d_max)
         node = ids[jnp.minimum(pos, ids.shape[0] - 1)]
         return jnp.minimum(best, jnp.min(jnp.where(ok, node, BIG), -1))
 
     band = jnp.where(has, dmin + slack, 0)
     best, _, steps2 = scan(
-        flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), active=has
+        flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), has, normal
     )
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
 
-def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity):
+def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=None):
     """Candidate (slave, face) pairs: the faces whose box is within the slave's reach (rho,
-    shrunk by the scan to the nearest surface point it meets), K = capacity["face_candidates"]
+    shrunk by the scan to the nearest surface point it meets; self-contact, `normal` given:
+    those that may face it), K = capacity["face_candidates"]
     slots a slave. Returns (slave [n K], face [n K], valid [n K], counts); the count is the
     largest number of candidates of one slave (above K: overflow, the extra ones dropped)."""
     n = slave_x.shape[0]
@@ -192,7 +218,7 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity):
         return found, count + jnp.sum(keep, -1, dtype=jnp.int32)
 
     carry = (jnp.zeros((n, K), jnp.int32), jnp.zeros(n, jnp.int32))
-    (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry)
+    (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry, None, normal)
     valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
     face = tree.ids[found.reshape(-1)]
     slave = jnp.repeat(jnp.arange(n), K)

@@ -711,7 +711,7 @@ def detect(p: Plan, slave_points, master_points=None):
     return res
 
 
-def run_one_shot(slave_x, master, prep, st, dtype):
+def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
     """`arraycontact.detect(backend="warp")`: plan, detect, host arrays out."""
     x = slave_x[prep.slave_rows]
     p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode)

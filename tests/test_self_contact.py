@@ -1,0 +1,181 @@
+"""Self-contact (detect_self) on every back end against reference.closest_points_self."""
+
+import hashlib
+
+import numpy as np
+import pytest
+from conftest import assert_matches_reference
+
+import arraycontact as ac
+from arraycontact import scenes
+from arraycontact._elements import interpolate
+
+_REFS = {}
+
+
+def self_reference(surface, d_max):
+    key = hashlib.sha1(
+        surface.points.tobytes() + surface.faces.tobytes() + repr(d_max).encode()
+    ).hexdigest()
+    if key not in _REFS:
+        _REFS[key] = ac.reference.closest_points_self(surface, d_max=d_max)
+    return _REFS[key]
+
+
+def assert_self_matches(c, surface, d_max, dtype=np.float64):
+    """`c` equals the brute-force self-contact reference, and every chosen face is admissible
+    (checked here in float64: it does not hold the node, and faces the node's normal)."""
+    ref = self_reference(surface, d_max)
+    x = surface.points[surface.nodes]
+    assert np.array_equal(c.slave_ids, surface.nodes)
+    assert_matches_reference(c, x, surface, ref, dtype=dtype)
+    a = c.active
+    f = c.face[a]
+    assert not (surface.faces[f] == c.slave_ids[a][:, None]).any(), "a face holds its node"
+    _, dx = interpolate(surface.element, surface.points[surface.faces[f]], c.xi[a])
+    nf = np.cross(dx[..., 0], dx[..., 1])
+    nf /= np.linalg.norm(nf, axis=-1, keepdims=True)
+    facing = np.einsum("pk,pk->p", surface.node_normals[c.slave_ids[a]], nf)
+    assert facing.max() < (0 if dtype == np.float64 else 1e-4), "a face does not face its node"
+    return ref
+
+
+SCENES = {
+    "spiral": lambda el, n: scenes.spiral_strip(n, element=el),
+    "folded": lambda el, n: scenes.folded_sheet(n, element=el),
+    "coil": lambda el, n: scenes.coil_spring(n, element=el),
+    "crumpled": lambda el, n: scenes.crumpled_sheet(n, element=el),
+    "two_bodies": lambda el, n: scenes.two_bodies(n, element=el),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_scenes_numpy(name):
+    sc = SCENES[name]("tri3", 1500)
+    d = sc.params["d_max"]
+    c = ac.detect_self(sc.master, backend="numpy", d_max=d)
+    ref = assert_self_matches(c, sc.master, d)
+    assert c.active.sum() > 0.2 * len(c.active), "the scene should have contact"
+    assert c.backend == "numpy" and c.dtype == "float64" and c.finer is not None
+    assert (ref.distance <= d).sum() == c.active.sum()
+
+
+@pytest.mark.parametrize(
+    "scene,element,n",
+    [("folded", "quad4", 500), ("two_bodies", "tri6", 120), ("two_bodies", "quad8", 80)],
+)
+def test_elements_numpy(scene, element, n):
+    # (The folded sheet's fold is tighter than its elements: curved ones would invert there.
+    # Small curved scenes: the reference's lattice of Newton starts is slow.)
+    sc = SCENES[scene](element, n)
+    d = sc.params["d_max"]
+    c = ac.detect_self(sc.master, backend="numpy", d_max=d)
+    assert c.active.sum() > 0.2 * len(c.active)
+    assert_self_matches(c, sc.master, d)
+
+
+def test_float32_numpy():
+    sc = scenes.spiral_strip(1500, element="tri3")
+    d = sc.params["d_max"]
+    c = ac.detect_self(sc.master, backend="numpy", d_max=d, dtype=np.float32)
+    assert c.dtype == "float32"
+    assert_self_matches(c, sc.master, d, np.float32)
+
+
+def _plate(thickness, n=12):
+    """One flat plate (a thin solid) of `thickness`, unit elements in the plane."""
+    side = float(n - 1)
+
+    def mapping(u, v, w):
+        return side * u, side * v, thickness * w
+
+    return scenes.block_surface(mapping, (n, n, 2), "tri3")
+
+
+def test_thin_structure_limit():
+    """Seed 000 Fig. 11: a plate alone has no contact while d_max is below its thickness; with
+    d_max above it, its back side is reported (gap -thickness: seen as a penetration)."""
+    t = 0.5
+    plate = _plate(t)
+    c = ac.detect_self(plate, backend="numpy", d_max=0.9 * t)
+    assert not c.active.any()
+    c = ac.detect_self(plate, backend="numpy", d_max=1.1 * t)
+    assert_self_matches(c, plate, 1.1 * t)
+    x = plate.points[c.slave_ids]
+    # Nodes inside the broad faces (away from the rim) find the other side straight behind.
+    inner = (x[:, :2].min(1) > 1.5) & (x[:, :2].max(1) < 9.5) & c.active
+    assert inner.sum() > 50
+    np.testing.assert_allclose(c.gap[inner], -t, atol=1e-12)
+
+
+def test_multibody_pairs_cross_bodies():
+    """Two plates in one surface: every contact of a node on a broad face is a face of the
+    other plate, at the gap between them or more."""
+    sc = scenes.two_bodies(1500, element="tri3")
+    s, d = sc.master, sc.params["d_max"]
+    c = ac.detect_self(s, backend="numpy", d_max=d)
+    n_lower = len(s.points) // 2
+    body_node = c.slave_ids >= n_lower
+    body_face = s.faces[np.maximum(c.face, 0), 0] >= n_lower
+    a = c.active
+    assert a.sum() > 100
+    assert (body_node[a] != body_face[a]).all()
+    assert c.gap[a].min() >= sc.params["gap"] - 1e-9
+
+
+def test_finer_flag_and_node_mode_density():
+    """A fine plate under a coarse one: rows of fine nodes are `finer`, of coarse ones not;
+    in node mode the coarse side is the master side of its pairs (seed 000 section 3, item
+    5) and every active row is a fine node."""
+    t, gap = 1.0, 0.2
+
+    def lower(u, v, w):
+        return 20 * u, 20 * v, t * (w - 1)
+
+    def upper(u, v, w):
+        return 20 * u, 20 * v, gap + t * w
+
+    a = scenes.block_surface(lower, (41, 41, 2), "tri3")  # h = 0.5
+    b = scenes.block_surface(upper, (11, 11, 2), "tri3")  # h = 2
+    s = ac.Surface(
+        np.concatenate([a.points, b.points]), np.concatenate([a.faces, b.faces + len(a.points)])
+    )
+    c = ac.detect_self(s, backend="numpy", d_max=0.6)
+    assert_self_matches(c, s, 0.6)
+    fine = c.slave_ids < len(a.points)
+    both = c.active
+    assert c.finer[both & fine].all() and not c.finer[both & ~fine].any()
+    n = ac.detect_self(s, backend="numpy", mode="node", d_max=0.6)
+    c_ids_fine = n.slave_ids < len(a.points)
+    assert n.active.sum() > 100
+    assert c_ids_fine[n.active].all()
+    coarse = ~c_ids_fine & (n.master_node >= 0)
+    assert (n.status[coarse] == int(ac.Status.MASTER_SIDE)).all()
+
+
+def test_node_mode_closest_obtuse_node():
+    """Node mode's closest node is the closest other node with an obtuse normal (item 4),
+    found here by brute force; an active row's face holds that node."""
+    sc = scenes.folded_sheet(1500, element="tri3")
+    s, d = sc.master, sc.params["d_max"]
+    c = ac.detect_self(s, backend="numpy", mode="node", d_max=d)
+    x = s.points[c.slave_ids]
+    nn = s.node_normals[c.slave_ids]
+    dist = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    ok = (nn @ nn.T <= ac.reference.FACING_TOL) & (dist <= d)  # the rule's margin
+    dist = np.where(ok, dist, np.inf)
+    want = np.where(np.isfinite(dist.min(1)), c.slave_ids[np.argmin(dist, 1)], -1)
+    assert np.array_equal(c.master_node, want)
+    a = c.active
+    assert a.sum() > 100
+    assert (s.faces[c.face[a]] == c.master_node[a][:, None]).any(1).all()
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="Surface"):
+        ac.detect_self(np.zeros((3, 3)))
+    sc = scenes.folded_sheet(300)
+    with pytest.raises(ValueError, match="mode"):
+        ac.detect_self(sc.master, mode="nearest")
+    with pytest.raises(ValueError, match="d_max"):
+        ac.detect_self(sc.master, d_max=-1.0)
