@@ -486,10 +486,12 @@ def detect_self(surface, *, backend="auto", mode="exact", d_max=None, dtype=None
     inverted elements are outside this rule).
 
     Node mode, seed 000 as published: that closest node, the projections on its faces, and
-    the pair's master side chosen by local mesh density (item 5): a node whose mesh is coarser than its closest node's gets status MASTER_SIDE
-    (the element is the other node's row). `finer` flags the rows whose node's local mesh
-    (mesh_sizes: the mean edge length of the faces around it) is at least as fine as the
-    face's: keep those to have one node-to-segment element per pair, from the finer side.
+    the pair's master side chosen by local mesh density (item 5): a node whose mesh is
+    coarser than its closest node's, or as fine with no projection and the larger id, gets
+    status MASTER_SIDE (the element is the other node's row). `finer` flags the rows whose
+    node's local mesh (mesh_sizes: the mean edge length of the faces around it) is at least
+    as fine as the face's: keep those to have one node-to-segment element per pair, from the
+    finer side.
 
     Thin structures (seed 000 Fig. 11): the back side of a plate of thickness t lies at
     distance t behind a node, facing away from the node's side, so its normal is opposite to

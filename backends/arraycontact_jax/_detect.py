@@ -204,6 +204,7 @@ def plan(
     growth=GROWTH,
     minimum=None,
     search="jax",
+    self_contact=False,
 ) -> Plan:
     """Size every buffer of `detect` from the current coordinates (eager, on the host).
 
@@ -213,7 +214,8 @@ def plan(
     `jax_enable_x64`); default: JAX's default float. Capacities are the counts found now times
     `growth` (and at least `minimum`, a dict of counts, used when re-planning).
     search: "jax" (the stages in jax.numpy) or "warp" (exact mode: the Warp kernels through
-    Warp's JAX FFI on the JAX device, for speed; the same contacts and gradients)."""
+    Warp's JAX FFI on the JAX device, for speed; the same contacts and gradients).
+    self_contact: the slaves are the master's own nodes (use `plan_self`)."""
     if dtype is None:
         dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
@@ -250,12 +252,12 @@ def plan(
         face_levels=level_sizes(master.n_faces),
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )
-    st = Static.of(master, mode, prep)
+    st = Static.of(master, mode, prep, self_contact)
     sc = scalars(prep, master, dtype)
     if search == "warp":
         # No pair counts to size: only the topology that the smooth outputs read.
-        engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin)
-        topo = _topology(master, prep)
+        engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin, self_contact)
+        topo = _topology(master, prep, self_contact)
         return Plan(
             topo,
             master,
@@ -270,8 +272,9 @@ def plan(
         )
     m = master_arrays(master, prep, dtype)
     sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
+    ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
     cap = _grown(
-        _count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), st=st),
+        _count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), ids, st=st),
         growth,
         len(slave_x),
     )
@@ -279,7 +282,7 @@ def plan(
         if k in cap:
             cap[k] = max(cap[k], int(np.ceil(v * growth)))
     return Plan(
-        _topology(master, prep),
+        _topology(master, prep, self_contact),
         master,
         st,
         tuple(sorted(cap.items())),
@@ -291,8 +294,45 @@ def plan(
     )
 
 
-def _topology(master, prep):
+def plan_self(
+    surface,
+    *,
+    mode="exact",
+    d_max=None,
+    dtype=None,
+    growth=GROWTH,
+    minimum=None,
+    search="jax",
+) -> Plan:
+    """`plan` for self-contact (arraycontact.detect_self's rule): the surface is master and
+    slave, every node its faces use a slave. Detect with `detect_self(plan, points)`."""
+    if not isinstance(surface, Surface):
+        raise ValueError("surface must be an arraycontact.Surface")
+    return plan(
+        surface,
+        surface.points[surface.nodes],
+        mode=mode,
+        d_max=d_max,
+        dtype=dtype,
+        growth=growth,
+        minimum=minimum,
+        search=search,
+        self_contact=True,
+    )
+
+
+def detect_self(p: Plan, points) -> Contacts:
+    """Self-contact of the plan's surface at node coordinates `points` [n_points, 3] (jitted
+    as `detect`, differentiable with respect to `points`); rows: the surface's nodes."""
+    if not (isinstance(p, Plan) and p.static.self_contact):
+        raise ValueError("detect_self needs a plan from plan_self")
+    return detect(p, points[p.topology["slave_nodes"]], points)
+
+
+def _topology(master, prep, self_contact=False):
     topo = master_topology(master, prep)
+    if self_contact:
+        topo["slave_nodes"] = master.nodes.astype(np.int32)
     table = padded_node_faces(master)  # the smooth outputs' vertex normals
     if table is not None:
         topo["node_faces"] = table
@@ -328,13 +368,16 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     s, xm = local(slave_points), local(master_points)
     st, topo, sc = p.static, p.topology, dict(p.constants)
     cap = dict(p.capacity)
+    ids = topo.get("slave_nodes")
     if p.search is not None:
         out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
         counts = {}
     else:
         m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
         grids = build_grids(jnp, st, sc, m)
-        out, counts = run_stages(jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap, search=_grid)
+        out, counts = run_stages(
+            jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap, search=_grid, slave_ids=ids
+        )
     keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
     face = jnp.where(keep, out["face"], -1)
     feature = jnp.where(keep, out["feature"], int(Feature.NONE))
@@ -367,7 +410,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         feature=feature,
         master_node=out["master_node"],
         status=out["status"],
-        slave_ids=jnp.arange(n, dtype=jnp.int32),
+        slave_ids=jnp.arange(n, dtype=jnp.int32) if ids is None else ids,
         d_max=p.d_max,
         counts=Counts(
             slaves_in_box=n,
@@ -378,6 +421,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         ),
         backend="jax",
         dtype=np.dtype(dtype).name,
+        finer=out.get("finer"),
     )
 
 
@@ -386,19 +430,27 @@ class _WarpSearch:
     with the slave and master coordinates in the plan's frame, returns the search's answer
     (active, face, feature, local, xi, gap, master_node, status) as JAX arrays."""
 
-    def __init__(self, master, slave_x, d_max, dtype, growth, origin):
+    def __init__(self, master, slave_x, d_max, dtype, growth, origin, self_contact=False):
         import arraycontact_warp as acw
         import warp as wp
 
         device = wp.device_from_jax(jax.devices()[0])
         self.plan = acw.plan(
-            master, slave_x, d_max=d_max, device=device, dtype=dtype, growth=growth
+            master,
+            slave_x,
+            d_max=d_max,
+            device=device,
+            dtype=dtype,
+            growth=growth,
+            self_contact=self_contact,
         )
         # The inputs come in the JAX plan's frame: the kernels subtract the difference.
         self.plan.origin = self.plan.origin - np.asarray(origin)
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
         self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
+        if self_contact:
+            self.names += ("finer",)
         kinds = dict(
             active=wp.int32,
             face=int,
@@ -408,6 +460,7 @@ class _WarpSearch:
             gap=real,
             master_node=int,
             status=int,
+            finer=wp.int32,
         )
         plan = self.plan
 
@@ -444,6 +497,8 @@ class _WarpSearch:
         outs = self.call(s, xm, output_dims={f"o_{k}": n for k in self.names})
         out = dict(zip(self.names, outs))
         out["active"] = out["active"].astype(bool)
+        if "finer" in out:
+            out["finer"] = out["finer"].astype(bool)
         ok = out["active"]
         # Inactive rows hold NaN: keep them out of the smooth formulas' arithmetic.
         out["xi"] = jnp.where(ok[:, None], out["xi"], 0)
@@ -475,6 +530,7 @@ def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Pla
         growth=p.growth,
         minimum=count,
         search="jax" if p.search is None else "warp",
+        self_contact=p.static.self_contact,
     )
 
 
@@ -519,5 +575,6 @@ _ARRAYS = (
     "master_node",
     "status",
     "slave_ids",
+    "finer",
 )
 jax.tree_util.register_pytree_node(Contacts, _flatten_contacts, _unflatten_contacts)
