@@ -12,14 +12,30 @@ from ._real import real, vec3
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 
+#: arraycontact._grid.FACING_TOL: self-contact counts nodes with n_i . n_j <= this.
+FACING_TOL = 1.0e-6
+
+
 @wp.func
-def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, limit: real):
+def _scan(
+    s: vec3,
+    world: int,
+    shared: int,
+    grid: Grid,
+    d_max: real,
+    tie: real,
+    limit: real,
+    n: vec3,
+    own: int,
+    normals: wp.array(dtype=vec3),
+):
     """Within d_max: the smallest distance, the second smallest (of another node) and the
     smallest node id at distance <= limit (limit < 0: the id at the smallest distance), over
     the tree depth first (_grid: a visit tests an entry's W children, goes on with the
     nearest, keeps the others in `stack`), within the reach: d_max, cut to the running
     minimum plus the tie band (or the tie limit). shared = 1: every item is of this world (a
-    master shared by all worlds)."""
+    master shared by all worlds). A self-contact grid (grid.normals = 1): only nodes other
+    than `own` whose normal (normals[id]) is at an obtuse angle to the slave's n count."""
     dmin = real(3.0e38)
     second = real(3.0e38)
     best = int(-1)
@@ -41,10 +57,14 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
                         near = d2 <= wide * wide
                         if near and shared == 0:  # (Warp evaluates both sides of `or`)
                             near = item_world(grid, kk) == world
+                        i = int(-1)
+                        if near:
+                            i = grid.sorted_ids[kk]
+                            if grid.normals == 1:
+                                near = i != own and wp.dot(n, normals[i]) <= real(FACING_TOL)
                         if near:
                             d = wp.sqrt(d2)
                             if d <= d_max:
-                                i = grid.sorted_ids[kk]
                                 if d < dmin:
                                     second = dmin
                                     dmin = d
@@ -57,7 +77,7 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
                                 reach = wp.min(reach, wp.max(dmin + tie, limit))
                                 wide = reach * real(1.0001)
             else:
-                mask, near_c = children(grid, s, world, shared, k, j, wide, 1)
+                mask, near_c = children(grid, s, world, shared, k, j, wide, 1, n)
                 if mask != 0:
                     stack, k, j = descend(stack, k, j, mask, near_c)
                     visit = 1
@@ -67,12 +87,23 @@ def _scan(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real, 
 
 
 @wp.func
-def closest_node(s: vec3, world: int, shared: int, grid: Grid, d_max: real, tie: real):
+def closest_node(
+    s: vec3,
+    world: int,
+    shared: int,
+    grid: Grid,
+    d_max: real,
+    tie: real,
+    n: vec3,
+    own: int,
+    normals: wp.array(dtype=vec3),
+):
     """(node id or -1, distance or 3e38). One scan; the tie rule needs a second only when
-    another node is within `tie` of the closest (a slave equidistant from two nodes)."""
-    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0))
+    another node is within `tie` of the closest (a slave equidistant from two nodes).
+    n, own, normals: self-contact's (see _scan)."""
+    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0), n, own, normals)
     if dmin <= d_max and second <= dmin + tie:
-        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, dmin + tie)
+        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, dmin + tie, n, own, normals)
     return best, dmin
 
 

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, TIE_RTOL
+from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, SIZE_RTOL, TIE_RTOL
 from arraycontact._select import boundary_topology
 from arraycontact._surface import Surface, bounds, validate_points
 
@@ -39,13 +39,24 @@ from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
 from ._projection import Master, project, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
-from ._select import classify, proximal
+from ._select import classify, proximal, self_face_geometry, self_node_geometry
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
 # the kernel: minutes of CUDA compilation for no speed).
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
+
+
+@wp.func
+def _own(grid: _grid.Grid, own_nodes: wp.array(dtype=int), normals: wp.array(dtype=vec3), i: int):
+    """Self-contact: slave i's node and normal; else (-1, 0)."""
+    own = int(-1)
+    n = vec3(0.0)
+    if grid.normals == 1:
+        own = own_nodes[i]
+        n = normals[own]
+    return own, n
 
 
 @wp.kernel
@@ -58,15 +69,19 @@ def _node_kernel(
     origin: vec3,
     d_max: real,
     tie: real,
+    own_nodes: wp.array(dtype=int),
+    normals: wp.array(dtype=vec3),
     node_out: wp.array(dtype=int),
     dist: wp.array(dtype=real),
 ):
-    """Stage 3: each slave's closest node and its distance (into `dist`)."""
+    """Stage 3: each slave's closest node and its distance (into `dist`). Self-contact (a
+    node grid with normals): slave i is node own_nodes[i], of normal normals[that node]."""
     i = order[wp.tid()]
     w = slave_world[i]
     if shared == 1:
         w = 0
-    node, dn = closest_node(slaves[i] - origin, w, shared, node_grid, d_max, tie)
+    own, n = _own(node_grid, own_nodes, normals, i)
+    node, dn = closest_node(slaves[i] - origin, w, shared, node_grid, d_max, tie, n, own, normals)
     node_out[i] = node
     dist[i] = dn
 
@@ -89,18 +104,25 @@ def _face_kernel(
     slack: real,
     iterations: int,
     tol: real,
+    own_nodes: wp.array(dtype=int),
+    normals: wp.array(dtype=vec3),
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
 ):
     """Stage 4, exact mode: the smallest distance (into `dist`, replacing the closest node's),
-    the face of the tie rule (into face_out) and its face-grid item."""
+    the face of the tie rule (into face_out) and its face-grid item. Self-contact: the closest
+    admissible face (arraycontact.detect_self), within d_max (the closest node bounds
+    nothing: it need not lie on an admissible face)."""
     i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
     if shared == 1:
         w = 0
+    own, n = _own(face_grid, own_nodes, normals, i)
     rho = wp.min(dist[i], d_max) + slack
+    if own >= 0:
+        rho = d_max + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
     # unsure. One call site in a loop keeps the generated code small.
@@ -112,7 +134,7 @@ def _face_kernel(
     for scan in range(2):
         if scan == 0 or (dmin <= d_max and unsure == 1):
             d, f, k, unsure = scan_faces(
-                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol
+                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, n, own
             )
             if scan == 0:
                 dmin = d
@@ -138,8 +160,13 @@ def _finish_kernel(
     tol: real,
     mode: int,
     passing_by: int,
+    selfc: int,
+    own_nodes: wp.array(dtype=int),
+    h_node: wp.array(dtype=real),
+    h_face: wp.array(dtype=real),
     dist: wp.array(dtype=real),
     item: wp.array(dtype=int),
+    finer_out: wp.array(dtype=wp.int32),
     active_out: wp.array(dtype=wp.int32),
     face_out: wp.array(dtype=int),
     xi_out: wp.array(dtype=vec2),
@@ -154,10 +181,15 @@ def _finish_kernel(
 ):
     """The chosen face's projection (exact mode) or the node-mode search on the faces around
     the closest node, then stage 5 and every output. Slaves in their own order, so that the
-    outputs are written in whole cache lines."""
+    outputs are written in whole cache lines. Self-contact (selfc = 1): the
+    faces of the slave's node drop out of node mode, whose pair goes to the finer side
+    (MASTER_SIDE), and `finer_out` is written."""
     i = wp.tid()
     s = slaves[i] - origin
     node = node_out[i]
+    own = int(-1)
+    if selfc == 1:
+        own = own_nodes[i]
     f = int(-1)
     xi = vec2(0.0)
     feature = int(-1)
@@ -183,22 +215,35 @@ def _finish_kernel(
         limit = real(-1.0)
         for scan in range(2):
             d_face, d_any, f, xi, feature, local, conv, diff = scan_attached(
-                el, m, face_grid, s, node, only_face, limit, iterations, tol
+                el, m, face_grid, s, node, only_face, limit, iterations, tol, own
             )
             if scan == 0:
                 limit = d_any + tie
                 if d_face < real(3.0e38):
                     only_face = 1
                     limit = d_face + tie
-        active = 1
-        status = 0
-        if only_face == 0:
+        active = int(f >= 0)
+        status = 1 - active
+        if only_face == 0 and active == 1:
             status = 2  # blind spot
             if passing_by == 1 and (m.prev_face[node] >= 0 or m.next_face[node] >= 0):
                 if not proximal(el, m, s, node):
                     active = 0
                     status = 3  # passing by
+        if own >= 0 and active == 1:
+            # Seed 000 section 3, item 5 (as arraycontact._detect.run_stages).
+            h_i = h_node[own]
+            h_j = h_node[node]
+            coarser = h_i > h_j * real(1.0 + SIZE_RTOL)
+            finer = h_i * real(1.0 + SIZE_RTOL) < h_j
+            if coarser or (not finer and only_face == 0 and own > node):
+                active = 0
+                status = 5  # master side
     nan = real(wp.nan)
+    if own >= 0:
+        finer_out[i] = 0
+        if active == 1:
+            finer_out[i] = int(h_node[own] <= h_face[f] * real(1.0 + SIZE_RTOL))
     if active == 1 or status == 3:
         gap, distance, normal = classify(el, m, f, feature, local, xi, diff, tie)
         active_out[i] = active
@@ -223,7 +268,9 @@ def _finish_kernel(
         normal_out[i] = vec3(nan, nan, nan)
         feature_out[i] = -1
         local_out[i] = -1
-        status_out[i] = 1
+        status_out[i] = status
+        if status != 5:
+            status_out[i] = 1
 
 
 OUTPUTS = (
@@ -270,6 +317,16 @@ class Plan:
     item: wp.array  # [n] between kernels: the chosen face's item in the face grid
     mode: int = 0  # 0 exact, 1 node
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
+    # Self-contact (the slaves are the master's nodes): each slave's node, every node's
+    # normal and mesh size, every face's normal box and size (recomputed with the master).
+    self_contact: int = 0
+    own_nodes: wp.array = None
+    normals: wp.array = None
+    h_node: wp.array = None
+    face_nlo: wp.array = None
+    face_nhi: wp.array = None
+    h_face: wp.array = None
+    finer: wp.array = None  # [n] int32: the `finer` output (self-contact)
     master_ready: bool = False  # the master stages have run at least once
     graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
     refit: bool = True  # refit the master's grids where the device can choose (see `plan`)
@@ -305,6 +362,7 @@ def plan(
     mode="exact",
     graphs=True,
     refit=True,
+    self_contact=False,
 ) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
@@ -328,7 +386,9 @@ def plan(
     order (their boxes recomputed: exact for any motion) while every face centre and node
     stays within that margin of where it was sorted, and are sorted again when one does not;
     `rebuild[0]` says which the last call did. The results are the same either way; a refit
-    skips the keys and the sorts. False: sorts in every call."""
+    skips the keys and the sorts. False: sorts in every call.
+    self_contact: the slaves are the master's own nodes, slave_points = the master's points
+    at master.nodes (use `plan_self` / `detect_self`)."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(
@@ -344,6 +404,7 @@ def plan(
             mode=mode,
             graphs=graphs,
             refit=refit,
+            self_contact=self_contact,
         )
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
@@ -354,6 +415,10 @@ def plan(
     x = validate_points(slave_points, "slave_points")
     if len(x) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
+    if self_contact and len(x) != len(master.nodes):
+        raise ValueError(
+            f"self-contact: slave_points must be the master's {len(master.nodes)} used nodes"
+        )
     if d_max is None:
         d_max = master.longest_edge
     if not (np.isscalar(d_max) and np.isfinite(d_max) and d_max > 0):
@@ -425,7 +490,13 @@ def plan(
     margin = (growth - 1) * float(np.quantile(radii, 0.1))
     n_worlds = 1 if shared else int(nw.max()) + 1
     node_grid, world_bits = _grid.new_grid(
-        len(master.nodes), lo - origin, float((hi - lo).max()), device, margin, n_worlds
+        len(master.nodes),
+        lo - origin,
+        float((hi - lo).max()),
+        device,
+        margin,
+        n_worlds,
+        normals=self_contact,
     )
     face_grid, _ = _grid.new_grid(
         master.n_faces,
@@ -435,6 +506,7 @@ def plan(
         margin,
         n_worlds,
         corners=e.name == "tri3",
+        normals=self_contact,
     )
     p = Plan(
         device=device,
@@ -469,6 +541,19 @@ def plan(
         graphs=bool(graphs),
         refit=bool(refit),
     )
+    n_self = len(x) if self_contact else 1
+    n_pts = len(master.points) if self_contact else 1
+    n_faces = master.n_faces if self_contact else 1
+    p.self_contact = int(bool(self_contact))
+    p.own_nodes = arr(master.nodes.astype(np.int32), int) if self_contact else wp.zeros(1, int)
+    p.normals = wp.zeros(n_pts, dtype=vec3, device=device)
+    p.h_node = wp.zeros(n_pts, dtype=real, device=device)
+    p.face_nlo = wp.zeros(n_faces, dtype=vec3, device=device)
+    p.face_nhi = wp.zeros(n_faces, dtype=vec3, device=device)
+    p.h_face = wp.zeros(n_faces, dtype=real, device=device)
+    p.finer = wp.zeros(n_self, dtype=wp.int32, device=device)
+    if self_contact:
+        out["finer"] = p.finer
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
         p.slave_in.assign((x - origin).astype(NP_REAL))
         _grid.spatial_order(
@@ -513,11 +598,19 @@ def _input(p: Plan, a, staging, what, n):
     return a, vec3(*[float(v) for v in p.origin])
 
 
+def _normal_boxes(p: Plan):
+    """Self-contact: the trees' item normal boxes (nodes: their normal; faces: their box)."""
+    if not p.self_contact:
+        return None, None
+    return (p.normals, p.normals), (p.face_nlo, p.face_nhi)
+
+
 def _build(p: Plan):
     """The master's trees from its localised points."""
     c = p.constants
     dev = p.device
     m = p.m
+    node_n, face_n = _normal_boxes(p)
     _grid.build(
         p.node_grid,
         m.points,
@@ -527,6 +620,7 @@ def _build(p: Plan):
         dev,
         p.rebuild,
         p.world_bits,
+        node_n,
     )
     if p.mode == 0:  # node mode reads no face grid
         _grid.build_faces(
@@ -539,6 +633,7 @@ def _build(p: Plan):
             p.master.element.name == "tri3",
             p.rebuild,
             p.world_bits,
+            face_n,
         )
 
 
@@ -553,12 +648,28 @@ def _master_stages(p: Plan, xm, m_origin):
         outputs=[m.points],
         device=dev,
     )
+    if p.self_contact:
+        wp.launch(
+            self_face_geometry,
+            p.master.n_faces,
+            inputs=[p.kernel_element, m],
+            outputs=[p.face_nlo, p.face_nhi, p.h_face],
+            device=dev,
+        )
+        wp.launch(
+            self_node_geometry,
+            len(p.master.nodes),
+            inputs=[p.kernel_element, m, p.own_nodes, p.h_face],
+            outputs=[p.normals, p.h_node],
+            device=dev,
+        )
+    node_n, face_n = _normal_boxes(p)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
     if p.refit and (dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())):
         n_nodes = len(p.master.nodes)
         p.rebuild.zero_()
-        _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild)
+        _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild, node_n)
         if p.mode == 0:
             _grid.refit_faces(
                 p.face_grid,
@@ -569,6 +680,7 @@ def _master_stages(p: Plan, xm, m_origin):
                 dev,
                 p.master.element.name == "tri3",
                 p.rebuild,
+                face_n,
             )
 
         def fill():
@@ -606,6 +718,8 @@ def _launch(p: Plan, xs, s_origin, master):
             s_origin,
             real(c["d_max"]),
             real(c["tie"]),
+            p.own_nodes,
+            p.normals,
         ],
         outputs=[o["master_node"], p.dist],
         device=dev,
@@ -628,6 +742,8 @@ def _launch(p: Plan, xs, s_origin, master):
                 real(c["slack"]),
                 c["iterations"],
                 real(c["tol"]),
+                p.own_nodes,
+                p.normals,
             ],
             outputs=[p.dist, o["face"], p.item],
             device=dev,
@@ -647,10 +763,14 @@ def _launch(p: Plan, xs, s_origin, master):
             real(c["tol"]),
             p.mode,
             p.passing_by,
+            p.self_contact,
+            p.own_nodes,
+            p.h_node,
+            p.h_face,
             p.dist,
             p.item,
         ],
-        outputs=[o[k] for k, _ in OUTPUTS],
+        outputs=[p.finer] + [o[k] for k, _ in OUTPUTS],
         device=dev,
     )
 
@@ -712,11 +832,16 @@ def detect(p: Plan, slave_points, master_points=None):
 
 
 def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
-    """`arraycontact.detect(backend="warp")`: plan, detect, host arrays out."""
+    """`arraycontact.detect(backend="warp")` and `detect_self` (slave_ids: the slaves' node
+    ids, every used node in master.nodes order): plan, detect, host arrays out."""
     x = slave_x[prep.slave_rows]
-    p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode)
+    if slave_ids is not None and not np.array_equal(slave_ids[prep.slave_rows], master.nodes):
+        raise ValueError("self-contact: the slaves must be the master's used nodes, in order")
+    p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode, self_contact=st.self_contact)
     out = detect(p, x, master.points)
     out["active"] = out["active"].astype(bool)
+    if "finer" in out:
+        out["finer"] = out["finer"].astype(bool)
     out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back
     return out, {}, {}, str(p.device)
 

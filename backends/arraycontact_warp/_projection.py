@@ -25,6 +25,7 @@ from ._geometry import (
     edge_xi,
     face_nodes,
     face_point,
+    face_tangents,
     start_option_one,
 )
 from ._grid import (
@@ -192,6 +193,44 @@ def project(  # noqa: F811 (a Warp overload)
 
 _candidates = wp.types.vector(length=W, dtype=int)
 
+#: arraycontact._grid.FACING_TOL: self-contact counts faces with n_i . n_f < -FACING_TOL.
+FACING_TOL = 1.0e-6
+
+
+@wp.func
+def holds(m: Master, f: int, node: int):
+    """Whether face f has node `node`."""
+    found = int(0)
+    for c in range(m.faces.shape[1]):
+        if m.faces[f, c] == node:
+            found = 1
+    return found == 1
+
+
+@wp.func
+def _unit_cross(a: vec3, b: vec3):
+    v = wp.cross(a, b)
+    length = wp.length(v)
+    if length > real(0.0):
+        v = v / length
+    return v
+
+
+@wp.func
+def normal_dot(el: Triangles, m: Master, grid: Grid, k: int, f: int, xi: vec2, n: vec3):
+    """n . the unit normal of face f (tree item k) at xi."""
+    c0 = grid.corners[k, 0]
+    return wp.dot(n, _unit_cross(grid.corners[k, 1] - c0, grid.corners[k, 2] - c0))
+
+
+@wp.func
+def normal_dot(  # noqa: F811 (a Warp overload)
+    el: Element, m: Master, grid: Grid, k: int, f: int, xi: vec2, n: vec3
+):
+    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
+    t0, t1 = face_tangents(el, xe, xi)
+    return wp.dot(n, _unit_cross(t0, t1))
+
 
 @wp.func
 def scan_faces(
@@ -207,6 +246,8 @@ def scan_faces(
     slack: real,
     iterations: int,
     tol: real,
+    normal: vec3,
+    own: int,
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its tree item (its projection is computed
@@ -226,7 +267,11 @@ def scan_faces(
     before: the face at the old minimum, if in the band, and, when the second smallest
     distance is in it too, faces this scan did not keep: then `unsure` = 1 (three faces within
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
-    scan: the smallest face id at distance <= limit, skipping larger ids than the best so far."""
+    scan: the smallest face id at distance <= limit, skipping larger ids than the best so far.
+
+    Self-contact (grid.normals = 1): faces that hold node `own`, or whose normal at the
+    closest point does not face the slave's `normal` (arraycontact.detect_self), count as
+    absent."""
     reach = rho
     dmin = real(3.0e38)
     f_min = int(-1)  # the face at dmin and its tree item
@@ -262,7 +307,7 @@ def scan_faces(
                             found[n] = k
                             n += 1
             else:
-                mask, near_c = children(grid, s, world, shared, lv, j, reach, 0)
+                mask, near_c = children(grid, s, world, shared, lv, j, reach, 0, normal)
                 if mask != 0:
                     stack, lv, j = descend(stack, lv, j, mask, near_c)
                     visit = 1
@@ -277,9 +322,14 @@ def scan_faces(
             cut = wp.min(reach, wp.max(dmin, limit) + slack)
             near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
             # The second scan skips ids above the best so far.
+            if near and grid.normals == 1:  # self-contact: not a face of the slave's node
+                near = not holds(m, f, own)
             if near and (limit < real(0.0) or best < 0 or f < best):
                 xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
                 d = wp.length(diff)
+                if grid.normals == 1:  # and only a face facing the slave's normal counts
+                    if normal_dot(el, m, grid, kt, f, xi, normal) >= -real(FACING_TOL):
+                        d = real(3.0e38)
                 top = limit
                 if limit < real(0.0):
                     if d < dmin:
@@ -322,9 +372,11 @@ def scan_attached(
     limit: real,
     iterations: int,
     tol: real,
+    own: int,
 ):
     """Node mode (seed 000 section 2.2): the projections of s on the faces attached to its
-    closest node. Returns the smallest distance among the projections that land on a face's
+    closest node (self-contact, own >= 0: but those holding node `own`). Returns the
+    smallest distance among the projections that land on a face's
     interior and among all, and the smallest face id at distance <= limit (only interior
     landings when only_face = 1) with its projection."""
     d_face = real(3.0e38)
@@ -337,6 +389,9 @@ def scan_attached(
     b_diff = vec3(0.0)
     for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
         f = m.nf_ids[j]
+        if own >= 0:
+            if holds(m, f, own):
+                continue
         xi, feature, local, conv, diff = project_face(el, m, grid, s, f, iterations, tol)
         d = wp.length(diff)
         d_any = wp.min(d_any, d)

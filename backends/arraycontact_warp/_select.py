@@ -147,3 +147,87 @@ def proximal(el: Any, m: Master, s: vec3, node: int):
 
 
 __all__ = ["pseudo_normal", "classify", "face_normal", "proximal"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Self-contact geometry from the current coordinates (arraycontact._surface: node_normals,
+# normal_boxes, mesh_sizes).
+
+
+@wp.func
+def any_node_normal(el: Any, m: Master, node: int):
+    """The pseudo-normal of any node (arraycontact._surface.node_normals): at a corner the
+    angle-weighted face normals, at a mid-edge or centre node their plain sum."""
+    k = el.n_corners
+    n = vec3(0.0)
+    for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
+        g = m.nf_ids[j]
+        for c in range(m.faces.shape[1]):
+            if m.faces[g, c] == node:
+                xi = el.nodes[c]
+                t0, t1 = _tangents(el, m, g, xi)
+                w = real(1.0)
+                if c < k:
+                    e1 = el.nodes[(c + 1) % k] - xi
+                    e2 = el.nodes[(c + k - 1) % k] - xi
+                    a = t0 * e1[0] + t1 * e1[1]
+                    b = t0 * e2[0] + t1 * e2[1]
+                    w = wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b))
+                n += w * _unit(wp.cross(t0, t1))
+    return _unit(n)
+
+
+@wp.kernel
+def self_node_geometry(
+    el: Any,
+    m: Master,
+    nodes: wp.array(dtype=int),
+    h_face: wp.array(dtype=real),
+    normals: wp.array(dtype=vec3),
+    h_node: wp.array(dtype=real),
+):
+    """Each used node's pseudo-normal and local mesh size (the mean of its faces' sizes)."""
+    i = nodes[wp.tid()]
+    normals[i] = any_node_normal(el, m, i)
+    h = real(0.0)
+    for j in range(m.nf_offsets[i], m.nf_offsets[i + 1]):
+        h += h_face[m.nf_ids[j]]
+    h_node[i] = h / real(wp.max(m.nf_offsets[i + 1] - m.nf_offsets[i], 1))
+
+
+@wp.kernel
+def self_face_geometry(
+    el: Any,
+    m: Master,
+    lo: wp.array(dtype=vec3),
+    hi: wp.array(dtype=vec3),
+    h_face: wp.array(dtype=real),
+):
+    """Each face's normal box (arraycontact._surface.normal_boxes: tri3 its normal, quad4 its
+    corner normals, tri6 the nine cross products of x_xi and x_eta at its corners, else all
+    unit vectors) and its size (the mean length of its edges)."""
+    f = wp.tid()
+    nn = m.faces.shape[1]
+    k = el.n_corners
+    b_lo = vec3(real(-1.0))
+    b_hi = vec3(real(1.0))
+    if nn == 3 or nn == 4 or nn == 6:
+        b_lo = vec3(real(1.0))
+        b_hi = vec3(real(-1.0))
+        for a in range(k):
+            for b in range(k):
+                use = a == b or nn == 6
+                if nn == 3 and a > 0:
+                    use = False
+                if use:
+                    ta, ua = _tangents(el, m, f, el.nodes[a])
+                    tb, ub = _tangents(el, m, f, el.nodes[b])
+                    g = _unit(wp.cross(ta, ub))
+                    b_lo = wp.min(b_lo, g)
+                    b_hi = wp.max(b_hi, g)
+    lo[f] = b_lo
+    hi[f] = b_hi
+    h = real(0.0)
+    for c in range(k):
+        h += wp.length(m.points[m.faces[f, (c + 1) % k]] - m.points[m.faces[f, c]])
+    h_face[f] = h / real(k)
