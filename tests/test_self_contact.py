@@ -251,3 +251,55 @@ def test_jax_plan_detect_grad_vmap():
         np.testing.assert_array_equal(np.asarray(cs.face[1]), b.face)
     with pytest.raises(ValueError, match="plan_self"):
         acj.detect_self(acj.plan(s, s.points[s.nodes], d_max=d), s.points)
+
+
+def test_warp_plan_detect_worlds():
+    """arraycontact_warp.plan_self / detect_self: equal to NumPy at the plan's and at moved
+    coordinates (a refit), and with two worlds in one surface, each world alone."""
+    import arraycontact_warp as acw
+
+    sc = scenes.crumpled_sheet(800, element="tri3")
+    s, d = sc.master, sc.params["d_max"]
+    p = acw.plan_self(s, d_max=d, dtype="float64", device="cpu")
+    for x in (s.points, s.points + np.array([0.0, 0.0, 0.01]) * s.points[:, :1]):
+        want = ac.detect_self(s.with_points(x), backend="numpy", d_max=d)
+        got = acw.detect_self(p, x)
+        for k in ("face", "feature", "master_node", "status"):
+            np.testing.assert_array_equal(got[k], getattr(want, k), err_msg=k)
+        np.testing.assert_array_equal(got["active"].astype(bool), want.active)
+        np.testing.assert_array_equal(got["finer"].astype(bool), want.finer)
+        np.testing.assert_allclose(got["gap"], want.gap, atol=1e-12)
+    # Two worlds: the sheet and a copy moved onto it (which, in one world, would touch it).
+    n = len(s.points)
+    both = ac.Surface(np.concatenate([s.points, s.points + 0.1]), np.r_[s.faces, s.faces + n])
+    world = np.r_[np.zeros(n, np.int32), np.ones(n, np.int32)]
+    p = acw.plan_self(both, world=world, d_max=d, dtype="float64", device="cpu")
+    got = acw.detect_self(p, both.points)
+    alone = ac.detect_self(s, backend="numpy", d_max=d)
+    moved = ac.detect_self(s.with_points(s.points + 0.1), backend="numpy", d_max=d)
+    rows = both.nodes
+    first = rows < n
+    np.testing.assert_array_equal(got["face"][first], alone.face)
+    np.testing.assert_array_equal(
+        got["face"][~first], np.where(moved.face >= 0, moved.face + len(s.faces), -1)
+    )
+    with pytest.raises(ValueError, match="detect_self"):
+        acw.detect(p, both.points[rows], both.points)
+    with pytest.raises(ValueError, match="plan_self"):
+        acw.detect_self(acw.plan(s, s.points[s.nodes], d_max=d, device="cpu"), s.points)
+
+
+def test_jax_search_warp_self():
+    import arraycontact_jax as acj
+    import jax
+    import jax.numpy as jnp
+
+    sc = scenes.two_bodies(600, element="tri3")
+    s, d = sc.master, sc.params["d_max"]
+    a = ac.detect_self(s, backend="numpy", d_max=d)
+    with jax.enable_x64(True):
+        p = acj.plan_self(s, d_max=d, dtype=np.float64, search="warp")
+        c = acj.detect_self(p, jnp.asarray(s.points))
+        for k in ("active", "face", "feature", "finer", "master_node"):
+            np.testing.assert_array_equal(np.asarray(getattr(c, k)), getattr(a, k), err_msg=k)
+        np.testing.assert_allclose(np.asarray(c.gap), a.gap, atol=1e-12)

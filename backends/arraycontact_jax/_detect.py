@@ -465,7 +465,10 @@ class _WarpSearch:
         plan = self.plan
 
         def search(slaves, master_points, *outs):
-            o = acw.detect(plan, slaves, master_points)
+            if self_contact:  # the slaves are the master's nodes: gathered by the kernels
+                o = acw.detect_self(plan, master_points)
+            else:
+                o = acw.detect(plan, slaves, master_points)
             for name, a in zip(self.names, outs):
                 wp.copy(a, o[name])
 

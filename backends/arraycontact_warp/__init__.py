@@ -4,6 +4,8 @@
     plan(master, slave_points, *, slave_world, master_world, d_max, device, dtype, mode)
         -> Plan
     detect(plan, slave_points, master_points) -> dict of arrays (launches only)
+    plan_self(surface, *, world, ...), detect_self(plan, points): self-contact
+        (arraycontact.detect_self's rule)
     closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
     face_point: @wp.func (float32; `geometry("float64")` holds their float64 twins)
 """
@@ -12,7 +14,9 @@ AVAILABLE = True
 
 from ._detect import Plan as Plan  # noqa: E402
 from ._detect import detect as detect  # noqa: E402
+from ._detect import detect_self as detect_self  # noqa: E402
 from ._detect import plan as plan  # noqa: E402
+from ._detect import plan_self as plan_self  # noqa: E402
 from ._detect import run_one_shot as run_one_shot  # noqa: E402
 from ._geometry import Element as Element  # noqa: E402
 from ._geometry import FaceNodes as FaceNodes  # noqa: E402
@@ -43,11 +47,13 @@ __all__ = [
     "closest_point_face",
     "closest_point_triangle",
     "detect",
+    "detect_self",
     "element_data",
     "face_nodes",
     "face_point",
     "geometry",
     "plan",
+    "plan_self",
     "run_one_shot",
     "start_option_one",
 ]

@@ -694,12 +694,21 @@ def _master_stages(p: Plan, xm, m_origin):
     p.master_ready = True
 
 
+@wp.kernel
+def _gather_rows(x: wp.array(dtype=vec3), rows: wp.array(dtype=int), out: wp.array(dtype=vec3)):
+    k = wp.tid()
+    out[k] = x[rows[k]]
+
+
 def _launch(p: Plan, xs, s_origin, master):
-    """Every launch of one detection (master: its points and origin, or None)."""
+    """Every launch of one detection (master: its points and origin, or None). Self-contact:
+    the slaves (xs, the plan's staging buffer) are gathered from the master's points."""
     c = p.constants
     dev = p.device
     if master is not None:
         _master_stages(p, *master)
+        if p.self_contact:
+            wp.launch(_gather_rows, p.n_slaves, inputs=[master[0], p.own_nodes, xs], device=dev)
     if p.order_keys is not None:
         _grid.spatial_order(
             xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves, dev
@@ -788,13 +797,20 @@ def detect(p: Plan, slave_points, master_points=None):
         if not hasattr(p, "dtype"):
             raise ValueError(f"p must be a Plan from arraycontact_warp.plan, got {type(p)}")
         return precision(p.dtype).detect(p, slave_points, master_points)
-    xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
-    master = None
+    if p.self_contact:
+        if slave_points is not None or master_points is None:
+            raise ValueError("a self-contact plan detects with detect_self(plan, points)")
+        master = _input(p, master_points, p.master_in, "points", len(p.master.points))
+        xs, s_origin = p.slave_in, master[1]
+        slave_points = master_points
+    else:
+        xs, s_origin = _input(p, slave_points, p.slave_in, "slave_points", p.n_slaves)
+    master = master if p.self_contact else None
     if master_points is None:
         # A master that does not move keeps its geometry and grids from the last call.
         if not p.master_ready:
             raise ValueError("master_points=None needs a previous detect with the master")
-    else:
+    elif master is None:
         master = _input(p, master_points, p.master_in, "master_points", len(p.master.points))
     dev = p.device
     if dev.is_cuda and p.graphs and not dev.is_capturing:
@@ -831,14 +847,63 @@ def detect(p: Plan, slave_points, master_points=None):
     return res
 
 
+def plan_self(
+    surface: Surface,
+    *,
+    world=None,
+    d_max=None,
+    device=None,
+    growth=GROWTH,
+    dtype="float32",
+    sort_slaves="plan",
+    mode="exact",
+    graphs=True,
+    refit=True,
+) -> Plan:
+    """`plan` for self-contact (arraycontact.detect_self's rule): every node the surface's
+    faces use is a slave, every face a master. world [n_points]: world ids (each world's
+    self-contact alone; default: one world). Detect with `detect_self(plan, points)`."""
+    if not isinstance(surface, Surface):
+        raise ValueError("surface must be an arraycontact.Surface")
+    w = None if world is None else _worlds(world, len(surface.points), "world")
+    return plan(
+        surface,
+        surface.points[surface.nodes],
+        slave_world=None if w is None else w[surface.nodes],
+        master_world=w,
+        d_max=d_max,
+        device=device,
+        growth=growth,
+        dtype=dtype,
+        sort_slaves=sort_slaves,
+        mode=mode,
+        graphs=graphs,
+        refit=refit,
+        self_contact=True,
+    )
+
+
+def detect_self(p: Plan, points):
+    """Self-contact of the plan's surface at node coordinates `points` [n_points, 3] (kinds as
+    `detect`'s; launches only, capturable). Rows: the surface's used nodes, in order; the
+    outputs of `detect` and `finer` (int32)."""
+    if not getattr(p, "self_contact", 0):
+        raise ValueError("detect_self needs a plan from plan_self")
+    return detect(p, None, points)
+
+
 def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
     """`arraycontact.detect(backend="warp")` and `detect_self` (slave_ids: the slaves' node
     ids, every used node in master.nodes order): plan, detect, host arrays out."""
     x = slave_x[prep.slave_rows]
     if slave_ids is not None and not np.array_equal(slave_ids[prep.slave_rows], master.nodes):
         raise ValueError("self-contact: the slaves must be the master's used nodes, in order")
-    p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode, self_contact=st.self_contact)
-    out = detect(p, x, master.points)
+    if st.self_contact:
+        p = plan_self(master, d_max=prep.d_max, dtype=dtype, mode=st.mode)
+        out = detect_self(p, master.points)
+    else:
+        p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode)
+        out = detect(p, x, master.points)
     out["active"] = out["active"].astype(bool)
     if "finer" in out:
         out["finer"] = out["finer"].astype(bool)
@@ -846,4 +911,4 @@ def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
     return out, {}, {}, str(p.device)
 
 
-__all__ = ["Plan", "plan", "detect", "run_one_shot"]
+__all__ = ["Plan", "plan", "plan_self", "detect", "detect_self", "run_one_shot"]
