@@ -235,20 +235,23 @@ def closest_points(points, surface: Surface, *, chunk_points=1024, chunk_faces=8
     return _finish(surface, r_all, face, xi, dist2)
 
 
-def closest_points_self(surface: Surface, *, d_max=None, chunk_points=512, chunk_faces=4096):
+def closest_points_self(
+    surface: Surface, *, d_max=None, rows=None, chunk_points=512, chunk_faces=4096
+):
     """Self-contact by brute force in float64: for every node used by the faces (in
     `surface.nodes` order), the closest admissible face, the rule of `detect_self`: a face is
     admissible when it does not hold the node and its unit normal x_xi x x_eta at its own
     closest point to the node faces the node's pseudo-normal (n_i . n_f < -FACING_TOL). Ties: the
     smallest face id within TIE_RTOL * longest edge. d_max: faces farther (by their balls) are
-    not examined (None: every face). Faces with no admissible face within reach get face -1.
+    not examined (None: every face). Nodes with no admissible face within reach get face -1.
+    rows: only these rows of `surface.nodes` (a subset to check a large surface against).
 
     Every (node, face) pair whose ball is within d_max is projected with the same
     independent methods as `closest_points`; the admissibility test is applied per pair."""
     if not isinstance(surface, Surface):
         raise ValueError("surface must be an arraycontact.Surface")
     e = surface.element
-    ids = surface.nodes
+    ids = surface.nodes if rows is None else surface.nodes[np.asarray(rows)]
     r_all = surface.points[ids]
     n = len(ids)
     face = np.full(n, -1, np.int64)

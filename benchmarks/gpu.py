@@ -131,10 +131,11 @@ def _node_stage_kernel():
         order: wp.array(dtype=int),
         d_max: float,
         tie: float,
+        normals: wp.array(dtype=wp.vec3),
         node_out: wp.array(dtype=int),
     ):
         i = order[wp.tid()]
-        node, dn = closest_node(slaves[i], 0, 1, grid, d_max, tie)
+        node, dn = closest_node(slaves[i], 0, 1, grid, d_max, tie, wp.vec3(0.0), -1, normals)
         node_out[i] = node
 
     return node_stage
@@ -275,6 +276,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
                     p.order,
                     float(p.constants["d_max"]),
                     float(p.constants["tie"]),
+                    p.normals,
                     p.out["master_node"],
                 ],
                 device=device,

@@ -1,0 +1,179 @@
+"""Self-contact (issue 21): detect_self against the two-body detection of the same node and
+face counts, same run, same device.
+
+    python benchmarks/self_contact.py --log2 17 20 --device cuda --out DIR   # a GPU machine
+    python benchmarks/self_contact.py --log2 16 --device cpu --out DIR      # Warp on the CPU
+
+For each self-contact scene of arraycontact.scenes (quad4, about 2^k nodes) and size:
+  - self: arraycontact_warp.plan_self / detect_self, steady state (device arrays in place,
+    detect's CUDA graph on a GPU), first call, plan time;
+  - two-body, same counts: two rough surfaces (quad4) with as many master faces and slaves,
+    plan / detect as a simulator calls it;
+  - two-body, same geometry: the surface's nodes as slaves of the surface itself by the
+    two-body rule (every node on its own faces at distance 0: the cheapest possible answer);
+  - the ratio self / two-body (target: at most 1.5), and the check of a random subset of rows
+    against reference.closest_points_self (misses, wrong faces, gap error / longest edge).
+--jax: also arraycontact_jax.plan_self / detect_self (search "jax", float32) steady.
+--snail: the spiral strip at 130,000 nodes (seed 000 Fig. 12: 30 s in 2012).
+One JSON record per scene and size to DIR/self_contact.jsonl.
+"""
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import arraycontact as ac
+from arraycontact._backends import quiet_warp
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+SCENES = ("spiral_strip", "folded_sheet", "coil_spring", "crumpled_sheet", "two_bodies")
+
+
+def timed(fn, repeats, device):
+    import warp as wp
+
+    t0 = time.perf_counter()
+    fn()
+    wp.synchronize_device(device)
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return first, statistics.median(times)
+
+
+def warp_self(surface, d_max, device, repeats):
+    import arraycontact_warp as acw
+    import warp as wp
+
+    t0 = time.perf_counter()
+    p = acw.plan_self(surface, d_max=d_max, device=device)
+    plan_s = time.perf_counter() - t0
+    x = wp.array((surface.points - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
+    p.origin = np.zeros(3)  # x is already in the plan's frame
+    first, steady = timed(lambda: acw.detect_self(p, x), repeats, device)
+    out = {k: v.numpy() for k, v in p.out.items()}
+    return out, dict(plan_s=plan_s, first_call_s=first, steady_s=steady)
+
+
+def warp_two_body(master, slaves, d_max, device, repeats):
+    import arraycontact_warp as acw
+    import warp as wp
+
+    p = acw.plan(master, slaves, d_max=d_max, device=device)
+    xs = wp.array((slaves - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
+    xm = wp.array((master.points - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
+    p.origin = np.zeros(3)
+    return timed(lambda: acw.detect(p, xs, xm), repeats, device)[1]
+
+
+def jax_self(surface, d_max, repeats):
+    import arraycontact_jax as acj
+    import jax
+    import jax.numpy as jnp
+
+    t0 = time.perf_counter()
+    p = acj.plan_self(surface, d_max=d_max, dtype=np.float32)
+    plan_s = time.perf_counter() - t0
+    x = jax.device_put(jnp.asarray(surface.points, jnp.float32))
+    t0 = time.perf_counter()
+    jax.block_until_ready(acj.detect_self(p, x))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        c = jax.block_until_ready(acj.detect_self(p, x))
+        times.append(time.perf_counter() - t0)
+    return dict(
+        jax_plan_s=plan_s,
+        jax_first_call_s=first,
+        jax_steady_s=statistics.median(times),
+        jax_overflow=bool(c.overflow),
+    )
+
+
+def check(out, surface, d_max, n_check, seed=0):
+    """The Warp answer on random rows against the brute-force reference (float32 answer:
+    gap error relative to the longest edge)."""
+    rows = np.sort(np.random.default_rng(seed).choice(len(surface.nodes), n_check, replace=False))
+    ref = ac.reference.closest_points_self(surface, d_max=d_max, rows=rows)
+    L = surface.longest_edge
+    want = ref.distance <= d_max
+    near = np.abs(ref.distance - d_max) <= 1e-5 * L
+    active = out["active"][rows].astype(bool)
+    a = active & want
+    return dict(
+        checked=int(n_check),
+        misses=int((want & ~active & ~near).sum()),
+        extra=int((active & ~want & ~near).sum()),
+        wrong_faces=int((out["face"][rows][a] != ref.face[a]).sum()),
+        max_gap_err_rel=float(np.abs(out["gap"][rows][a] - ref.gap[a]).max() / L) if a.any() else 0,
+    )
+
+
+def run(name, n, device, repeats, n_check, with_jax):
+    sc = getattr(ac.scenes, name)(n, element="quad4")
+    s, d = sc.master, sc.params["d_max"]
+    out, rec = warp_self(s, d, device, repeats)
+    counts = dict(nodes=len(s.nodes), faces=s.n_faces)
+    # Two rough quad4 surfaces with as many master faces and slaves.
+    rough = ac.scenes.rough_surfaces(len(s.nodes), element="quad4")
+    rec["two_body_steady_s"] = warp_two_body(rough.master, rough.slave, None, device, repeats)
+    rec["two_body_counts"] = dict(nodes=len(rough.slave), faces=rough.master.n_faces)
+    rec["same_geometry_steady_s"] = warp_two_body(s, s.points[s.nodes], d, device, repeats)
+    rec["self_over_two_body"] = rec["steady_s"] / rec["two_body_steady_s"]
+    rec["self_over_same_geometry"] = rec["steady_s"] / rec["same_geometry_steady_s"]
+    rec["active"] = int(out["active"].sum())
+    if n_check:
+        rec.update(check(out, s, d, min(n_check, len(s.nodes))))
+    if with_jax:
+        rec.update(jax_self(s, d, repeats))
+    return dict(scene=name, **counts, d_max=d, dtype="float32", **rec)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--log2", type=int, nargs="+", default=[16])
+    ap.add_argument("--only", nargs="*", default=list(SCENES))
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--check", type=int, default=256)
+    ap.add_argument("--jax", action="store_true")
+    ap.add_argument("--snail", action="store_true")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    quiet_warp()
+    import warp as wp
+
+    device = wp.get_device(args.device)
+    jobs = [(name, 2**k) for k in args.log2 for name in args.only]
+    if args.snail:
+        jobs.append(("spiral_strip", 130_000))
+    out = Path(args.out) if args.out else None
+    if out:
+        out.mkdir(parents=True, exist_ok=True)
+    for name, n in jobs:
+        r = run(name, n, device, args.repeats, args.check, args.jax)
+        r.update(
+            device=device.name,
+            host_cores=os.cpu_count(),
+            commit=os.environ.get("ARRAYCONTACT_COMMIT", ""),
+        )
+        print(json.dumps(r), flush=True)
+        if out:
+            with open(out / "self_contact.jsonl", "a") as f:
+                f.write(json.dumps(r) + "\n")
+
+
+if __name__ == "__main__":
+    main()
