@@ -36,6 +36,7 @@ from ._grid import (
     descend,
     enters,
     entry,
+    facing,
     item_hi,
     item_lo,
     item_world,
@@ -300,6 +301,8 @@ def scan_faces(
                         near = d2 <= reach * reach
                         if near and shared == 0:  # (Warp evaluates both sides of `or`)
                             near = item_world(grid, k) == world
+                        if near and grid.normals == 1:  # self-contact: may face the slave
+                            near = facing(normal, grid.nitems[k])
                         if near:
                             if d2 < first_d2:
                                 first = n
