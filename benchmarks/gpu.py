@@ -122,7 +122,7 @@ def bench_jax(scene, repeats, mode="exact", search="jax", d_max=None, grad=False
 def _node_stage_kernel():
     import warp as wp
     from arraycontact_warp._closest_node import closest_node
-    from arraycontact_warp._grid import Grid
+    from arraycontact_warp._grid import Grid, Plain
 
     @wp.kernel(module="unique")
     def node_stage(
@@ -131,11 +131,12 @@ def _node_stage_kernel():
         order: wp.array(dtype=int),
         d_max: float,
         tie: float,
+        kind: Plain,
         normals: wp.array(dtype=wp.vec3),
         node_out: wp.array(dtype=int),
     ):
         i = order[wp.tid()]
-        node, dn = closest_node(slaves[i], 0, 1, grid, d_max, tie, wp.vec3(0.0), -1, normals)
+        node, dn = closest_node(slaves[i], 0, 1, grid, d_max, tie, kind, normals)
         node_out[i] = node
 
     return node_stage
@@ -265,6 +266,8 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
             kernels[r.name] = kernels.get(r.name, 0.0) + r.elapsed / 1e3
 
         # The closest-node stage alone (same grid, same slave order): its share of the kernel.
+        from arraycontact_warp._grid import Plain
+
         node_stage = _node_stage_kernel()  # built once: not inside the timed call
         rec_node = timed(
             lambda: wp.launch(
@@ -276,6 +279,7 @@ def bench_warp(scene, repeats, device="cuda", sort_slaves="plan", quick=False, *
                     p.order,
                     float(p.constants["d_max"]),
                     float(p.constants["tie"]),
+                    Plain(),
                     p.normals,
                     p.out["master_node"],
                 ],

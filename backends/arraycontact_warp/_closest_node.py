@@ -3,9 +3,23 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
-from ._grid import Grid, W, children, descend, enters, entry, item_lo, item_world, next_pending
+from ._grid import (
+    Grid,
+    Own,
+    Plain,
+    W,
+    children,
+    descend,
+    enters,
+    entry,
+    item_lo,
+    item_world,
+    next_pending,
+)
 from ._real import real, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy their body many times).
@@ -17,6 +31,19 @@ FACING_TOL = 1.0e-6
 
 
 @wp.func
+def counts(o: Plain, normals: wp.array(dtype=vec3), grid: Grid, k: int):
+    """Whether node item k counts for the slave: every node, or (Own) another node whose
+    normal is at an obtuse angle to the slave's."""
+    return True
+
+
+@wp.func
+def counts(o: Own, normals: wp.array(dtype=vec3), grid: Grid, k: int):  # noqa: F811
+    i = grid.sorted_ids[k]
+    return i != o.node and wp.dot(o.normal, normals[i]) <= real(FACING_TOL)
+
+
+@wp.func
 def _scan(
     s: vec3,
     world: int,
@@ -25,8 +52,7 @@ def _scan(
     d_max: real,
     tie: real,
     limit: real,
-    n: vec3,
-    own: int,
+    o: Any,
     normals: wp.array(dtype=vec3),
 ):
     """Within d_max: the smallest distance, the second smallest (of another node) and the
@@ -34,8 +60,8 @@ def _scan(
     the tree depth first (_grid: a visit tests an entry's W children, goes on with the
     nearest, keeps the others in `stack`), within the reach: d_max, cut to the running
     minimum plus the tie band (or the tie limit). shared = 1: every item is of this world (a
-    master shared by all worlds). A self-contact grid (grid.normals = 1): only nodes other
-    than `own` whose normal (normals[id]) is at an obtuse angle to the slave's n count."""
+    master shared by all worlds). o: Plain, or Own (self-contact: only nodes other than the
+    slave's whose normal, normals[id], is at an obtuse angle to the slave's count)."""
     dmin = real(3.0e38)
     second = real(3.0e38)
     best = int(-1)
@@ -57,14 +83,12 @@ def _scan(
                         near = d2 <= wide * wide
                         if near and shared == 0:  # (Warp evaluates both sides of `or`)
                             near = item_world(grid, kk) == world
-                        i = int(-1)
                         if near:
-                            i = grid.sorted_ids[kk]
-                            if grid.normals == 1:
-                                near = i != own and wp.dot(n, normals[i]) <= real(FACING_TOL)
+                            near = counts(o, normals, grid, kk)
                         if near:
                             d = wp.sqrt(d2)
                             if d <= d_max:
+                                i = grid.sorted_ids[kk]
                                 if d < dmin:
                                     second = dmin
                                     dmin = d
@@ -77,7 +101,7 @@ def _scan(
                                 reach = wp.min(reach, wp.max(dmin + tie, limit))
                                 wide = reach * real(1.0001)
             else:
-                mask, near_c = children(grid, s, world, shared, k, j, wide, 1, n)
+                mask, near_c = children(grid, s, world, shared, k, j, wide, 1, o)
                 if mask != 0:
                     stack, k, j = descend(stack, k, j, mask, near_c)
                     visit = 1
@@ -94,16 +118,15 @@ def closest_node(
     grid: Grid,
     d_max: real,
     tie: real,
-    n: vec3,
-    own: int,
+    o: Any,
     normals: wp.array(dtype=vec3),
 ):
     """(node id or -1, distance or 3e38). One scan; the tie rule needs a second only when
     another node is within `tie` of the closest (a slave equidistant from two nodes).
-    n, own, normals: self-contact's (see _scan)."""
-    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0), n, own, normals)
+    o, normals: self-contact's (see _scan)."""
+    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0), o, normals)
     if dmin <= d_max and second <= dmin + tie:
-        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, dmin + tie, n, own, normals)
+        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, dmin + tie, o, normals)
     return best, dmin
 
 

@@ -49,14 +49,32 @@ GROWTH = 1.25
 
 
 @wp.func
-def _own(grid: _grid.Grid, own_nodes: wp.array(dtype=int), normals: wp.array(dtype=vec3), i: int):
-    """Self-contact: slave i's node and normal; else (-1, 0)."""
-    own = int(-1)
-    n = vec3(0.0)
-    if grid.normals == 1:
-        own = own_nodes[i]
-        n = normals[own]
-    return own, n
+def _own(kind: _grid.Plain, own_nodes: wp.array(dtype=int), normals: wp.array(dtype=vec3), i: int):
+    """What a scan of slave i needs of self-contact: nothing (Plain), or (Own) its node and
+    normal."""
+    return kind
+
+
+@wp.func
+def _own(  # noqa: F811 (a Warp overload)
+    kind: _grid.Own, own_nodes: wp.array(dtype=int), normals: wp.array(dtype=vec3), i: int
+):
+    o = _grid.Own()
+    o.node = own_nodes[i]
+    o.normal = normals[o.node]
+    return o
+
+
+@wp.func
+def _reach(kind: _grid.Plain, dn: real, d_max: real):
+    """The face scan's first reach: the closest node's distance bounds the answer, or (Own)
+    not: it need not lie on an admissible face."""
+    return wp.min(dn, d_max)
+
+
+@wp.func
+def _reach(kind: _grid.Own, dn: real, d_max: real):  # noqa: F811 (a Warp overload)
+    return d_max
 
 
 @wp.kernel
@@ -69,6 +87,7 @@ def _node_kernel(
     origin: vec3,
     d_max: real,
     tie: real,
+    kind: Any,
     own_nodes: wp.array(dtype=int),
     normals: wp.array(dtype=vec3),
     node_out: wp.array(dtype=int),
@@ -80,8 +99,8 @@ def _node_kernel(
     w = slave_world[i]
     if shared == 1:
         w = 0
-    own, n = _own(node_grid, own_nodes, normals, i)
-    node, dn = closest_node(slaves[i] - origin, w, shared, node_grid, d_max, tie, n, own, normals)
+    o = _own(kind, own_nodes, normals, i)
+    node, dn = closest_node(slaves[i] - origin, w, shared, node_grid, d_max, tie, o, normals)
     node_out[i] = node
     dist[i] = dn
 
@@ -104,6 +123,7 @@ def _face_kernel(
     slack: real,
     iterations: int,
     tol: real,
+    kind: Any,
     own_nodes: wp.array(dtype=int),
     normals: wp.array(dtype=vec3),
     dist: wp.array(dtype=real),
@@ -119,10 +139,8 @@ def _face_kernel(
     w = slave_world[i]
     if shared == 1:
         w = 0
-    own, n = _own(face_grid, own_nodes, normals, i)
-    rho = wp.min(dist[i], d_max) + slack
-    if own >= 0:
-        rho = d_max + slack
+    o = _own(kind, own_nodes, normals, i)
+    rho = _reach(kind, dist[i], d_max) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
     # unsure. One call site in a loop keeps the generated code small.
@@ -134,7 +152,7 @@ def _face_kernel(
     for scan in range(2):
         if scan == 0 or (dmin <= d_max and unsure == 1):
             d, f, k, unsure = scan_faces(
-                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, n, own
+                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o
             )
             if scan == 0:
                 dmin = d
@@ -700,6 +718,11 @@ def _gather_rows(x: wp.array(dtype=vec3), rows: wp.array(dtype=int), out: wp.arr
     out[k] = x[rows[k]]
 
 
+def _self_kind(p: Plan):
+    """The scans' self-contact type (see _grid.Plain)."""
+    return _grid.Own() if p.self_contact else _grid.Plain()
+
+
 def _launch(p: Plan, xs, s_origin, master):
     """Every launch of one detection (master: its points and origin, or None). Self-contact:
     the slaves (xs, the plan's staging buffer) are gathered from the master's points."""
@@ -727,6 +750,7 @@ def _launch(p: Plan, xs, s_origin, master):
             s_origin,
             real(c["d_max"]),
             real(c["tie"]),
+            _self_kind(p),
             p.own_nodes,
             p.normals,
         ],
@@ -751,6 +775,7 @@ def _launch(p: Plan, xs, s_origin, master):
                 real(c["slack"]),
                 c["iterations"],
                 real(c["tol"]),
+                _self_kind(p),
                 p.own_nodes,
                 p.normals,
             ],

@@ -30,16 +30,18 @@ from ._geometry import (
 )
 from ._grid import (
     Grid,
+    Own,
+    Plain,
     W,
     box_gap_sq,
     children,
     descend,
     enters,
     entry,
-    facing,
     item_hi,
     item_lo,
     item_world,
+    may_face_item,
     next_pending,
 )
 from ._real import real, vec2, vec3
@@ -234,6 +236,30 @@ def normal_dot(  # noqa: F811 (a Warp overload)
 
 
 @wp.func
+def holds_own(o: Plain, m: Master, f: int):
+    return False
+
+
+@wp.func
+def holds_own(o: Own, m: Master, f: int):  # noqa: F811 (a Warp overload)
+    return holds(m, f, o.node)
+
+
+@wp.func
+def admissible(o: Plain, el: Any, m: Master, grid: Grid, k: int, f: int, xi: vec2):
+    """Whether face f (tree item k) counts with its closest point at xi: always, or (Own)
+    when its normal there faces the slave's."""
+    return True
+
+
+@wp.func
+def admissible(  # noqa: F811 (a Warp overload)
+    o: Own, el: Any, m: Master, grid: Grid, k: int, f: int, xi: vec2
+):
+    return normal_dot(el, m, grid, k, f, xi, o.normal) < -real(FACING_TOL)
+
+
+@wp.func
 def scan_faces(
     el: Any,
     m: Master,
@@ -247,8 +273,7 @@ def scan_faces(
     slack: real,
     iterations: int,
     tol: real,
-    normal: vec3,
-    own: int,
+    o: Any,
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its tree item (its projection is computed
@@ -270,9 +295,8 @@ def scan_faces(
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far.
 
-    Self-contact (grid.normals = 1): faces that hold node `own`, or whose normal at the
-    closest point does not face the slave's `normal` (arraycontact.detect_self), count as
-    absent."""
+    o: Plain, or Own (self-contact): faces that hold the slave's node, or whose normal at
+    the closest point does not face the slave's (arraycontact.detect_self), count as absent."""
     reach = rho
     dmin = real(3.0e38)
     f_min = int(-1)  # the face at dmin and its tree item
@@ -301,8 +325,8 @@ def scan_faces(
                         near = d2 <= reach * reach
                         if near and shared == 0:  # (Warp evaluates both sides of `or`)
                             near = item_world(grid, k) == world
-                        if near and grid.normals == 1:  # self-contact: may face the slave
-                            near = facing(normal, grid.nitems[k])
+                        if near:
+                            near = may_face_item(o, grid, k)
                         if near:
                             if d2 < first_d2:
                                 first = n
@@ -310,7 +334,7 @@ def scan_faces(
                             found[n] = k
                             n += 1
             else:
-                mask, near_c = children(grid, s, world, shared, lv, j, reach, 0, normal)
+                mask, near_c = children(grid, s, world, shared, lv, j, reach, 0, o)
                 if mask != 0:
                     stack, lv, j = descend(stack, lv, j, mask, near_c)
                     visit = 1
@@ -325,14 +349,13 @@ def scan_faces(
             cut = wp.min(reach, wp.max(dmin, limit) + slack)
             near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
             # The second scan skips ids above the best so far.
-            if near and grid.normals == 1:  # self-contact: not a face of the slave's node
-                near = not holds(m, f, own)
+            if near:
+                near = not holds_own(o, m, f)
             if near and (limit < real(0.0) or best < 0 or f < best):
                 xi, feature, local, conv, diff = project(el, m, grid, kt, s, f, iterations, tol)
                 d = wp.length(diff)
-                if grid.normals == 1:  # and only a face facing the slave's normal counts
-                    if normal_dot(el, m, grid, kt, f, xi, normal) >= -real(FACING_TOL):
-                        d = real(3.0e38)
+                if not admissible(o, el, m, grid, kt, f, xi):
+                    d = real(3.0e38)
                 top = limit
                 if limit < real(0.0):
                     if d < dmin:
