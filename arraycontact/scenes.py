@@ -548,13 +548,15 @@ def coil_spring(
 
 
 def crumpled_sheet(
-    n_nodes=2**12, *, thickness=0.5, amplitude=6.0, element="quad4", seed=0
+    n_nodes=2**12, *, thickness=0.5, amplitude=0.25, element="quad4", seed=0
 ) -> Scene:
-    """A thin sheet crumpled by a steep random field: its folds lean over each other, some
-    closer than d_max, some through each other (negative gaps)."""
+    """A thin sheet crumpled by a steep random displacement field (`amplitude` times the
+    sheet's side, the same shape at every size): its folds lean over each other, some closer
+    than d_max, some through each other (negative gaps)."""
     quadratic = element in ("tri6", "quad8", "quad9")
     shape = _counts(n_nodes, 1.0, quadratic)
     nu, nv, _ = shape
+    amplitude = amplitude * nu
     side = float(nu)
     hx = rough_field(nu, nv, rms=amplitude, seed=seed, cutoff=max(nu / 4, 4))
     hy = rough_field(nu, nv, rms=amplitude, seed=seed + 1, cutoff=max(nu / 4, 4))

@@ -573,12 +573,7 @@ def plan(
     if self_contact:
         out["finer"] = p.finer
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
-        key_x = x
-        if self_contact:
-            # The two sides of a thin sheet are neighbours in space but search opposite ways:
-            # keyed at x + d_max n, they part, and a GPU warp's threads walk the same way.
-            key_x = x + d_max * master.node_normals[master.nodes]
-        p.slave_in.assign((key_x - origin).astype(NP_REAL))
+        p.slave_in.assign((x - origin).astype(NP_REAL))
         _grid.spatial_order(
             p.slave_in,
             vec3(0.0, 0.0, 0.0),
