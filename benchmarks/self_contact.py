@@ -16,6 +16,10 @@ For each self-contact scene of arraycontact.scenes (quad4, about 2^k nodes) and 
 --jax: also arraycontact_jax.plan_self / detect_self (search "jax", float32) steady.
 --snail: the spiral strip at 130,000 nodes (seed 000 Fig. 12: 30 s in 2012).
 One JSON record per scene and size to DIR/self_contact.jsonl.
+
+    python benchmarks/self_contact.py --table benchmarks/results/self_contact_*.jsonl
+
+prints the records as the markdown table of RESULTS.md.
 """
 
 import argparse
@@ -161,6 +165,26 @@ def run(name, n, device, repeats, n_check, with_jax):
     return dict(scene=name, **counts, d_max=d, dtype="float32", **rec)
 
 
+def table(files):
+    print(
+        "| file | commit | device | scene | nodes | self ms | two-body ms | self / two-body |"
+        " same geometry ms | self / same geometry | checked | miss | wrong face | tied face |"
+        " max gap err / edge |"
+    )
+    print("|" + "---|" * 15)
+    for name in files:
+        for line in open(name):
+            r = json.loads(line)
+            print(
+                f"| {Path(name).name} | {r['commit']} | {r['device']} | {r['scene']} |"
+                f" {r['nodes']} | {r['steady_s'] * 1e3:.2f} | {r['two_body_steady_s'] * 1e3:.2f} |"
+                f" {r['self_over_two_body']:.2f} | {r['same_geometry_steady_s'] * 1e3:.2f} |"
+                f" {r['self_over_same_geometry']:.2f} | {r.get('checked', 0)} |"
+                f" {r.get('misses', '-')} | {r.get('wrong_faces', '-')} |"
+                f" {r.get('other_tied_face', '-')} | {r.get('max_gap_err_rel', 0):.1e} |"
+            )
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--log2", type=int, nargs="+", default=[16])
@@ -171,7 +195,10 @@ def main():
     ap.add_argument("--jax", action="store_true")
     ap.add_argument("--snail", action="store_true")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--table", nargs="+", help="print the records of these files as a table")
     args = ap.parse_args()
+    if args.table:
+        return table(args.table)
     quiet_warp()
     import warp as wp
 
