@@ -20,3 +20,9 @@ for s in cases:
     for dtype in ("float32", "float64"):
         for mode in ("exact", "node"):
             ac.detect(s.slave, s.master, backend="warp", dtype=dtype, mode=mode)
+# Self-contact's kernels (another specialisation of the scans): tri3 and the other elements.
+for element in ("tri3", "quad4"):
+    s = scenes.two_bodies(200, element=element)
+    for dtype in ("float32", "float64"):
+        for mode in ("exact", "node"):
+            ac.detect_self(s.master, backend="warp", dtype=dtype, mode=mode, d_max=0.65)
