@@ -86,10 +86,9 @@ def normal_boxes(element, xe, xp=np):
             for c in range(4)
         ]
     elif element.name == "tri6":
-        corners = xp.asarray(element.nodes[:3], xe.dtype)
-        _, dx = interpolate(
-            element, xe[:, None], xp.zeros((xe.shape[0], 3, 2), xe.dtype) + corners, xp
-        )
+        corners = lead(xp, xp.asarray(element.nodes[:3], xe.dtype), 3)
+        xi = xp.zeros((xe.shape[0], 3, 2), xe.dtype) + corners
+        _, dx = interpolate(element, xe[:, None], xi, xp)
         gens = [
             _unit(xp.cross(dx[:, j, :, 0], dx[:, k, :, 1]), xp) for j in range(3) for k in range(3)
         ]
