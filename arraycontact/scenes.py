@@ -482,10 +482,8 @@ def spiral_strip(
     # Arc length of the mid-curve r = r0 + pitch theta / 2 pi over `turns`.
     theta_max = 2 * np.pi * turns
     length = r0 * theta_max + pitch * theta_max**2 / (4 * np.pi)
-    h = np.sqrt(length * (height or 0.0) / (n_nodes / 2)) if height else None
-    if height is None:
-        height = max(4.0, np.sqrt(n_nodes / 2 * 0.5) * 0.5)
-        h = np.sqrt(length * height / (n_nodes / 2))
+    if height is None:  # grows with the node count, as the length does not
+        height = max(4.0, 0.5 * np.sqrt(n_nodes / 4))
     shape = _counts(n_nodes, length / height, quadratic)
 
     def mapping(u, v, w):
@@ -494,7 +492,7 @@ def spiral_strip(
         return r * np.cos(th), r * np.sin(th), height * v
 
     surface = block_surface(_orient(mapping, shape), shape, element)
-    return _self_scene("spiral_strip", surface, gap, thickness, h, element, turns=turns)
+    return _self_scene("spiral_strip", surface, gap, thickness, element, turns=turns)
 
 
 def folded_sheet(
@@ -523,7 +521,7 @@ def folded_sheet(
         return cx + off * nx, width * v, cz + off * nz
 
     surface = block_surface(_orient(mapping, shape), shape, element)
-    return _self_scene("folded_sheet", surface, gap, thickness, None, element)
+    return _self_scene("folded_sheet", surface, gap, thickness, element)
 
 
 def coil_spring(
@@ -533,10 +531,10 @@ def coil_spring(
     quadratic = element in ("tri6", "quad8", "quad9")
     pitch = side + gap
     length = turns * np.sqrt((2 * np.pi * radius) ** 2 + pitch**2)
-    n_side = 3 if quadratic else 2
-    nw = max(n_side, int(round(np.sqrt(n_nodes / (4 * length / side)) ** 0)))
-    shape = _counts(n_nodes, 0.5 * length / side, quadratic, nw=nw)
-    shape = (shape[0], max(shape[1] // 4 * 2 + 1 if quadratic else shape[1] // 4, 2), shape[2])
+    nu, nv, nw = _counts(4 * n_nodes, 0.5 * length / side, quadratic)
+    # A quarter of those across the wire (radially): about n_nodes, elements longer along it.
+    nv = nv // 4 * 2 + 1 if quadratic else max(nv // 4, 2)
+    shape = (nu, nv, nw)
 
     def mapping(u, v, w):
         th = 2 * np.pi * turns * u
@@ -544,7 +542,7 @@ def coil_spring(
         return r * np.cos(th), r * np.sin(th), pitch * th / (2 * np.pi) + (w - 0.5) * side
 
     surface = block_surface(_orient(mapping, shape), shape, element)
-    return _self_scene("coil_spring", surface, gap, side, None, element, turns=turns)
+    return _self_scene("coil_spring", surface, gap, side, element, turns=turns)
 
 
 def crumpled_sheet(
@@ -569,7 +567,7 @@ def crumpled_sheet(
         return x, y, hz[i, j] + (w - 0.5) * thickness
 
     surface = block_surface(mapping, shape, element)
-    return _self_scene("crumpled_sheet", surface, None, thickness, None, element, seed=seed)
+    return _self_scene("crumpled_sheet", surface, None, thickness, element, seed=seed)
 
 
 def two_bodies(n_nodes=2**12, *, gap=0.3, thickness=1.0, element="quad4") -> Scene:
@@ -595,10 +593,10 @@ def two_bodies(n_nodes=2**12, *, gap=0.3, thickness=1.0, element="quad4") -> Sce
         np.concatenate([a.faces, b.faces + len(a.points)]),
         element,
     )
-    return _self_scene("two_bodies", surface, gap, thickness, None, element)
+    return _self_scene("two_bodies", surface, gap, thickness, element)
 
 
-def _self_scene(name, surface, gap, thickness, h, element, **extra) -> Scene:
+def _self_scene(name, surface, gap, thickness, element, **extra) -> Scene:
     """A self-contact scene: the surface is master and slave; params["d_max"] lies between
     the gap and the thickness (closer than the back side: detect_self's docstring)."""
     d_max = 0.5 * ((gap or 0.0) + thickness) if gap is not None else 0.8 * thickness
