@@ -313,3 +313,20 @@ def test_backends_quadratic(backend):
     c = ac.detect_self(sc.master, backend=backend, d_max=d)
     assert c.active.sum() > 0.2 * len(c.active)
     assert_self_matches(c, sc.master, d)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
+def test_smallest_surfaces(backend):
+    """One face alone has nothing to touch; two facing triangles touch each other (each node
+    the other's face interior or edge, at the gap); a triangle facing away does not count."""
+    one = ac.Surface([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    c = ac.detect_self(one, backend=backend, d_max=1.0)
+    assert not c.active.any() and (c.face == -1).all()
+    pts = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0.5], [1, 0, 0.5], [0, 1, 0.5]]
+    facing = ac.Surface(pts, [[0, 1, 2], [3, 5, 4]])  # normals +z below, -z above
+    c = ac.detect_self(facing, backend=backend, d_max=1.0)
+    assert c.active.all()
+    np.testing.assert_array_equal(c.face, [1, 1, 1, 0, 0, 0])
+    np.testing.assert_allclose(c.gap, 0.5, atol=1e-12)
+    away = ac.Surface(pts, [[0, 2, 1], [3, 5, 4]])  # the lower one turned over: both -z
+    assert not ac.detect_self(away, backend=backend, d_max=1.0).active.any()
