@@ -43,6 +43,9 @@ ITERATIONS = {"quad4": 12, "tri6": 20, "quad8": 20, "quad9": 20}
 #: Self-contact: local mesh sizes within this relative difference are "as fine" (seed 000
 #: section 3, item 5; the `finer` flag).
 SIZE_RTOL = 1e-4
+#: Self-contact: at most this many faces around the closest obtuse node are projected for the
+#: first bound of the face search (any admissible face bounds the answer: a subset suffices).
+BOUND_FACES = 12
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,7 @@ class Static:
     iterations: int
     passing_by: bool  # node mode on an open master: the boundary test of eqs. (12)-(13)
     self_contact: bool = False  # the slaves are the master's own nodes (detect_self)
+    bound_faces: int = 0  # self-contact: faces around the closest node giving the first bound
 
     @classmethod
     def of(cls, master: Surface, mode: str, prep: Prepared, self_contact=False) -> "Static":
@@ -68,6 +72,9 @@ class Static:
             iterations=ITERATIONS.get(master.element.name, 0),
             passing_by=mode == "node" and not master.closed,
             self_contact=self_contact,
+            bound_faces=min(int(np.diff(master.node_faces[0]).max()), BOUND_FACES)
+            if self_contact
+            else 0,
         )
 
 
@@ -232,8 +239,8 @@ def run_stages(
         face_grid = grids["face"]
         if own is None:
             rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
-        else:  # the closest node need not lie on an admissible face: no bound from it
-            rho = xp.zeros(n, slave_x.dtype) + (sc["d_max"] + sc["slack"])
+        else:
+            rho = self_reach(xp, st, sc, m, own, slave_x, node)
         slave, face, valid, n_pairs = face_search(
             xp,
             face_grid,
@@ -348,6 +355,38 @@ def run_stages(
     if own is not None:
         out["finer"] = out_finer
     return out, counts
+
+
+def self_reach(xp, st: Static, sc: dict, m: dict, own, slave_x, node):
+    """Self-contact's first reach of the face search. The closest node bounds nothing here (it
+    need not lie on a face that counts), but any admissible face does: the faces around the
+    closest obtuse node (up to st.bound_faces of them), projected and tested as the search
+    will, give min(d_max, the nearest admissible one) + slack. On a fold that faces itself
+    this keeps the candidates to the faces near the answer (JAX: the K slots a slave)."""
+    element = get_element(st.element)
+    n = slave_x.shape[0]
+    k = st.bound_faces
+    nd = xp.maximum(node, 0)
+    start = m["nf_offsets"][nd]
+    deg = xp.where(node >= 0, m["nf_offsets"][nd + 1] - start, 0)
+    rank = xp.arange(k, dtype=start.dtype)[None, :]
+    valid = (rank < deg[:, None]).reshape(-1)
+    face = m["nf_ids"][xp.where(valid, (start[:, None] + rank).reshape(-1), 0)]
+    slave = xp.repeat(xp.arange(n), k)
+    xi, _, diff, _, _, _ = _projection.project(
+        xp,
+        element,
+        slave_x,
+        m["nodes_x"],
+        m["faces"],
+        slave,
+        face,
+        iterations=st.iterations,
+        tol=sc["tol"],
+    )
+    ok = valid & _admissible(xp, element, m, own, slave, face, xi, "exact")
+    d = xp.where(ok, norm(xp, diff), np.inf).reshape(n, k)
+    return xp.minimum(xp.min(d, 1), sc["d_max"]) + sc["slack"]
 
 
 def _admissible(xp, element, m, own, slave, face, xi, mode):

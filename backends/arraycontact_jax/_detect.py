@@ -44,6 +44,7 @@ from arraycontact._detect import (
     master_topology,
     run_stages,
     scalars,
+    self_reach,
 )
 from arraycontact._elements import get_element
 from arraycontact._grid import level_sizes, morton_order
@@ -89,8 +90,8 @@ def _count(sc, m, slave_x, ids=None, *, st):
     )
     if st.mode == "exact":
         rho = jnp.minimum(dn, sc["d_max"]) + sc["slack"]
-        if own is not None:  # as run_stages: no bound from the closest node
-            rho = jnp.zeros_like(dn) + (sc["d_max"] + sc["slack"])
+        if own is not None:  # as run_stages
+            rho = self_reach(jnp, st, sc, m, own, slave_x, node)
         counts = _grid.candidate_faces(
             jnp,
             grids["face"],
