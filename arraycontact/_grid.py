@@ -31,6 +31,15 @@ farther. Memory is the surviving pairs of one level at a time (bounded per slave
 count; the NumPy back end runs the slaves in chunks). The JAX back end walks the same trees
 depth first, one fixed-size state a slave (arraycontact_jax._grid), and the Warp kernels
 likewise.
+
+Self-contact (detect_self): every entry also holds a box around the unit normals of the items
+under it (_surface.normal_boxes), and a query carries the slave's pseudo-normal; an entry
+whose normals all make n_i . n >= 0 holds nothing that faces the slave and is skipped (the
+slave's own sheet around it, in general). Representatives bound nothing there (the nearest
+surface point may lie on a face that does not count): the reach stays d_max, or in the
+depth-first scans shrinks only as faces that count are found. The cost per slave is then the
+entries within that reach whose normals may face it; an entry holding both sides of a sheet
+thinner than itself faces every way, and only its items are told apart.
 """
 
 from __future__ import annotations
@@ -122,7 +131,7 @@ def build(xp, ids, lo, hi, rep, normals=None) -> Tree:
         return Tree(ids, tuple(los), tuple(his), tuple(reps))
     nlos, nhis = [normals[0]], [normals[1]]
     if n == 0:
-        nlos, nhis = [xp.ones((1, 3), lo.dtype)], [xp.ones((1, 3), lo.dtype)]
+        nlos, nhis = [xp.ones((1, 3), lo.dtype)], [-xp.ones((1, 3), lo.dtype)]
     for size in sizes[1:]:
         pad = size * W - nlos[-1].shape[0]
         # Padding: lo = 1, hi = -1, neutral in the minimum and maximum.
