@@ -36,8 +36,9 @@ Self-contact (detect_self): every entry also holds a box around the unit normals
 under it (_surface.normal_boxes), and a query carries the slave's pseudo-normal; an entry
 whose normals all make n_i . n >= 0 holds nothing that faces the slave and is skipped (the
 slave's own sheet around it, in general). Representatives bound nothing there (the nearest
-surface point may lie on a face that does not count): the reach stays d_max, or in the
-depth-first scans shrinks only as faces that count are found. The cost per slave is then the
+surface point may lie on a face that does not count): the face search starts from the
+nearest face that counts around the closest obtuse node (NumPy, JAX: _detect.self_reach) or
+from d_max, shrinking as faces that count are found (Warp). The cost per slave is then the
 entries within that reach whose normals may face it; an entry holding both sides of a sheet
 thinner than itself faces every way, and only its items are told apart.
 """
