@@ -219,20 +219,21 @@ def closest_points(points, surface: Surface, *, chunk_points=1024, chunk_faces=8
                 xq, dq = _closest_on_faces(e, r[pi], surface.points[surface.faces[fi + f0]])
                 cand.append((pi, fi + f0, xq, np.sqrt(dq)))
         pi, fi, xq, dq = (np.concatenate(c) for c in zip(*cand))
-        # The tie rule: the smallest face id among faces within `tie` of the smallest distance.
-        dmin = np.full(len(r), np.inf)
-        np.minimum.at(dmin, pi, dq)
-        best_f = np.full(len(r), np.iinfo(np.int64).max)
-        near = dq <= dmin[pi] + tie
-        np.minimum.at(best_f, pi[near], fi[near])
-        k = np.nonzero(near & (fi == best_f[pi]))[0]
-        best_xi = np.zeros((len(r), 2))
-        best_d2 = np.zeros(len(r))
-        best_xi[pi[k]], best_d2[pi[k]] = xq[k], dq[k] ** 2
-        face[p0 : p0 + len(r)] = best_f
-        xi[p0 : p0 + len(r)] = best_xi
-        dist2[p0 : p0 + len(r)] = best_d2
+        k = _tie_rule(len(r), pi, fi, dq, tie)  # every point has a candidate (ub)
+        at = p0 + pi[k]
+        face[at], xi[at], dist2[at] = fi[k], xq[k], dq[k] ** 2
     return _finish(surface, r_all, face, xi, dist2)
+
+
+def _tie_rule(n, pi, fi, dq, tie):
+    """The chosen candidate of each point that has one (indices into pi): the smallest face
+    id among the faces within `tie` of the smallest distance."""
+    dmin = np.full(n, np.inf)
+    np.minimum.at(dmin, pi, dq)
+    best_f = np.full(n, np.iinfo(np.int64).max)
+    near = dq <= dmin[pi] + tie
+    np.minimum.at(best_f, pi[near], fi[near])
+    return np.nonzero(near & (fi == best_f[pi]))[0]
 
 
 def closest_points_self(
@@ -285,14 +286,9 @@ def closest_points_self(
         pi, fi, xq, dq = (np.concatenate(c) for c in zip(*cand))
         if not len(pi):
             continue
-        dmin = np.full(len(r), np.inf)
-        np.minimum.at(dmin, pi, dq)
-        best_f = np.full(len(r), np.iinfo(np.int64).max)
-        near = dq <= dmin[pi] + tie
-        np.minimum.at(best_f, pi[near], fi[near])
-        k = np.nonzero(near & (fi == best_f[pi]))[0]
-        rows = p0 + pi[k]
-        face[rows], xi[rows], dist2[rows] = fi[k], xq[k], dq[k] ** 2
+        k = _tie_rule(len(r), pi, fi, dq, tie)
+        at = p0 + pi[k]
+        face[at], xi[at], dist2[at] = fi[k], xq[k], dq[k] ** 2
     return _finish(surface, r_all, face, xi, dist2)
 
 

@@ -36,24 +36,9 @@ import arraycontact as ac
 from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
+from peers_warp import timed  # noqa: E402
 
 SCENES = ("spiral_strip", "folded_sheet", "coil_spring", "crumpled_sheet", "two_bodies")
-
-
-def timed(fn, repeats, device):
-    import warp as wp
-
-    t0 = time.perf_counter()
-    fn()
-    wp.synchronize_device(device)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        wp.synchronize_device(device)
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times)
 
 
 def warp_self(surface, d_max, device, repeats):

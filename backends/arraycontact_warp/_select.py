@@ -44,31 +44,6 @@ def _tangents(el: Triangles, m: Master, f: int, xi: vec2):  # noqa: F811
     return m.points[m.faces[f, 1]] - a, m.points[m.faces[f, 2]] - a
 
 
-@wp.func
-def node_normal(el: Any, m: Master, node: int):
-    """The angle-weighted pseudo-normal of a corner node (arraycontact._surface.node_normals)
-    from the faces around it, computed only for the slaves that end on a vertex: cheaper than
-    accumulating every node's normal over every face each step."""
-    k = el.n_corners
-    n = vec3(0.0)
-    for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
-        g = m.nf_ids[j]
-        i = int(-1)
-        for c in range(k):
-            if m.faces[g, c] == node:
-                i = c
-        if i >= 0:
-            xi = el.nodes[i]
-            t0, t1 = _tangents(el, m, g, xi)
-            # weight: the interior angle at the corner, along its two edges' directions
-            e1 = el.nodes[(i + 1) % k] - xi
-            e2 = el.nodes[(i + k - 1) % k] - xi
-            a = t0 * e1[0] + t1 * e1[1]
-            b = t0 * e2[0] + t1 * e2[1]
-            n += wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b)) * _unit(wp.cross(t0, t1))
-    return _unit(n)
-
-
 # A Warp overload: tri3 normals in closed form.
 @wp.func
 def face_normal(el: Triangles, m: Master, f: int, xi: vec2):  # noqa: F811
@@ -155,9 +130,11 @@ __all__ = ["pseudo_normal", "classify", "face_normal", "proximal"]
 
 
 @wp.func
-def any_node_normal(el: Any, m: Master, node: int):
-    """The pseudo-normal of any node (arraycontact._surface.node_normals): at a corner the
-    angle-weighted face normals, at a mid-edge or centre node their plain sum."""
+def node_normal(el: Any, m: Master, node: int):
+    """The pseudo-normal of a node (arraycontact._surface.node_normals) from the faces around
+    it: at a corner the angle-weighted face normals, at a mid-edge or centre node their plain
+    sum. Computed where needed (a slave ending on a vertex; self-contact's nodes): cheaper than
+    accumulating every node's normal over every face each step."""
     k = el.n_corners
     n = vec3(0.0)
     for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
@@ -188,7 +165,7 @@ def self_node_geometry(
 ):
     """Each used node's pseudo-normal and local mesh size (the mean of its faces' sizes)."""
     i = nodes[wp.tid()]
-    normals[i] = any_node_normal(el, m, i)
+    normals[i] = node_normal(el, m, i)
     h = real(0.0)
     for j in range(m.nf_offsets[i], m.nf_offsets[i + 1]):
         h += h_face[m.nf_ids[j]]
