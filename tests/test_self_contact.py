@@ -330,3 +330,27 @@ def test_smallest_surfaces(backend):
     np.testing.assert_allclose(c.gap, 0.5, atol=1e-12)
     away = ac.Surface(pts, [[0, 2, 1], [3, 5, 4]])  # the lower one turned over: both -z
     assert not ac.detect_self(away, backend=backend, d_max=1.0).active.any()
+
+
+def test_jax_self_overflow_reported_and_update_plan():
+    """A plan made with the bodies apart is outgrown when they close in: the overflow is
+    reported, and update_plan gives a plan whose answer equals NumPy's."""
+    import arraycontact_jax as acj
+    import jax
+    import jax.numpy as jnp
+
+    sc = scenes.two_bodies(400, element="tri3")
+    s, d = sc.master, sc.params["d_max"]
+    upper = s.points[:, 2] > 0.1
+    apart = s.points + np.where(upper[:, None], [0.0, 0.0, 5.0], 0.0)
+    closer = s.points - np.where(upper[:, None], [0.0, 0.0, 0.25], 0.0)  # gap 0.05
+    with jax.enable_x64(True):
+        p = acj.plan_self(s.with_points(apart), d_max=d, dtype=np.float64, growth=1.0)
+        c = acj.detect_self(p, jnp.asarray(closer))
+        assert bool(c.overflow)
+        q = acj.update_plan(p, c, closer[s.nodes], closer)
+        c = acj.detect_self(q, jnp.asarray(closer))
+        assert not bool(c.overflow)
+        want = ac.detect_self(s.with_points(closer), backend="numpy", d_max=d)
+        np.testing.assert_array_equal(np.asarray(c.face), want.face)
+        np.testing.assert_allclose(np.asarray(c.gap), want.gap, atol=1e-12)
