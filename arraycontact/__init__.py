@@ -11,8 +11,10 @@ from ._contacts import Contacts as Contacts
 from ._contacts import Counts as Counts
 from ._contacts import Feature as Feature
 from ._contacts import Status as Status
+from ._contacts import SweptContacts as SweptContacts
 from ._detect import detect as detect
 from ._detect import detect_self as detect_self
+from ._detect import detect_swept as detect_swept
 from ._elements import ELEMENTS as ELEMENTS
 from ._io import read_surface as read_surface
 from ._io import surface_from_meshio as surface_from_meshio
@@ -28,6 +30,8 @@ __all__ = [
     "Surface",
     "detect",
     "detect_self",
+    "detect_swept",
+    "SweptContacts",
     "default_d_max",
     "read_surface",
     "surface_from_meshio",

@@ -106,3 +106,42 @@ class Contacts:
         st = np.bincount(np.asarray(self.status), minlength=len(Status))
         lines.append("status: " + ", ".join(f"{s.name.lower()} {st[s]}" for s in Status if st[s]))
         return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class SweptContacts:
+    """One row per slave node: its first contact with the master over a step (detect_swept).
+
+    `hit`: the node lies on a master face at some t in [0, 1]. `toi`: the earliest such t
+    (never after the exact one, at most `t_tol` before it; inf where no hit); `face`, `xi`,
+    `feature` of that contact; `point`: the node's position then; `normal`: the face's unit
+    outward normal there and then; `normal_velocity`: the node's velocity relative to the face
+    point along that normal, per step (negative: arriving at the face's front). `status`: OK,
+    OUT_OF_RANGE (no hit) or NOT_CONVERGED (the search's budget ran out: the answer is still
+    never late). `static`: the end-of-step Contacts when asked for (static=True)."""
+
+    hit: np.ndarray
+    toi: np.ndarray
+    face: np.ndarray
+    xi: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    feature: np.ndarray
+    normal_velocity: np.ndarray
+    status: np.ndarray
+    slave_ids: np.ndarray
+    t_tol: float
+    static: Contacts | None = None
+    counts: Counts = field(default_factory=Counts)
+    timings: dict = field(default_factory=dict)
+    backend: str = ""
+    device: str = ""
+    dtype: str = ""
+
+    def __len__(self):
+        return len(self.hit)
+
+    def pairs(self) -> np.ndarray:
+        """[n_hit, 2]: (slave node id, master face id) of every node that hits."""
+        h = np.asarray(self.hit)
+        return np.stack([np.asarray(self.slave_ids)[h], np.asarray(self.face)[h]], -1)

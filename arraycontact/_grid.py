@@ -156,7 +156,9 @@ def facing(normal, nlo, nhi):
     return min_dot(normal, nlo, nhi) < FACING_MARGIN
 
 
-def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=None):
+def query(
+    xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=None, shrink=True
+):
     """The items whose box is within reach of each query point, reach shrunk on the way to the
     smallest representative distance + slack (items farther than some point of the surface
     cannot hold the closest point, nor be within the tie band of it).
@@ -164,7 +166,8 @@ def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=N
     q [n, 3], reach [n]. capacity: None (eager, exact sizes) or a dict of static sizes per
     level (keys f"{name}{k}"). normal [n, 3] (self-contact, a tree with normal boxes): only
     entries that may face the query's normal, and no shrinking (a representative may lie on
-    a face that does not count). Returns (query row [P], item position in tree order [P],
+    a face that does not count). shrink=False: every item whose box is within reach (swept
+    detection's capture boxes, whose representatives bound nothing). Returns (query row [P], item position in tree order [P],
     valid [P], counts {key: true count}); pairs are grouped by query row in increasing order."""
     n = q.shape[0]
     top = len(tree.lo) - 1
@@ -184,11 +187,11 @@ def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=N
         g = xp.maximum(xp.maximum(lo - qs, qs - hi), 0)
         gap2 = xp.sum(g * g, -1)
         filled = ok & xp.all(lo <= hi, -1)
-        if normal is None:
+        if normal is None and shrink:
             d = tree.rep[k - 1][c] - qs
             ub = xp.where(filled, xp.sqrt(xp.sum(d * d, -1)), np.inf)
             reach = xp.minimum(reach, segment_min(xp, ub, s, n, sorted=True) + slack)
-        else:
+        elif normal is not None:
             filled = filled & facing(normal[s], tree.nlo[k - 1][c], tree.nhi[k - 1][c])
         keep = filled & (gap2 <= reach[s] ** 2)
         key = f"{name}{k - 1}"

@@ -331,3 +331,225 @@ def _finish(surface, r, face, xi, dist2):
         feature=feature,
         local=local,
     )
+
+
+@dataclass(frozen=True)
+class SweptReference:
+    hit: np.ndarray  # [n] bool
+    toi: np.ndarray  # [n] earliest contact time in [0, 1] (inf: none)
+    face: np.ndarray  # [n] the face of that contact (-1: none)
+    xi: np.ndarray  # [n, 2] natural coordinates of the contact on it
+    pair_toi: dict  # {(slave row, face): toi} for every pair in contact (ties, checks)
+
+
+#: The oracle's time resolution: its toi is within SWEPT_TOL before the exact one.
+SWEPT_TOL = 1e-9
+
+
+def _det(a, b, c):
+    return np.einsum("pk,pk->p", a, np.cross(b, c))
+
+
+def _tri3_cubic(xe0, xe1, p0, p1):
+    """Coefficients c0..c3 of det[e1(t), e2(t), r(t)] (e1, e2 the edges from vertex 0, r the
+    node from vertex 0), which vanishes when the node and the triangle are coplanar: the
+    determinant is linear in each column, so each power of t is a sum of determinants."""
+    a = [xe0[:, 1] - xe0[:, 0], xe0[:, 2] - xe0[:, 0], p0 - xe0[:, 0]]
+    e1 = xe1 - xe0
+    b = [e1[:, 1] - e1[:, 0], e1[:, 2] - e1[:, 0], (p1 - p0) - e1[:, 0]]
+    c = np.zeros((len(p0), 4))
+    for mask in range(8):  # column j from b when bit j is set
+        cols = [b[j] if mask >> j & 1 else a[j] for j in range(3)]
+        c[:, bin(mask).count("1")] += _det(*cols)
+    return c
+
+
+def _cubic_roots_01(c):
+    """All roots in [0, 1] of the cubics c0 + c1 t + c2 t^2 + c3 t^3 [P, 4], as [P, 7] (NaN
+    padded): each monotone piece between the derivative's roots is bisected to the last bit
+    where its ends differ in sign, and a piece's end where the cubic is (to rounding) zero
+    counts too (a double root, where the node touches the plane without crossing it)."""
+    P = len(c)
+    d = np.stack([c[:, 1], 2 * c[:, 2], 3 * c[:, 3]], -1)  # derivative's coefficients
+    disc = d[:, 1] ** 2 - 4 * d[:, 2] * d[:, 0]
+    with np.errstate(all="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0))
+        q1 = np.where(d[:, 2] != 0, (-d[:, 1] - sq) / (2 * d[:, 2]), np.nan)
+        q2 = np.where(d[:, 2] != 0, (-d[:, 1] + sq) / (2 * d[:, 2]), np.nan)
+        lin = np.where((d[:, 2] == 0) & (d[:, 1] != 0), -d[:, 0] / d[:, 1], np.nan)
+    crit = np.stack([q1, q2, lin], -1)
+    crit = np.where((disc[:, None] >= 0) | (d[:, 2:3] == 0), crit, np.nan)
+    crit = np.where((crit > 0) & (crit < 1), crit, np.nan)
+    knots = np.sort(np.concatenate([np.zeros((P, 1)), crit, np.ones((P, 1))], 1), 1)  # NaN last
+
+    def f(t):
+        return ((c[:, 3:4] * t + c[:, 2:3]) * t + c[:, 1:2]) * t + c[:, 0:1]
+
+    lo, hi = knots[:, :-1], knots[:, 1:]
+    flo, fhi = f(lo), f(hi)
+    ok = np.isfinite(lo) & np.isfinite(hi) & (np.sign(flo) * np.sign(fhi) < 0)
+    a, b = np.where(ok, lo, 0.0), np.where(ok, hi, 0.0)
+    fa = f(a)
+    for _ in range(64):
+        m = 0.5 * (a + b)
+        fm = f(m)
+        left = np.sign(fm) == np.sign(fa)
+        a, fa = np.where(left, m, a), np.where(left, fm, fa)
+        b = np.where(left, b, m)
+    crossing = np.where(ok, a, np.nan)  # the earlier end: never after the root
+    scale = np.abs(c).sum(1, keepdims=True)
+    flat = np.isfinite(knots) & (np.abs(f(np.nan_to_num(knots))) <= 1e-13 * scale)
+    touching = np.where(flat, knots, np.nan)
+    return np.concatenate([crossing, touching], 1)
+
+
+def _tri3_swept(xe0, xe1, p0, p1):
+    """toi and xi of each tri3 pair by the coplanarity cubic and the in-face test at its roots;
+    pairs whose cubic vanishes identically (coplanar motion) are returned as undecided."""
+    c = _tri3_cubic(xe0, xe1, p0, p1)
+    L = max(np.abs(np.r_[xe0.ravel(), xe1.ravel(), p0.ravel(), p1.ravel()]).max(), 1e-300)
+    flat = np.abs(c).max(1) <= 1e-13 * L**3
+    ts = _cubic_roots_01(c)
+    toi = np.full(len(c), np.inf)
+    xi = np.full((len(c), 2), np.nan)
+    for k in np.argsort(np.nan_to_num(ts, nan=np.inf), 1).T:  # roots in time order
+        t = ts[np.arange(len(c)), k]
+        todo = np.isfinite(t) & ~np.isfinite(toi) & ~flat
+        if not todo.any():
+            continue
+        tt = t[todo, None]
+        x = xe0[todo] + tt[:, :, None] * (xe1[todo] - xe0[todo])
+        r = p0[todo] + tt * (p1[todo] - p0[todo]) - x[:, 0]
+        e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+        g = np.stack(
+            [
+                np.stack([np.einsum("pk,pk->p", e1, e1), np.einsum("pk,pk->p", e1, e2)], -1),
+                np.stack([np.einsum("pk,pk->p", e1, e2), np.einsum("pk,pk->p", e2, e2)], -1),
+            ],
+            -2,
+        )
+        rhs = np.stack([np.einsum("pk,pk->p", e1, r), np.einsum("pk,pk->p", e2, r)], -1)
+        with np.errstate(all="ignore"):
+            uv = np.linalg.solve(g + 1e-300 * np.eye(2), rhs[..., None])[..., 0]
+        tol = 1e-9
+        inside = (uv[:, 0] >= -tol) & (uv[:, 1] >= -tol) & (uv.sum(1) <= 1 + tol)
+        inside &= np.isfinite(uv).all(1)
+        rows = np.nonzero(todo)[0][inside]
+        toi[rows] = t[rows]
+        xi[rows] = uv[inside]
+    return toi, xi, flat
+
+
+def _interval_mul(a0, a1, b0, b1):
+    p = np.stack([a0 * b0, a0 * b1, a1 * b0, a1 * b1])
+    return p.min(0), p.max(0)
+
+
+def _power(u0, u1, k):
+    if k == 0:
+        return np.ones_like(u0), np.ones_like(u1)
+    if k == 1:
+        return u0, u1
+    sq = np.stack([u0 * u0, u1 * u1])
+    return np.where((u0 < 0) & (u1 > 0), 0.0, sq.min(0)), sq.max(0)
+
+
+def _subdivision_swept(element, xe0, xe1, p0, p1):
+    """toi and xi of each pair by interval subdivision of (xi, eta, t) over the natural domain:
+    F = sum_m m(xi, eta) (C_m + t D_m) in the monomial basis of the element, bounded on a box
+    by interval arithmetic (a method apart from the pipeline's Bernstein hulls); a box whose
+    interval misses 0 is dropped, the others split at their widest side, earlier time first,
+    until every side is below SWEPT_TOL (a contact at the box's earliest time)."""
+    P = len(p0)
+    coef = element.coefficients  # N_a = sum_m coef[a, m] m
+    C = np.einsum("am,pak->pmk", coef, xe0)
+    D = np.einsum("am,pak->pmk", coef, xe1 - xe0)
+    C[:, 0] -= p0  # the constant monomial comes first in every element
+    D[:, 0] -= p1 - p0
+    L = np.abs(np.r_[xe0.ravel(), xe1.ravel(), p0.ravel(), p1.ravel()]).max()
+    margin = 1e-13 * max(L, 1e-300)
+    lo_dom = 0.0 if element.kind == "tri" else -1.0
+    stacks = [[(lo_dom, 1.0, lo_dom, 1.0, 0.0, 1.0)] for _ in range(P)]
+    toi = np.full(P, np.inf)
+    xi = np.full((P, 2), np.nan)
+    for p in range(P):
+        st = stacks[p]
+        while st:
+            u0, u1, v0, v1, t0, t1 = st.pop()
+            if t0 >= toi[p] or (element.kind == "tri" and u0 + v0 > 1):
+                continue
+            f0, f1 = np.zeros(3), np.zeros(3)
+            for m, (i, j) in enumerate(element.monomials):
+                ma, mb = _interval_mul(*_power(u0, u1, i), *_power(v0, v1, j))
+                ca = np.minimum(C[p, m] + t0 * D[p, m], C[p, m] + t1 * D[p, m])
+                cb = np.maximum(C[p, m] + t0 * D[p, m], C[p, m] + t1 * D[p, m])
+                a, b = _interval_mul(ma, mb, ca, cb)
+                f0, f1 = f0 + a, f1 + b
+            if (f0 > margin).any() or (f1 < -margin).any():
+                continue
+            widths = np.array([u1 - u0, v1 - v0, t1 - t0]) / [1.0 - lo_dom, 1.0 - lo_dom, 1.0]
+            if widths.max() <= SWEPT_TOL:
+                toi[p], xi[p] = t0, (0.5 * (u0 + u1), 0.5 * (v0 + v1))
+                continue
+            d = int(np.argmax(widths[::-1]))  # ties to time
+            d = 2 - d
+            box = [u0, u1, v0, v1, t0, t1]
+            mid = 0.5 * (box[2 * d] + box[2 * d + 1])
+            early, late = list(box), list(box)
+            early[2 * d + 1], late[2 * d] = mid, mid
+            st.append(tuple(late))
+            st.append(tuple(early))
+    return toi, xi
+
+
+def swept(slave_x0, slave_x1, master: Surface, master_x1):
+    """Swept detection by brute force in float64: for every slave node moving from slave_x0 to
+    slave_x1 [n, 3] (linearly in t over [0, 1]) and the master surface moving from its points
+    to master_x1, the earliest t at which the node lies on a face, and that face.
+
+    Pairs whose boxes over the step do not meet are skipped (a rigorous bound); the others are
+    solved exactly: tri3 faces by the coplanarity cubic (node and triangle coplanar), its real
+    roots in [0, 1] bracketed between the derivative's roots and bisected to the last bit, then
+    the in-face test at each root in time order; every other element, and tri3 pairs moving in
+    a common plane (the cubic vanishes), by interval subdivision (_subdivision_swept). The
+    returned toi is never after the exact one and within SWEPT_TOL of it. Ties: the smallest
+    face id among the faces whose toi is within `tie` (the caller's) of the earliest."""
+    if not isinstance(master, Surface):
+        raise ValueError("master must be an arraycontact.Surface")
+    x0, x1 = validate_points(slave_x0, "slave_x0"), validate_points(slave_x1, "slave_x1")
+    m1 = validate_points(master_x1, "master_x1")
+    e = master.element
+    faces = master.faces
+    xe0, xe1 = master.points[faces], m1[faces]
+    flo = np.minimum(xe0.min(1), xe1.min(1))
+    fhi = np.maximum(xe0.max(1), xe1.max(1))
+    if not e.linear:  # a curved face bulges past its nodes by at most its Lebesgue constant
+        c = 0.5 * (flo + fhi)
+        flo, fhi = c - e.lebesgue * (c - flo), c + e.lebesgue * (fhi - c)
+    slo, shi = np.minimum(x0, x1), np.maximum(x0, x1)
+    pad = 1e-9 * max(np.abs(np.r_[x0.ravel(), x1.ravel(), xe0.ravel(), xe1.ravel()]).max(), 1e-300)
+    pi, fi = np.nonzero(
+        ((slo[:, None] <= fhi[None] + pad) & (shi[:, None] >= flo[None] - pad)).all(-1)
+    )
+    toi = np.full(len(pi), np.inf)
+    xi = np.full((len(pi), 2), np.nan)
+    if e.name == "tri3":
+        toi, xi, flat = _tri3_swept(xe0[fi], xe1[fi], x0[pi], x1[pi])
+    else:
+        flat = np.ones(len(pi), bool)
+    if flat.any():
+        k = np.nonzero(flat)[0]
+        toi[k], xi[k] = _subdivision_swept(e, xe0[fi[k]], xe1[fi[k]], x0[pi[k]], x1[pi[k]])
+    n = len(x0)
+    hit_pairs = np.isfinite(toi)
+    best = np.full(n, np.inf)
+    np.minimum.at(best, pi[hit_pairs], toi[hit_pairs])
+    face = np.full(n, -1, np.int64)
+    out_xi = np.full((n, 2), np.nan)
+    # The earliest, and among equal earliest times the smallest face id.
+    order = np.lexsort((fi, toi, pi))
+    first = order[np.r_[True, pi[order][1:] != pi[order][:-1]]] if len(order) else order
+    first = first[hit_pairs[first]]
+    face[pi[first]], out_xi[pi[first]] = fi[first], xi[first]
+    pair_toi = {(int(a), int(b)): float(t) for a, b, t in zip(pi[hit_pairs], fi[hit_pairs], toi[hit_pairs])}
+    return SweptReference(hit=np.isfinite(best), toi=best, face=face, xi=out_xi, pair_toi=pair_toi)

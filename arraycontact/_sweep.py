@@ -1,0 +1,207 @@
+"""Swept detection's detailed check: the earliest time a moving node lies on a moving face.
+
+Every node moves linearly over the step, x(t) = x0 + t (x1 - x0), t in [0, 1], and so does
+every face node. With (s, w) in the unit square mapped onto the face's natural domain (quads:
+xi = 2 s - 1, eta = 2 w - 1; triangles by the collapsed map xi = s, eta = (1 - s) w, which
+covers the triangle exactly and keeps every shape function of degree <= 2 in s and in w),
+
+    F(s, w, t) = sum_a N_a(xi(s, w)) (X_a + t V_a) - (p + t v)
+
+is zero exactly when the node lies on the face at time t. F is linear in t and of degree <= 1
+(tri3, quad4) or <= 2 (tri6, quad8, quad9) in s and in w, so on a box of (s, w, t) its
+Bernstein coefficients (the corner values for the linear faces; a three-point rule an axis for
+the curved ones) are control points whose convex hull holds F's range there. A box whose hull
+misses 0 along one axis or along the face normal at either end of the step (by more than a
+rounding margin) holds no contact; the others are split, depth first with the earlier half in
+time first, and a box whose hull is within SPACE_RTOL of 0 and shorter than T_TOL in time is a
+contact at its earliest time. The search then keeps only boxes that start earlier.
+
+Guarantee (certified root search, no sampling): a real contact at time t* is never missed and
+toi <= t*; toi >= t' - T_TOL, where t' is the first time the node comes within about
+SPACE_RTOL * scale of the face (scale: the largest coordinate of the pair, face node 0 at the
+start as origin), which is t* unless the node grazes the face before touching it. A pair whose
+search exceeds VISITS boxes reports the earliest box left (still never late) with status
+NOT_CONVERGED.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._elements import EDGE, FACE, VERTEX, interpolate, shape_functions
+from ._surface import _dot, _unit, face_normals
+
+#: Time resolution, relative to the step: toi is within T_TOL before the first contact.
+T_TOL = {np.dtype(np.float64): 1e-6, np.dtype(np.float32): 1e-4}
+#: A box is a contact when its hull is within SPACE_RTOL * scale of 0 (and short in time).
+SPACE_RTOL = {np.dtype(np.float64): 1e-9, np.dtype(np.float32): 1e-5}
+#: The hull misses 0 only by more than ROUND * eps * scale (the control points' rounding).
+ROUND = 64
+#: Pending boxes a pair may hold (a split adds one; the depth is ~3 log2(1 / SPACE_RTOL)).
+DEPTH = 128
+#: Boxes a pair may visit before it stops with the earliest one left.
+VISITS = 20000
+#: Natural coordinates this close to a constraint put the contact on an edge or vertex.
+FEATURE_TOL = {np.dtype(np.float64): 1e-6, np.dtype(np.float32): 1e-3}
+
+
+def natural(element, s, w, xp=np):
+    """Natural coordinates [..., 2] of the unit-square parameters (s, w)."""
+    if element.kind == "tri":
+        return xp.stack([s, (1 - s) * w], -1)
+    return xp.stack([2 * s - 1, 2 * w - 1], -1)
+
+
+def _bernstein(f, axis, xp):
+    """Degree-2 Bernstein coefficients along `axis` (length 3) from values at its ends and
+    middle: b1 = 2 f(1/2) - (f(0) + f(1)) / 2."""
+    f0, fm, f1 = (xp.take(f, i, axis) for i in range(3))
+    return xp.stack([f0, 2 * fm - 0.5 * (f0 + f1), f1], axis)
+
+
+def control_points(element, xa, va, p, v, box, xp=np):
+    """Control points [P, 2, g, g, 3] (t ends, s, w) of F over boxes [P, 6] = (s0, s1, w0, w1,
+    t0, t1); xa, va [P, nn, 3] the face nodes at t = 0 and their motion, p, v [P, 3] the node's."""
+    g = 2 if element.linear else 3
+    f = xp.linspace(0.0, 1.0, g).astype(box.dtype)
+    s = box[:, 0:1] + (box[:, 1:2] - box[:, 0:1]) * f  # [P, g]
+    w = box[:, 2:3] + (box[:, 3:4] - box[:, 2:3]) * f
+    xi = natural(element, s[:, :, None] + 0 * w[:, None, :], 0 * s[:, :, None] + w[:, None, :], xp)
+    n = shape_functions(element, xi.reshape(-1, g * g, 2), xp)  # [P, g*g, nn]
+    a = (n @ xa).reshape(-1, g, g, 3) - p[:, None, None, :]
+    b = (n @ va).reshape(-1, g, g, 3) - v[:, None, None, :]
+    if g == 3:
+        a = _bernstein(_bernstein(a, 1, xp), 2, xp)
+        b = _bernstein(_bernstein(b, 1, xp), 2, xp)
+    t = box[:, 4:6, None, None, None]
+    return a[:, None] + t * b[:, None]
+
+
+def examine(cp, dirs, margin, xp=np):
+    """Per box: excluded (its hull misses 0 along an axis or a direction of dirs [P, k, 3] by
+    more than margin), its hull's largest axis extent, and the spread of the control points
+    along s, w and t (which axis to split) [P, 3]."""
+    m = cp.shape[1] * cp.shape[2] * cp.shape[3]
+    flat = cp.reshape(cp.shape[0], m, 3)
+    lo, hi = xp.min(flat, 1), xp.max(flat, 1)
+    out = xp.any((lo > margin[:, None]) | (hi < -margin[:, None]), -1)
+    proj = flat @ xp.swapaxes(dirs, 1, 2)  # [P, m, k]
+    plo, phi = xp.min(proj, 1), xp.max(proj, 1)
+    out = out | xp.any((plo > margin[:, None]) | (phi < -margin[:, None]), -1)
+    extent = xp.max(hi - lo, -1)
+    ds = xp.max(xp.abs(cp[:, :, 1:] - cp[:, :, :-1]), (1, 2, 3, 4))
+    dw = xp.max(xp.abs(cp[:, :, :, 1:] - cp[:, :, :, :-1]), (1, 2, 3, 4))
+    dt = xp.max(xp.abs(cp[:, 1] - cp[:, 0]), (1, 2, 3))
+    return out, extent, xp.stack([ds, dw, dt], -1)
+
+
+def pair_frame(element, xe0, xe1, p0, p1, xp=np):
+    """The pair's data in its own frame (face node 0 at t = 0 as origin): xa, va, p, v, the
+    exclusion directions (the face normal at its centre at t = 0 and t = 1) [P, 2, 3], the
+    rounding margin and the contact tolerance [P]."""
+    o = xe0[:, :1]
+    xa, va = xe0 - o, xe1 - xe0
+    p, v = p0 - o[:, 0], p1 - p0
+    scale = xp.maximum(
+        xp.max(xp.abs(xa).reshape(len(p), -1), -1), xp.max(xp.abs(xa + va).reshape(len(p), -1), -1)
+    )
+    scale = xp.maximum(scale, xp.maximum(xp.max(xp.abs(p), -1), xp.max(xp.abs(p + v), -1)))
+    dirs = xp.stack([face_normals(element, xa, xp), face_normals(element, xa + va, xp)], 1)
+    dt = np.dtype(xe0.dtype)
+    margin = ROUND * float(np.finfo(dt).eps) * scale
+    delta = xp.maximum(SPACE_RTOL[dt] * scale, 4 * margin)
+    return xa, va, p, v, dirs, margin, delta
+
+
+def roots(element, xe0, xe1, p0, p1):
+    """The certified search (module docstring) for P pairs at once, in lock step (NumPy):
+    each pair keeps a stack of pending boxes. Returns toi [P] (inf: no contact), the contact
+    box's centre (s, w) [P, 2], converged [P] and the boxes visited [P]."""
+    dt = np.dtype(xe0.dtype)
+    n = len(p0)
+    xa, va, p, v, dirs, margin, delta = pair_frame(element, xe0, xe1, p0, p1)
+    t_tol = T_TOL[dt]
+    stack = np.zeros((n, DEPTH, 6), dt)
+    stack[:, 0] = (0, 1, 0, 1, 0, 1)
+    sp = np.ones(n, np.int64)
+    best = np.full(n, np.inf, dt)
+    where = np.full((n, 2), np.nan, dt)
+    visits = np.zeros(n, np.int64)
+    converged = np.ones(n, bool)
+    act = np.nonzero(sp > 0)[0]
+    while len(act):
+        sp[act] -= 1
+        box = stack[act, sp[act]]
+        visits[act] += 1
+        live = box[:, 4] < best[act]
+        a, box = act[live], box[live]
+        cp = control_points(element, xa[a], va[a], p[a], v[a], box)
+        out, extent, spread = examine(cp, dirs[a], margin[a])
+        tw = box[:, 5] - box[:, 4]
+        small = extent <= delta[a]
+        leaf = ~out & small & (tw <= t_tol)
+        full = ~out & ~leaf & (sp[a] + 2 > DEPTH)  # no room: a contact, conservatively
+        converged[a[full]] = False
+        hit = leaf | full
+        best[a[hit]] = box[hit, 4]
+        where[a[hit]] = 0.5 * (box[hit][:, [0, 2]] + box[hit][:, [1, 3]])
+        split = ~out & ~hit
+        a, box, spread, small = a[split], box[split], spread[split], small[split]
+        # Split the axis along which the control points spread most; a box already tight in
+        # space but long in time is split in time.
+        axis = np.where(small, 2, np.argmax(spread, -1))
+        mid = 0.5 * (box[np.arange(len(a)), 2 * axis] + box[np.arange(len(a)), 2 * axis + 1])
+        early, late = box.copy(), box.copy()
+        early[np.arange(len(a)), 2 * axis + 1] = mid
+        late[np.arange(len(a)), 2 * axis] = mid
+        stack[a, sp[a]] = late  # the earlier half on top: popped first
+        stack[a, sp[a] + 1] = early
+        sp[a] += 2
+        # A pair over its budget stops with the earliest pending box (never late).
+        over = np.nonzero((visits > VISITS) & (sp > 0))[0]
+        if len(over):
+            k = np.arange(DEPTH)[None, :] < sp[over, None]
+            j = np.argmin(np.where(k, stack[over, :, 4], np.inf), 1)
+            b = stack[over, j]
+            earlier = b[:, 4] < best[over]
+            best[over[earlier]] = b[earlier, 4]
+            where[over[earlier]] = 0.5 * (b[earlier][:, [0, 2]] + b[earlier][:, [1, 3]])
+            converged[over] = False
+            sp[over] = 0
+        act = np.nonzero(sp > 0)[0]
+    return best, where, converged, visits
+
+
+def feature_of(element, xi, tol, xp=np):
+    """FACE, EDGE or VERTEX from the constraints of the domain active at xi (within tol)."""
+    a = xp.asarray(element.constraints_a, xi.dtype)
+    b = xp.asarray(element.constraints_b, xi.dtype)
+    act = xp.abs(xi @ a.T - b) <= tol
+    k = xp.sum(act.astype(np.int32), -1)
+    return xp.where(k == 0, FACE, xp.where(k == 1, EDGE, VERTEX)).astype(np.int32)
+
+
+def impact(element, xe0, xe1, p0, p1, toi, xi, xp=np):
+    """At the contact: the node's position, the face's unit normal there and then, and the
+    normal velocity of the node relative to the face (negative: approaching its front)."""
+    t = toi[:, None]
+    point = p0 + t * (p1 - p0)
+    _, dx = interpolate(element, xe0 + toi[:, None, None] * (xe1 - xe0), xi, xp)
+    normal = _unit(xp.cross(dx[..., 0], dx[..., 1]), xp)
+    n = shape_functions(element, xi, xp)
+    vface = (n[:, None, :] @ (xe1 - xe0))[:, 0]
+    return point, normal, _dot(normal, (p1 - p0) - vface)
+
+
+def select(slave, face, toi, n, t_tol):
+    """Per slave, the chosen pair (index, -1 when none hits): the smallest face id among the
+    pairs whose toi is within t_tol of the slave's earliest (NumPy)."""
+    first = np.full(n, np.inf, toi.dtype)
+    np.minimum.at(first, slave, toi)
+    band = np.isfinite(toi) & (toi <= first[slave] + t_tol)
+    low = np.full(n, np.iinfo(np.int64).max)
+    np.minimum.at(low, slave[band], face[band])
+    pick = np.full(n, -1, np.int64)
+    k = np.nonzero(band & (face == low[slave]))[0]
+    pick[slave[k]] = k
+    return pick
