@@ -6,6 +6,9 @@
     detect(plan, slave_points, master_points) -> dict of arrays (launches only)
     plan_self(surface, *, world, ...), detect_self(plan, points): self-contact
         (arraycontact.detect_self's rule)
+    plan_swept(master, slave_points, *, slave_world, master_world, device, dtype),
+    detect_swept(plan, slave_x0, slave_x1, master_x0, master_x1): swept detection over a
+        step (arraycontact.detect_swept's contract)
     closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
     face_point: @wp.func (float32; `geometry("float64")` holds their float64 twins)
 """
@@ -18,6 +21,10 @@ from ._detect import detect_self as detect_self  # noqa: E402
 from ._detect import plan as plan  # noqa: E402
 from ._detect import plan_self as plan_self  # noqa: E402
 from ._detect import run_one_shot as run_one_shot  # noqa: E402
+from ._detect import SweptPlan as SweptPlan  # noqa: E402
+from ._detect import plan_swept as plan_swept  # noqa: E402
+from ._detect import detect_swept as detect_swept  # noqa: E402
+from ._detect import run_swept as run_swept  # noqa: E402
 from ._geometry import Element as Element  # noqa: E402
 from ._geometry import FaceNodes as FaceNodes  # noqa: E402
 from ._geometry import closest_point_edge as closest_point_edge  # noqa: E402
@@ -55,5 +62,9 @@ __all__ = [
     "plan",
     "plan_self",
     "run_one_shot",
+    "run_swept",
+    "SweptPlan",
+    "plan_swept",
+    "detect_swept",
     "start_option_one",
 ]

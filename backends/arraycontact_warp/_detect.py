@@ -31,10 +31,14 @@ import numpy as np
 import warp as wp
 
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, SIZE_RTOL, TIE_RTOL
+from arraycontact._sweep import FEATURE_TOL as SWEPT_FEATURE_TOL
+from arraycontact._sweep import ROUND as SWEPT_ROUND
+from arraycontact._sweep import SPACE_RTOL as SWEPT_SPACE_RTOL
+from arraycontact._sweep import T_TOL as SWEPT_T_TOL
 from arraycontact._select import boundary_topology
 from arraycontact._surface import Surface, bounds, validate_points
 
-from . import _grid, _prepare
+from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
 from ._projection import Master, project, scan_attached, scan_faces
@@ -936,4 +940,222 @@ def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
     return out, {}, {}, str(p.device)
 
 
-__all__ = ["Plan", "plan", "plan_self", "detect", "detect_self", "run_one_shot"]
+
+# --- swept detection -----------------------------------------------------------------------
+
+SWEPT_OUTPUTS = (
+    ("hit", int),
+    ("toi", real),
+    ("face", int),
+    ("xi", vec2),
+    ("point", vec3),
+    ("normal", vec3),
+    ("feature", int),
+    ("normal_velocity", real),
+    ("converged", int),
+    ("visits", int),
+)
+
+
+@dataclass(eq=False)
+class SweptPlan:
+    """Every buffer of a Warp swept detection (see `plan_swept`)."""
+
+    device: object
+    master: Surface
+    n_slaves: int
+    kernel_element: object
+    faces: wp.array
+    face_world: wp.array
+    slave_world: wp.array
+    shared: int
+    grid: _grid.Grid
+    world_bits: int
+    origin: np.ndarray
+    constants: dict
+    staging: list  # slave x0, x1, master x0, x1 in the local frame
+    out: dict
+    dtype: np.dtype
+
+
+def plan_swept(
+    master: Surface,
+    slave_points,
+    *,
+    slave_world=None,
+    master_world=None,
+    device=None,
+    dtype="float32",
+) -> SweptPlan:
+    """Allocate a swept detection (arraycontact.detect_swept's contract) of n slaves
+    (slave_points [n, 3]: their positions at plan time, which place the local frame) against
+    `master`; worlds as in `plan`. Detect with `detect_swept(plan, slave_x0, slave_x1,
+    master_x0, master_x1)`: one sort of the faces' capture boxes a call."""
+    here = precision(dtype)
+    if here.real is not real:
+        return here.plan_swept(
+            master,
+            slave_points,
+            slave_world=slave_world,
+            master_world=master_world,
+            device=device,
+            dtype=dtype,
+        )
+    if not isinstance(master, Surface):
+        raise ValueError("master must be an arraycontact.Surface")
+    if master.n_faces == 0:
+        raise ValueError("master has no faces")
+    x = validate_points(slave_points, "slave_points")
+    if len(x) == 0:
+        raise ValueError("slave_points is empty: there is nothing to plan for")
+    device = wp.get_device(device)
+    sw = _worlds(slave_world, len(x), "slave_world")
+    shared = master_world is None
+    nw = _worlds(master_world, len(master.points), "master_world")
+    fw = nw[master.faces[:, 0]]
+    if not shared and (nw[master.faces] != fw[:, None]).any():
+        r = int(np.argmax((nw[master.faces] != fw[:, None]).any(1)))
+        raise ValueError(f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}")
+    e = master.element
+    lo = np.minimum(bounds(x)[0], master.node_box[0])
+    hi = np.maximum(bounds(x)[1], master.node_box[1])
+    origin = lo
+    extent = float((hi - lo).max())
+    dt = np.dtype(NP_REAL)
+    eps = float(np.finfo(dt).eps)
+    scale = 2 * extent  # the pairs' coordinates, from a face node, at plan time
+    consts = dict(
+        pad=4 * (SWEPT_SPACE_RTOL[dt] + 4 * SWEPT_ROUND * eps) * scale,
+        t_tol=SWEPT_T_TOL[dt],
+        space_rtol=SWEPT_SPACE_RTOL[dt],
+        feature_tol=SWEPT_FEATURE_TOL[dt],
+        lebesgue=float(e.lebesgue),
+    )
+    n_worlds = 1 if shared else int(nw.max()) + 1
+    grid, world_bits = _grid.new_grid(
+        master.n_faces, np.zeros(3), max(extent, 1e-30), device, 0.0, n_worlds
+    )
+
+    def arr(a, t):
+        return wp.array(a, dtype=t, device=device)
+
+    n, npts = len(x), len(master.points)
+    return SweptPlan(
+        device=device,
+        master=master,
+        n_slaves=n,
+        kernel_element=triangle_data(device) if e.name == "tri3" else element_data(e.name, device),
+        faces=arr(master.faces.astype(np.int32), int),
+        face_world=arr(0 * fw if shared else fw, int),
+        slave_world=arr(sw, int),
+        shared=int(shared),
+        grid=grid,
+        world_bits=world_bits,
+        origin=origin,
+        constants=consts,
+        staging=[wp.zeros(m, dtype=vec3, device=device) for m in (n, n, npts, npts)],
+        out={k: wp.zeros(n, dtype=t, device=device) for k, t in SWEPT_OUTPUTS},
+        dtype=NP_REAL,
+    )
+
+
+def _swept_launch(p: SweptPlan, xs):
+    c = p.constants
+    dev = p.device
+    nf = p.master.n_faces
+    s0, s1, m0, m1 = xs
+    g = p.grid
+    wp.launch(
+        _sweep.capture_keys,
+        nf,
+        inputs=[m0, m1, p.faces, real(c["lebesgue"]), p.face_world, g],
+        device=dev,
+    )
+    _grid._sort(g, nf, p.world_bits)
+    wp.launch(
+        _sweep.capture_gather,
+        nf,
+        inputs=[m0, m1, p.faces, real(c["lebesgue"]), p.face_world, real(c["pad"]), g],
+        device=dev,
+    )
+    _grid.fill(g, nf, dev)
+    o = p.out
+    wp.launch(
+        _sweep.swept_scan,
+        p.n_slaves,
+        inputs=[
+            g,
+            p.kernel_element,
+            m0,
+            m1,
+            p.faces,
+            s0,
+            s1,
+            p.slave_world,
+            p.shared,
+            real(c["pad"]),
+            real(c["t_tol"]),
+            real(c["space_rtol"]),
+            real(c["feature_tol"]),
+        ],
+        outputs=[o[k] for k, _ in SWEPT_OUTPUTS],
+        device=dev,
+    )
+
+
+def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1):
+    """Launch a swept detection: each slave's earliest contact as it moves from slave_x0 to
+    slave_x1 while the master's points move from master_x0 to master_x1 (kinds as `detect`'s:
+    wp.array of the plan's vec3, used in place (capturable), JAX or NumPy). Returns a dict of
+    arrays: hit, toi (3e38 where no hit), face, xi, point, normal, feature, normal_velocity,
+    converged, visits (boxes searched)."""
+    if not isinstance(p, SweptPlan):
+        if not hasattr(p, "dtype"):
+            raise ValueError(f"p must be a SweptPlan from plan_swept, got {type(p)}")
+        return precision(p.dtype).detect_swept(p, slave_x0, slave_x1, master_x0, master_x1)
+    xs = []
+    names = ("slave_x0", "slave_x1", "master_x0", "master_x1")
+    sizes = (p.n_slaves, p.n_slaves, len(p.master.points), len(p.master.points))
+    for a, st, what, n in zip((slave_x0, slave_x1, master_x0, master_x1), p.staging, names, sizes):
+        x, org = _input(p, a, st, what, n)
+        if x is not st:  # the caller's own array: into the plan's frame
+            wp.launch(_prepare.localise, n, inputs=[x, org], outputs=[st], device=p.device)
+        xs.append(st)
+    _swept_launch(p, xs)
+    o = p.out
+    kind = _kind(slave_x0)
+    if kind == "warp":
+        return o
+    if kind == "jax":
+        return {k: wp.to_jax(v) for k, v in o.items()}
+    res = {k: v.numpy().copy() for k, v in o.items()}
+    res["point"] = res["point"].astype(np.float64) + p.origin
+    return res
+
+
+def run_swept(x0, x1, master, m1, su, dtype):
+    """`arraycontact.detect_swept(backend="warp")`: plan, detect, host arrays out."""
+    rows = su.slave_rows
+    p = plan_swept(master, x0[rows], dtype=dtype)
+    out = detect_swept(p, x0[rows], x1[rows], master.points, m1)
+    k = np.nonzero(out["hit"] == 1)[0]
+    res = {n: out[n][k] for n in ("face", "toi", "xi", "point", "normal", "feature")}
+    res["normal_velocity"] = out["normal_velocity"][k]
+    res["point"] = res["point"] - su.origin  # detect_swept adds su's origin back
+    res["converged"] = out["converged"][k].astype(bool)
+    res["rows"] = k
+    return res, {"visits": int(out["visits"].sum())}, str(p.device)
+
+
+__all__ = [
+    "Plan",
+    "SweptPlan",
+    "plan",
+    "plan_self",
+    "plan_swept",
+    "detect",
+    "detect_self",
+    "detect_swept",
+    "run_one_shot",
+    "run_swept",
+]

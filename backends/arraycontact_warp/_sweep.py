@@ -1,0 +1,521 @@
+"""Swept detection in Warp: the certified search of arraycontact._sweep (read its docstring for
+the method and its guarantee) as `@wp.func`s, the faces' capture boxes in the size-adaptive
+tree (_grid), and one kernel a slave that walks the tree with the ball around its segment and
+searches every face it meets, keeping the earliest contact.
+
+The search of a pair is depth first over boxes of (s, w, t) with a stack of pending boxes in
+the thread's local memory; faces are searched one after the other, each bounded by the
+earliest contact found so far plus the tie band (boxes that start later cannot matter)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from arraycontact._sweep import DEPTH, ROUND, VISITS
+
+from ._geometry import EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, shape
+from ._grid import Grid, Plain, W, box_gap_sq, children, descend, entry, enters, item_hi
+from ._grid import item_lo, item_world, morton_key, next_pending, write_item
+from ._prepare import face_bounds
+from ._real import EPS, real, vec2, vec3
+
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
+
+Stack = wp.types.matrix(shape=(DEPTH, 6), dtype=real)
+#: The tie band's faces a slave keeps (faces within t_tol of its earliest contact).
+BAND = 8
+BandF = wp.types.vector(length=BAND, dtype=int)
+BandT = wp.types.vector(length=BAND, dtype=real)
+BandX = wp.types.matrix(shape=(BAND, 2), dtype=real)
+Box6 = wp.types.vector(length=6, dtype=real)
+
+
+@wp.func
+def _natural(el: Triangles, s: real, w: real):
+    return vec2(s, (real(1.0) - s) * w)
+
+
+@wp.func
+def _natural(el: Element, s: real, w: real):  # noqa: F811 (a Warp overload)
+    if el.n_corners == 3:
+        return vec2(s, (real(1.0) - s) * w)
+    return vec2(real(2.0) * s - real(1.0), real(2.0) * w - real(1.0))
+
+
+@wp.func
+def _row(x: FaceNodes, i: int):
+    return vec3(x.x[i, 0], x.x[i, 1], x.x[i, 2])
+
+
+@wp.func
+def _set(x: FaceNodes, i: int, v: vec3):
+    x.x[i, 0] = v[0]
+    x.x[i, 1] = v[1]
+    x.x[i, 2] = v[2]
+    return x
+
+
+@wp.func
+def _ab(el: Triangles, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):
+    """A(xi) = x(xi) at t = 0 less the node, B(xi) = the face point's motion less the node's."""
+    n0 = real(1.0) - xi[0] - xi[1]
+    a = n0 * _row(xa, 0) + xi[0] * _row(xa, 1) + xi[1] * _row(xa, 2) - p
+    b = n0 * _row(va, 0) + xi[0] * _row(va, 1) + xi[1] * _row(va, 2) - v
+    return a, b
+
+
+@wp.func
+def _ab(el: Element, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):  # noqa: F811
+    a = -p
+    b = -v
+    for i in range(el.nn):
+        n, d0, d1, h00, h01, h11 = shape(el, xi, i)
+        a += n * _row(xa, i)
+        b += n * _row(va, i)
+    return a, b
+
+
+@wp.func
+def _grade(el: Triangles):
+    return 2
+
+
+@wp.func
+def _grade(el: Element):  # noqa: F811
+    if el.nn == el.n_corners:
+        return 2
+    return 3
+
+
+@wp.func
+def _bernstein(f: FaceNodes, g: int, i0: int, stride: int):
+    """Rows i0, i0 + stride, i0 + 2 stride of f (values at an axis's ends and middle) to
+    degree-2 Bernstein coefficients (arraycontact._sweep._bernstein)."""
+    f0 = _row(f, i0)
+    fm = _row(f, i0 + stride)
+    f1 = _row(f, i0 + 2 * stride)
+    return _set(f, i0 + stride, real(2.0) * fm - real(0.5) * (f0 + f1))
+
+
+@wp.func
+def _examine(
+    el: Any,
+    xa: FaceNodes,
+    va: FaceNodes,
+    p: vec3,
+    v: vec3,
+    n0: vec3,
+    n1: vec3,
+    margin: real,
+    box: Box6,
+):
+    """arraycontact._sweep.examine for one box: (excluded, hull extent, split axis by spread)."""
+    g = _grade(el)
+    a = FaceNodes()
+    b = FaceNodes()
+    h = real(1.0) / real(g - 1)
+    for i in range(g):
+        for j in range(g):
+            s = box[0] + (box[1] - box[0]) * real(i) * h
+            w = box[2] + (box[3] - box[2]) * real(j) * h
+            ai, bi = _ab(el, xa, va, p, v, _natural(el, s, w))
+            a = _set(a, i * g + j, ai)
+            b = _set(b, i * g + j, bi)
+    if g == 3:
+        for j in range(3):
+            a = _bernstein(a, 3, j, 3)
+            b = _bernstein(b, 3, j, 3)
+        for i in range(3):
+            a = _bernstein(a, 3, 3 * i, 1)
+            b = _bernstein(b, 3, 3 * i, 1)
+    lo = vec3(real(3.0e38))
+    hi = vec3(real(-3.0e38))
+    lo0 = real(3.0e38)
+    hi0 = real(-3.0e38)
+    lo1 = real(3.0e38)
+    hi1 = real(-3.0e38)
+    ds = real(0.0)
+    dw = real(0.0)
+    dt = real(0.0)
+    for i in range(g):
+        for j in range(g):
+            k = i * g + j
+            for e in range(2):
+                f = _row(a, k) + box[4 + e] * _row(b, k)
+                lo = wp.min(lo, f)
+                hi = wp.max(hi, f)
+                q0 = wp.dot(f, n0)
+                q1 = wp.dot(f, n1)
+                lo0 = wp.min(lo0, q0)
+                hi0 = wp.max(hi0, q0)
+                lo1 = wp.min(lo1, q1)
+                hi1 = wp.max(hi1, q1)
+                if i + 1 < g:
+                    d = _row(a, k + g) + box[4 + e] * _row(b, k + g) - f
+                    ds = wp.max(ds, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+                if j + 1 < g:
+                    d = _row(a, k + 1) + box[4 + e] * _row(b, k + 1) - f
+                    dw = wp.max(dw, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+            d = (box[5] - box[4]) * _row(b, k)
+            dt = wp.max(dt, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+    out = lo0 > margin or hi0 < -margin or lo1 > margin or hi1 < -margin
+    for c in range(3):
+        if lo[c] > margin or hi[c] < -margin:
+            out = True
+    extent = wp.max(hi[0] - lo[0], wp.max(hi[1] - lo[1], hi[2] - lo[2]))
+    axis = int(0)
+    if dw > ds:
+        axis = 1
+    if dt > wp.max(ds, dw):
+        axis = 2
+    return out, extent, axis
+
+
+@wp.func
+def _normal(el: Any, x: FaceNodes, xi: vec2):
+    """The unit normal x_xi x x_eta at xi (zero where degenerate)."""
+    t0 = vec3(0.0)
+    t1 = vec3(0.0)
+    for i in range(_nodes(el)):
+        sf, d0, d1, h00, h01, h11 = _shape(el, xi, i)
+        t0 += d0 * _row(x, i)
+        t1 += d1 * _row(x, i)
+    nv = wp.cross(t0, t1)
+    ln = wp.length(nv)
+    if ln > real(0.0):
+        nv = nv / ln
+    return nv
+
+
+@wp.func
+def _nodes(el: Triangles):
+    return 3
+
+
+@wp.func
+def _nodes(el: Element):  # noqa: F811
+    return el.nn
+
+
+@wp.func
+def _shape(el: Triangles, xi: vec2, i: int):
+    """tri3's N_i and its derivatives (the layout of _geometry.shape)."""
+    z = real(0.0)
+    if i == 0:
+        return real(1.0) - xi[0] - xi[1], real(-1.0), real(-1.0), z, z, z
+    if i == 1:
+        return xi[0], real(1.0), z, z, z, z
+    return xi[1], z, real(1.0), z, z, z
+
+
+@wp.func
+def _shape(el: Element, xi: vec2, i: int):  # noqa: F811
+    return shape(el, xi, i)
+
+
+@wp.func
+def _centre(el: Triangles):
+    return vec2(real(1.0) / real(3.0), real(1.0) / real(3.0))
+
+
+@wp.func
+def _centre(el: Element):  # noqa: F811
+    return el.centre
+
+
+@wp.func
+def search(
+    el: Any,
+    xa: FaceNodes,
+    va: FaceNodes,
+    p: vec3,
+    v: vec3,
+    bound: real,
+    t_tol: real,
+    space_rtol: real,
+):
+    """The pair's earliest contact (arraycontact._sweep.roots for one pair) before `bound`:
+    (toi or 3e38, the contact box's centre (s, w), converged, boxes visited)."""
+    nn = _nodes(el)
+    scale = real(0.0)
+    for i in range(nn):
+        x0 = _row(xa, i)
+        x1 = x0 + _row(va, i)
+        for c in range(3):
+            scale = wp.max(scale, wp.max(wp.abs(x0[c]), wp.abs(x1[c])))
+    for c in range(3):
+        scale = wp.max(scale, wp.max(wp.abs(p[c]), wp.abs(p[c] + v[c])))
+    margin = real(ROUND) * EPS * scale
+    delta = wp.max(space_rtol * scale, real(4.0) * margin)
+    xb = FaceNodes()
+    for i in range(nn):
+        xb = _set(xb, i, _row(xa, i) + _row(va, i))
+    n0 = _normal(el, xa, _centre(el))
+    n1 = _normal(el, xb, _centre(el))
+    stack = Stack()
+    stack[0, 0] = real(0.0)
+    stack[0, 1] = real(1.0)
+    stack[0, 2] = real(0.0)
+    stack[0, 3] = real(1.0)
+    stack[0, 4] = real(0.0)
+    stack[0, 5] = real(1.0)
+    sp = int(1)
+    best = real(3.0e38)
+    limit = bound
+    where = vec2(real(0.5))
+    converged = int(1)
+    visits = int(0)
+    while sp > 0:
+        sp -= 1
+        visits += 1
+        box = Box6()
+        for c in range(6):
+            box[c] = stack[sp, c]
+        if box[4] < limit:
+            out, extent, axis = _examine(el, xa, va, p, v, n0, n1, margin, box)
+            if not out:
+                small = extent <= delta
+                leaf = small and box[5] - box[4] <= t_tol
+                if not leaf and sp + 2 > DEPTH:
+                    leaf = True  # no room: a contact, conservatively
+                    converged = 0
+                if leaf:
+                    best = box[4]
+                    limit = wp.min(limit, best)
+                    where = vec2(real(0.5) * (box[0] + box[1]), real(0.5) * (box[2] + box[3]))
+                else:
+                    if small:
+                        axis = 2
+                    mid = real(0.5) * (box[2 * axis] + box[2 * axis + 1])
+                    for c in range(6):
+                        stack[sp, c] = box[c]
+                        stack[sp + 1, c] = box[c]
+                    stack[sp, 2 * axis] = mid  # the later half below
+                    stack[sp + 1, 2 * axis + 1] = mid  # the earlier half on top
+                    sp += 2
+        if visits > VISITS and sp > 0:
+            # Over budget: the earliest pending box, never late.
+            converged = 0
+            for k in range(sp):
+                if stack[k, 4] < limit:
+                    best = stack[k, 4]
+                    limit = best
+                    where = vec2(
+                        real(0.5) * (stack[k, 0] + stack[k, 1]),
+                        real(0.5) * (stack[k, 2] + stack[k, 3]),
+                    )
+            sp = 0
+    return best, where, converged, visits
+
+
+@wp.kernel
+def capture_keys(
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    lebesgue: real,
+    world: wp.array(dtype=int),
+    grid: Grid,
+):
+    f = wp.tid()
+    c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
+    c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
+    c = real(0.5) * (wp.min(lo0, lo1) + wp.max(hi0, hi1))
+    grid.keys[f] = morton_key(c - grid.corner, world[f], grid.quantum, grid.bits)
+    grid.sorted_ids[f] = f
+
+
+@wp.kernel
+def capture_gather(
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    lebesgue: real,
+    world: wp.array(dtype=int),
+    pad: real,
+    grid: Grid,
+):
+    """Each face's capture box (its boxes at both ends of the step, grown by pad) in key
+    order."""
+    k = wp.tid()
+    f = grid.sorted_ids[k]
+    c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
+    c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
+    write_item(grid, k, wp.min(lo0, lo1) - vec3(pad), f, wp.max(hi0, hi1) + vec3(pad), world[f])
+
+
+@wp.func
+def _face(x: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, nn: int, o: vec3):
+    xe = FaceNodes()
+    for i in range(nn):
+        xe = _set(xe, i, x[faces[f, i]] - o)
+    return xe
+
+
+@wp.func
+def _feature(el: Any, xi: vec2, tol: real):
+    """FACE, EDGE or VERTEX from the domain's constraints active at xi (within tol)."""
+    k = int(0)
+    if _is_tri(el):
+        if wp.abs(xi[0]) <= tol:
+            k += 1
+        if wp.abs(xi[1]) <= tol:
+            k += 1
+        if wp.abs(real(1.0) - xi[0] - xi[1]) <= tol:
+            k += 1
+    else:
+        for c in range(2):
+            if wp.abs(xi[c] - real(1.0)) <= tol:
+                k += 1
+            if wp.abs(xi[c] + real(1.0)) <= tol:
+                k += 1
+    if k == 0:
+        return FACE
+    if k == 1:
+        return EDGE
+    return VERTEX
+
+
+@wp.func
+def _is_tri(el: Triangles):
+    return True
+
+
+@wp.func
+def _is_tri(el: Element):  # noqa: F811
+    return el.n_corners == 3
+
+
+@wp.kernel
+def swept_scan(
+    grid: Grid,
+    el: Any,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    s0: wp.array(dtype=vec3),
+    s1: wp.array(dtype=vec3),
+    slave_world: wp.array(dtype=int),
+    shared: int,
+    pad: real,
+    t_tol: real,
+    space_rtol: real,
+    feature_tol: real,
+    hit: wp.array(dtype=int),
+    toi: wp.array(dtype=real),
+    face: wp.array(dtype=int),
+    xi: wp.array(dtype=vec2),
+    point: wp.array(dtype=vec3),
+    normal: wp.array(dtype=vec3),
+    feature: wp.array(dtype=int),
+    normal_velocity: wp.array(dtype=real),
+    converged: wp.array(dtype=int),
+    visits: wp.array(dtype=int),
+):
+    """Slave i's earliest contact over the step: the faces whose capture box meets the ball
+    around its segment, each searched before the earliest contact so far plus t_tol; the tie
+    band (faces within t_tol of the earliest) goes to the smallest face id."""
+    i = wp.tid()
+    a = s0[i]
+    b = s1[i]
+    world = slave_world[i]
+    s = real(0.5) * (a + b)
+    reach = real(0.5) * wp.length(b - a) + pad
+    nn = faces.shape[1]
+    first = real(3.0e38)
+    band_f = BandF()
+    band_t = BandT()
+    band_x = BandX()
+    nb = int(0)
+    conv = int(1)
+    total = int(0)
+    stack = wp.uint64(0)
+    k = grid.top
+    j = int(0)
+    visit = int(1)
+    while visit == 1:
+        visit = 0
+        if enters(s, world, shared, entry(grid, k, j), reach):
+            if k == 1:
+                for c in range(W):
+                    kk = W * j + c
+                    if kk < grid.n:
+                        near = box_gap_sq(s, item_lo(grid, kk), item_hi(grid, kk)) <= reach * reach
+                        if near and shared == 0:
+                            near = item_world(grid, kk) == world
+                        if near:
+                            f = grid.sorted_ids[kk]
+                            o = x0[faces[f, 0]]
+                            xa = _face(x0, faces, f, nn, o)
+                            xb = _face(x1, faces, f, nn, o)
+                            va = FaceNodes()
+                            for q in range(nn):
+                                va = _set(va, q, _row(xb, q) - _row(xa, q))
+                            bound = real(3.0e38)
+                            if first < real(2.0):
+                                bound = first + t_tol
+                            t, where, cv, n_vis = search(
+                                el, xa, va, a - o, b - a, bound, t_tol, space_rtol
+                            )
+                            total += n_vis
+                            if t < bound:
+                                if cv == 0:
+                                    conv = 0
+                                first = wp.min(first, t)
+                                # Keep the band: drop entries now later than first + t_tol.
+                                m = int(0)
+                                for q in range(nb):
+                                    if band_t[q] <= first + t_tol:
+                                        band_f[m] = band_f[q]
+                                        band_t[m] = band_t[q]
+                                        band_x[m, 0] = band_x[q, 0]
+                                        band_x[m, 1] = band_x[q, 1]
+                                        m += 1
+                                nb = m
+                                if nb < BAND:
+                                    band_f[nb] = f
+                                    band_t[nb] = t
+                                    band_x[nb, 0] = where[0]
+                                    band_x[nb, 1] = where[1]
+                                    nb += 1
+                                else:
+                                    conv = 0  # more tied faces than kept
+            else:
+                mask, near_c = children(grid, s, world, shared, k, j, reach, 0, Plain())
+                if mask != 0:
+                    stack, k, j = descend(stack, k, j, mask, near_c)
+                    visit = 1
+        if visit == 0:
+            stack, k, j, visit = next_pending(grid, stack, k, j)
+    visits[i] = total
+    converged[i] = conv
+    if nb == 0:
+        hit[i] = 0
+        face[i] = -1
+        return
+    pick = int(0)
+    for q in range(nb):
+        if band_f[q] < band_f[pick]:
+            pick = q
+    f = band_f[pick]
+    z = _natural(el, band_x[pick, 0], band_x[pick, 1])
+    o = x0[faces[f, 0]]
+    xa = _face(x0, faces, f, nn, o)
+    xb = _face(x1, faces, f, nn, o)
+    xt = FaceNodes()
+    vf = vec3(0.0)
+    for q in range(nn):
+        xt = _set(xt, q, _row(xa, q) + first * (_row(xb, q) - _row(xa, q)))
+        n, d0, d1, h00, h01, h11 = _shape(el, z, q)
+        vf += n * (_row(xb, q) - _row(xa, q))
+    nrm = _normal(el, xt, z)
+    hit[i] = 1
+    toi[i] = first
+    face[i] = f
+    xi[i] = z
+    point[i] = a + first * (b - a)
+    normal[i] = nrm
+    feature[i] = _feature(el, z, feature_tol)
+    normal_velocity[i] = wp.dot(nrm, (b - a) - vf)
