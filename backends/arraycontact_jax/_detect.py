@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from arraycontact._contacts import Contacts, Counts, Feature, Status
+from arraycontact._contacts import Contacts, Counts, Feature, Status, SweptContacts
 from arraycontact._detect import (
     Static,
     build_grids,
@@ -50,8 +50,9 @@ from arraycontact._elements import get_element
 from arraycontact._grid import level_sizes, morton_order
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds, validate_points
+from arraycontact._sweep import FEATURE_TOL, T_TOL, feature_of
 
-from . import _grid
+from . import _grid, _sweep
 from ._gradients import padded_node_faces, smooth
 
 # Capacities are the plan-time counts times this: the candidate faces of a slave grow when
@@ -582,3 +583,258 @@ _ARRAYS = (
     "finer",
 )
 jax.tree_util.register_pytree_node(Contacts, _flatten_contacts, _unflatten_contacts)
+
+
+# ---------------------------------------------------------------------------------------------
+# swept detection (arraycontact.detect_swept's contract)
+
+
+@dataclass(frozen=True, eq=False)
+class SweptPlan:
+    """Static sizes of a jitted swept detection (see `plan_swept`); a pytree."""
+
+    order: object  # face ids in the Morton order of their plan-time capture boxes
+    master: Surface = field(repr=False)
+    capacity: tuple = ()  # sorted (name, capacity): the tree query's pairs per level
+    origin: tuple = (0.0, 0.0, 0.0)
+    pad: float = 0.0
+    dtype: str = "float32"
+    n_slaves: int = 0
+    growth: float = GROWTH
+
+
+jax.tree_util.register_pytree_node(
+    SweptPlan,
+    lambda p: ((p.order,), (p.master, p.capacity, p.origin, p.pad, p.dtype, p.n_slaves, p.growth)),
+    lambda aux, ch: SweptPlan(ch[0], *aux),
+)
+
+
+def _swept_pairs(xp, element, order, s0, s1, m0, m1, faces, pad, capacity):
+    """The tree over the faces' capture boxes (in `order`) and the (slave, face) pairs whose
+    boxes meet the ball around the slave's segment."""
+    from arraycontact import _grid as tree
+    from arraycontact._detect import capture_boxes
+
+    lo, hi = capture_boxes(element, m0[faces[order]], m1[faces[order]], xp)
+    t = tree.build(xp, order, lo - pad, hi + pad, lo)
+    mid = 0.5 * (s0 + s1)
+    d = s1 - s0
+    half = 0.5 * xp.sqrt(xp.sum(d * d, -1))
+    slave, entry, valid, counts = tree.query(
+        xp, t, mid, half, 0.0, capacity, name="pairs", shrink=False
+    )
+    return slave, order[entry], valid, counts
+
+
+def plan_swept(
+    master, slave_x0, slave_x1=None, master_x1=None, *, dtype=None, growth=GROWTH, minimum=None
+) -> SweptPlan:
+    """Size a jitted swept detection from a step like those to come (eager): slaves moving
+    from slave_x0 to slave_x1 [n, 3] (default: not moving) while the master's points move to
+    master_x1 (default: not moving). Capacities are the pairs found now times `growth`; a
+    step with more reports overflow (`update_plan` re-plans)."""
+    if dtype is None:
+        dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    if dtype == np.float64 and not jax.config.jax_enable_x64:
+        raise ValueError("dtype float64 needs jax_enable_x64")
+    if not isinstance(master, Surface):
+        raise ValueError("master must be an arraycontact.Surface")
+    if not growth >= 1:
+        raise ValueError(f"growth must be >= 1, got {growth}")
+    from arraycontact._detect import _swept_inputs, capture_boxes
+    from arraycontact._sweep import ROUND, SPACE_RTOL
+
+    x1 = slave_x0 if slave_x1 is None else slave_x1
+    m1 = master.points if master_x1 is None else master_x1
+    x0, x1, _, m1 = _swept_inputs(slave_x0, x1, master, m1)
+    if len(x0) == 0:
+        raise ValueError("slave_x0 is empty: there is nothing to plan for")
+    if master.n_faces == 0:
+        raise ValueError("master has no faces")
+    e = master.element
+    lo, hi = capture_boxes(e, master.points[master.faces], m1[master.faces])
+    b_lo = np.minimum(np.minimum(x0, x1).min(0), lo.min(0))
+    b_hi = np.maximum(np.maximum(x0, x1).max(0), hi.max(0))
+    origin = b_lo if dtype == np.float32 else np.zeros(3)
+    extent = float((b_hi - b_lo).max())
+    scale = 2 * max(float(np.abs(np.r_[b_lo - origin, b_hi - origin]).max()), 1e-300)
+    pad = 4 * (SPACE_RTOL[dtype] + 4 * ROUND * float(np.finfo(dtype).eps)) * scale
+    order = morton_order(0.5 * (lo + hi), b_lo, extent).astype(np.int32)
+    _, _, _, counts = _swept_pairs(
+        np, e, order, x0 - origin, x1 - origin, master.points - origin, m1 - origin,
+        master.faces, pad, None,
+    )
+    cap = {k: max(int(np.ceil(int(v) * growth)), len(x0)) for k, v in counts.items()}
+    for k, v in (minimum or {}).items():
+        if k in cap:
+            cap[k] = max(cap[k], int(np.ceil(v * growth)))
+    return SweptPlan(
+        jnp.asarray(order),
+        master,
+        tuple(sorted(cap.items())),
+        tuple(float(v) for v in origin),
+        float(pad),
+        dtype.name,
+        len(x0),
+        growth,
+    )
+
+
+@jax.jit
+def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1) -> SweptContacts:
+    """The first contact of every slave over the step (arraycontact.detect_swept's contract):
+    jitted, static shapes; toi, xi, point, normal and normal_velocity differentiable with
+    respect to all four coordinate arrays (away from ties and grazing contacts). Check
+    `overflow` (or call `update_plan`)."""
+    if not isinstance(p, SweptPlan):
+        raise ValueError("the first argument must be a SweptPlan (arraycontact_jax.plan_swept)")
+    for name, a, n in (
+        ("slave_x0", slave_x0, p.n_slaves),
+        ("slave_x1", slave_x1, p.n_slaves),
+        ("master_x0", master_x0, len(p.master.points)),
+        ("master_x1", master_x1, len(p.master.points)),
+    ):
+        if a.shape != (n, 3):
+            raise ValueError(f"{name} must have shape ({n}, 3), got {a.shape}")
+    dtype = jnp.dtype(p.dtype)
+    e = p.master.element
+    faces = jnp.asarray(p.master.faces.astype(np.int32))
+
+    def local(x):
+        return (x - jnp.asarray(p.origin, x.dtype)[None, :]).astype(dtype)
+
+    s0, s1, m0, m1 = (local(x) for x in (slave_x0, slave_x1, master_x0, master_x1))
+    sg = jax.lax.stop_gradient
+    cap = dict(p.capacity)
+    slave, face, valid, counts = _swept_pairs(
+        jnp, e, p.order, sg(s0), sg(s1), sg(m0), sg(m1), faces, p.pad, cap
+    )
+    xe0, xe1 = sg(m0)[faces[face]], sg(m1)[faces[face]]
+    toi, where, conv, visits = _sweep.roots(e, xe0, xe1, sg(s0)[slave], sg(s1)[slave], valid)
+    n = s0.shape[0]
+    inf = jnp.asarray(jnp.inf, dtype)
+    toi = jnp.where(valid, toi, inf)
+    first = jax.ops.segment_min(toi, slave, num_segments=n)
+    band = jnp.isfinite(toi) & (toi <= first[slave] + T_TOL[np.dtype(dtype)])
+    big = jnp.iinfo(jnp.int32).max
+    low = jax.ops.segment_min(jnp.where(band, face, big), slave, num_segments=n)
+    k = jnp.arange(slave.shape[0], dtype=jnp.int32)
+    pick = jax.ops.segment_min(jnp.where(band & (face == low[slave]), k, big), slave, num_segments=n)
+    hit = pick < big
+    pk = jnp.where(hit, pick, 0)
+    f = jnp.where(hit, face[pk], 0)
+    t0 = jnp.where(hit, first, 0.5)
+    t, xi, point, normal, vn = _sweep.impact(
+        e, m0[faces[f]], m1[faces[f]], s0, s1, t0, where[pk]
+    )
+    nan = jnp.asarray(jnp.nan, dtype)
+
+    def masked(v):
+        return jnp.where(hit.reshape(hit.shape + (1,) * (v.ndim - 1)), v, nan)
+
+    status = jnp.where(
+        hit, jnp.where(conv[pk], int(Status.OK), int(Status.NOT_CONVERGED)), int(Status.OUT_OF_RANGE)
+    )
+    return SweptContacts(
+        hit=hit,
+        toi=jnp.where(hit, t, inf),
+        face=jnp.where(hit, f, -1),
+        xi=masked(xi),
+        point=masked(point + jnp.asarray(p.origin, dtype)[None]),
+        normal=masked(normal),
+        feature=jnp.where(
+            hit, feature_of(e, sg(xi), FEATURE_TOL[np.dtype(dtype)], jnp), int(Feature.NONE)
+        ),
+        normal_velocity=masked(vn),
+        status=status.astype(jnp.int32),
+        slave_ids=jnp.arange(n, dtype=jnp.int32),
+        t_tol=T_TOL[np.dtype(dtype)],
+        counts=Counts(slaves_in_box=n, master_faces_in_box=p.master.n_faces, count=counts,
+                      capacity=cap),
+        backend="jax",
+        dtype=np.dtype(dtype).name,
+    )
+
+
+def update_swept_plan(p: SweptPlan, res: SweptContacts, slave_x0, slave_x1, master_x0, master_x1):
+    """`p` when `res` did not overflow, else a plan sized for this step (outside `jit`)."""
+    if not bool(res.counts.overflow):
+        return p
+    count = {k: float(np.max(np.asarray(v))) for k, v in res.counts.count.items()}
+    return plan_swept(
+        p.master.with_points(np.asarray(master_x0, np.float64)),
+        np.asarray(slave_x0, np.float64),
+        np.asarray(slave_x1, np.float64),
+        np.asarray(master_x1, np.float64),
+        dtype=p.dtype,
+        growth=p.growth,
+        minimum=count,
+    )
+
+
+def run_swept(x0, x1, master, m1, su, dtype):
+    """`arraycontact.detect_swept(backend="jax")`: plan, detect (re-planned on overflow)."""
+    rows = su.slave_rows
+    a, b = x0[rows], x1[rows]
+    with jax.enable_x64(np.dtype(dtype) == np.float64):
+        p = plan_swept(master, a, b, m1, dtype=dtype)
+        args = [jnp.asarray(v, dtype) for v in (a, b, master.points, m1)]
+        res = detect_swept(p, *args)
+        while bool(res.counts.overflow):
+            p = update_swept_plan(p, res, a, b, master.points, m1)
+            res = detect_swept(p, *args)
+    hit = np.asarray(res.hit)
+    k = np.nonzero(hit)[0]
+    out = {n: np.asarray(getattr(res, n))[k] for n in
+           ("face", "toi", "xi", "point", "normal", "feature", "normal_velocity")}
+    out["point"] = out["point"].astype(float) + np.asarray(p.origin) - su.origin
+    out["converged"] = np.asarray(res.status)[k] == int(Status.OK)
+    out["rows"] = k
+    return out, {kk: int(v) for kk, v in res.counts.count.items()}, str(jax.devices()[0])
+
+
+_SWEPT_ARRAYS = (
+    "hit",
+    "toi",
+    "face",
+    "xi",
+    "point",
+    "normal",
+    "feature",
+    "normal_velocity",
+    "status",
+    "slave_ids",
+)
+
+
+def _flatten_swept(c):
+    arrays = tuple(getattr(c, k) for k in _SWEPT_ARRAYS)
+    return (arrays, c.counts.count), (
+        c.t_tol,
+        c.counts.slaves_in_box,
+        c.counts.master_faces_in_box,
+        tuple(sorted(c.counts.capacity.items())),
+        c.backend,
+        c.device,
+        c.dtype,
+    )
+
+
+def _unflatten_swept(aux, children):
+    arrays, count = children
+    t_tol, n_s, n_f, cap, backend, device, dtype = aux
+    return SweptContacts(
+        **dict(zip(_SWEPT_ARRAYS, arrays)),
+        t_tol=t_tol,
+        counts=Counts(slaves_in_box=n_s, master_faces_in_box=n_f, count=count, capacity=dict(cap)),
+        backend=backend,
+        device=device,
+        dtype=dtype,
+    )
+
+
+jax.tree_util.register_pytree_node(SweptContacts, _flatten_swept, _unflatten_swept)
