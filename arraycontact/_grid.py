@@ -167,18 +167,19 @@ def query(
     level (keys f"{name}{k}"). normal [n, 3] (self-contact, a tree with normal boxes): only
     entries that may face the query's normal, and no shrinking (a representative may lie on
     a face that does not count). shrink=False: every item whose box is within reach (swept
-    detection's capture boxes, whose representatives bound nothing). Returns (query row [P], item position in tree order [P],
-    valid [P], counts {key: true count}); pairs are grouped by query row in increasing order."""
+    detection's capture boxes, whose representatives bound nothing). Returns (query row [P],
+    item position in tree order [P], valid [P], counts {key: true count}); pairs are grouped
+    by query row in increasing order."""
     n = q.shape[0]
     top = len(tree.lo) - 1
-    slave = xp.arange(n)
+    slave = xp.arange(n, dtype=np.int32)
     entry = xp.zeros(n, dtype=np.int32)
     valid = xp.ones(n, dtype=bool)
     reach = reach + 0 * q[:, 0]
     counts = {}
     for k in range(top, 0, -1):
         size = tree.lo[k - 1].shape[0]
-        child = (entry[:, None] * W + xp.arange(W)).reshape(-1)
+        child = (entry[:, None] * W + xp.arange(W, dtype=np.int32)[None, :]).reshape(-1)
         s = xp.broadcast_to(slave[:, None], (slave.shape[0], W)).reshape(-1)
         ok = xp.broadcast_to(valid[:, None], (slave.shape[0], W)).reshape(-1) & (child < size)
         c = xp.where(ok, child, 0)

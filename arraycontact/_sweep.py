@@ -14,7 +14,10 @@ the curved ones) are control points whose convex hull holds F's range there. A b
 misses 0 along one axis or along the face normal at either end of the step (by more than a
 rounding margin) holds no contact; the others are split, depth first with the earlier half in
 time first, and a box whose hull is within SPACE_RTOL of 0 and shorter than T_TOL in time is a
-contact at its earliest time. The search then keeps only boxes that start earlier.
+contact at its earliest time. The search then keeps only boxes that start earlier. A box is
+split along the axis its control points spread most along (so a box stays long along a curve
+where F does not change: a face of zero area, a node sliding on a face), in time once tight
+in space.
 
 Guarantee (certified root search, no sampling): a real contact at time t* is never missed and
 toi <= t*; toi >= t' - T_TOL, where t' is the first time the node comes within about
@@ -40,7 +43,7 @@ ROUND = 64
 #: Pending boxes a pair may hold (a split adds one; the depth is ~3 log2(1 / SPACE_RTOL)).
 DEPTH = 128
 #: Boxes a pair may visit before it stops with the earliest one left.
-VISITS = 20000
+VISITS = 8192
 #: Natural coordinates this close to a constraint put the contact on an edge or vertex.
 FEATURE_TOL = {np.dtype(np.float64): 1e-6, np.dtype(np.float32): 1e-3}
 
@@ -63,7 +66,7 @@ def control_points(element, xa, va, p, v, box, xp=np):
     """Control points [P, 2, g, g, 3] (t ends, s, w) of F over boxes [P, 6] = (s0, s1, w0, w1,
     t0, t1); xa, va [P, nn, 3] the face nodes at t = 0 and their motion, p, v [P, 3] the node's."""
     g = 2 if element.linear else 3
-    f = xp.linspace(0.0, 1.0, g).astype(box.dtype)
+    f = xp.linspace(0.0, 1.0, g).astype(box.dtype)[None, :]
     s = box[:, 0:1] + (box[:, 1:2] - box[:, 0:1]) * f  # [P, g]
     w = box[:, 2:3] + (box[:, 3:4] - box[:, 2:3]) * f
     xi = natural(element, s[:, :, None] + 0 * w[:, None, :], 0 * s[:, :, None] + w[:, None, :], xp)
@@ -176,7 +179,7 @@ def feature_of(element, xi, tol, xp=np):
     """FACE, EDGE or VERTEX from the constraints of the domain active at xi (within tol)."""
     a = xp.asarray(element.constraints_a, xi.dtype)
     b = xp.asarray(element.constraints_b, xi.dtype)
-    act = xp.abs(xi @ a.T - b) <= tol
+    act = xp.abs(xi @ a.T - b[None, :]) <= tol
     k = xp.sum(act.astype(np.int32), -1)
     return xp.where(k == 0, FACE, xp.where(k == 1, EDGE, VERTEX)).astype(np.int32)
 

@@ -31,6 +31,9 @@ __all__ = [
     "coil_spring",
     "crumpled_sheet",
     "two_bodies",
+    "Step",
+    "closing_rough_surfaces",
+    "rolling_tyre",
 ]
 
 
@@ -614,3 +617,51 @@ def _self_scene(name, surface, gap, thickness, element, **extra) -> Scene:
             **extra,
         ),
     )
+
+
+@dataclass(frozen=True, eq=False)
+class Step:
+    """A step of swept detection: the slaves move from slave_x0 to slave_x1 while the master
+    (at its points) moves to master_x1 (detect_swept's inputs)."""
+
+    name: str
+    master: Surface
+    master_x1: np.ndarray
+    slave_x0: np.ndarray
+    slave_x1: np.ndarray
+    slave_surface: Surface | None = None
+    params: dict = field(default_factory=dict)
+
+
+def closing_rough_surfaces(
+    n_nodes=2**12, *, gap=1.0, closing=1.6, jitter=0.1, element="tri3", seed=0
+) -> Step:
+    """Rough surfaces `gap` apart (rough_surfaces) that close by `closing` within the step: the
+    slave surface moves down by closing / 2 and the master up by as much, every node with a
+    random sideways jitter (in element sizes), so most slaves cross the master mid-step."""
+    sc = rough_surfaces(n_nodes, gap=gap, element=element, seed=seed)
+    rng = np.random.default_rng(seed + 7)
+    m0 = sc.master.points
+    m1 = m0 + np.r_[0, 0, closing / 2] + rng.normal(0, jitter, m0.shape) * [1, 1, 0]
+    x0 = sc.slave
+    x1 = x0 - np.r_[0, 0, closing / 2] + rng.normal(0, jitter, x0.shape) * [1, 1, 0]
+    params = dict(sc.params, closing=closing, jitter=jitter)
+    return Step("closing_rough_surfaces", sc.master, m1, x0, x1, sc.slave_surface, params)
+
+
+def rolling_tyre(
+    n_nodes=2**12, *, radius=20.0, lift=0.3, drop=0.8, turn=0.05, element="tri3", seed=0
+) -> Step:
+    """A tyre (cylinder_on_road's slave nodes) `lift` above a rough road, rolling over the
+    step: it turns by `turn` radians about its axis, advances by radius * turn and sinks by
+    `drop`, so the nodes near the bottom reach the road at different times; the road is
+    still."""
+    sc = cylinder_on_road(n_nodes, radius=radius, depth=-lift, element=element, seed=seed)
+    x0 = sc.slave
+    top = sc.master.points[:, 2].max()
+    centre = np.array([0.0, 0.0, top + lift + radius])
+    c, s = np.cos(turn), np.sin(turn)
+    rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    x1 = (x0 - centre) @ rot.T + centre + [radius * turn, 0, -drop]
+    params = dict(sc.params, lift=lift, drop=drop, turn=turn)
+    return Step("rolling_tyre", sc.master, sc.master.points.copy(), x0, x1, None, params)

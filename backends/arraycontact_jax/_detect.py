@@ -791,7 +791,7 @@ def run_swept(x0, x1, master, m1, su, dtype):
     k = np.nonzero(hit)[0]
     out = {n: np.asarray(getattr(res, n))[k] for n in
            ("face", "toi", "xi", "point", "normal", "feature", "normal_velocity")}
-    out["point"] = out["point"].astype(float) + np.asarray(p.origin) - su.origin
+    out["point"] = out["point"].astype(float) - su.origin  # detect_swept adds it back
     out["converged"] = np.asarray(res.status)[k] == int(Status.OK)
     out["rows"] = k
     return out, {kk: int(v) for kk, v in res.counts.count.items()}, str(jax.devices()[0])

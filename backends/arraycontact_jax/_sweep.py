@@ -45,7 +45,7 @@ def roots(element, xe0, xe1, p0, p1, valid):
         active = sp > 0
         top = jnp.maximum(sp - 1, 0)
         box = stack[ar, top]
-        visits = visits + active
+        visits = visits + active.astype(jnp.int32)
         live = active & (box[:, 4] < best)
         cp = control_points(element, xa, va, p, v, box, jnp)
         out, extent, spread = examine(cp, dirs, margin, jnp)
@@ -58,19 +58,19 @@ def roots(element, xe0, xe1, p0, p1, valid):
         centre = 0.5 * (box[:, jnp.array([0, 2])] + box[:, jnp.array([1, 3])])
         where = jnp.where(hit[:, None], centre, where)
         split = live & ~out & ~hit
-        axis = jnp.where(small, 2, jnp.argmax(spread, -1))
+        axis = jnp.where(small, 2, jnp.argmax(spread, -1).astype(jnp.int32))
         lo_c, hi_c = 2 * axis, 2 * axis + 1
         mid = 0.5 * (box[ar, lo_c] + box[ar, hi_c])
-        cols = jnp.arange(6)[None, :]
+        cols = jnp.arange(6, dtype=jnp.int32)[None, :]
         early = jnp.where(cols == hi_c[:, None], mid[:, None], box)
         late = jnp.where(cols == lo_c[:, None], mid[:, None], box)
         s1 = jnp.minimum(top + 1, DEPTH - 1)
         stack = stack.at[ar, top].set(jnp.where(split[:, None], late, stack[ar, top]))
         stack = stack.at[ar, s1].set(jnp.where(split[:, None], early, stack[ar, s1]))
-        sp = jnp.where(active, top + 2 * split, sp)
+        sp = jnp.where(active, top + 2 * split.astype(jnp.int32), sp)
         # Over budget: the earliest pending box (never late), then stop.
         over = (visits > VISITS) & (sp > 0)
-        pend = jnp.where(jnp.arange(DEPTH)[None, :] < sp[:, None], stack[:, :, 4], inf)
+        pend = jnp.where(jnp.arange(DEPTH, dtype=jnp.int32)[None, :] < sp[:, None], stack[:, :, 4], inf)
         j = jnp.argmin(pend, 1)
         b = stack[ar, j]
         earlier = over & (b[:, 4] < best)
@@ -110,13 +110,13 @@ def impact(element, xe0, xe1, p0, p1, toi, s_w, iterations=12):
 
     def newton(_, z):
         f, jac = _residual(element, z, a0, a1, b0, b1)
-        step = jnp.linalg.solve(jac + 1e-30 * jnp.eye(3, dtype=z.dtype), f[..., None])[..., 0]
+        step = jnp.linalg.solve(jac + 1e-30 * jnp.eye(3, dtype=z.dtype)[None], f[..., None])[..., 0]
         return jnp.where(jnp.all(jnp.isfinite(step), -1, keepdims=True), z - step, z)
 
     zs = sg(jax.lax.fori_loop(0, iterations, newton, sg(z0)))
     f, _ = _residual(element, zs, xe0, xe1, p0, p1)
     _, jac = _residual(element, zs, a0, a1, b0, b1)
-    dz = jnp.linalg.solve(sg(jac) + 1e-30 * jnp.eye(3, dtype=zs.dtype), f[..., None])[..., 0]
+    dz = jnp.linalg.solve(sg(jac) + 1e-30 * jnp.eye(3, dtype=zs.dtype)[None], f[..., None])[..., 0]
     z = zs - dz
     t = sg(toi) + (z[:, 2] - sg(z[:, 2]))
     xi = sg(xi0) + (z[:, :2] - sg(z[:, :2]))

@@ -1,0 +1,310 @@
+"""Swept detection (detect_swept) on every back end against reference.swept, closed forms and
+the cases a static detection misses."""
+
+import hashlib
+
+import numpy as np
+import pytest
+
+import arraycontact as ac
+from arraycontact import scenes
+from arraycontact.reference import SWEPT_TOL
+
+ALL = ["numpy", "jax", "warp"]
+_REFS = {}
+
+
+def swept_reference(st):
+    key = hashlib.sha1(
+        b"".join(
+            np.ascontiguousarray(a).tobytes()
+            for a in (st.slave_x0, st.slave_x1, st.master.points, st.master.faces, st.master_x1)
+        )
+    ).hexdigest()
+    if key not in _REFS:
+        _REFS[key] = ac.reference.swept(st.slave_x0, st.slave_x1, st.master, st.master_x1)
+    return _REFS[key]
+
+
+def assert_swept_matches(c, st, dtype=np.float64):
+    """Same hits as the reference; toi never after the reference's (beyond its own tolerance)
+    and at most t_tol before it; the face the reference picks or one tied with it (its own
+    exact toi within the band of the earliest); the point on that face at that time."""
+    ref = swept_reference(st)
+    assert np.array_equal(c.hit, ref.hit), f"{(c.hit != ref.hit).sum()} slaves differ in hit"
+    h = ref.hit
+    assert (c.toi[h] <= ref.toi[h] + SWEPT_TOL).all(), "a toi after the exact one"
+    assert (c.toi[h] >= ref.toi[h] - c.t_tol - SWEPT_TOL).all(), "a toi too early"
+    assert np.isinf(c.toi[~h]).all() and (c.face[~h] == -1).all()
+    for i in np.nonzero(h)[0]:
+        f = int(c.face[i])
+        assert (i, f) in ref.pair_toi, f"slave {i}: face {f} is not hit at all"
+        assert ref.pair_toi[(i, f)] <= ref.toi[i] + 2 * c.t_tol + SWEPT_TOL, f"slave {i}"
+    # The point is the node at toi, and lies on the chosen face then.
+    t = c.toi[h][:, None]
+    np.testing.assert_allclose(c.point[h], st.slave_x0[h] + t * (st.slave_x1[h] - st.slave_x0[h]),
+                               atol=1e-9 if dtype == np.float64 else 1e-4)
+    e = st.master.element
+    xe = st.master.points[st.master.faces[c.face[h]]]
+    xe1 = st.master_x1[st.master.faces[c.face[h]]]
+    x, _ = ac._elements.interpolate(e, xe + t[:, :, None] * (xe1 - xe), c.xi[h])
+    L = st.master.longest_edge
+    tol = 1e-6 * L if dtype == np.float64 else 2e-2 * L
+    assert np.abs(x - c.point[h]).max() <= tol
+    assert (c.status[h] == int(ac.Status.OK)).all()
+    assert np.allclose(np.linalg.norm(c.normal[h], axis=1), 1)
+    return ref
+
+
+STEPS = {
+    "closing_tri3": lambda: scenes.closing_rough_surfaces(2**8),
+    "closing_quad4": lambda: scenes.closing_rough_surfaces(2**8, element="quad4"),
+    "closing_tri6": lambda: scenes.closing_rough_surfaces(2**6, element="tri6"),
+    "closing_quad8": lambda: scenes.closing_rough_surfaces(2**6, element="quad8"),
+    "closing_quad9": lambda: scenes.closing_rough_surfaces(2**6, element="quad9"),
+    "tyre": lambda: scenes.rolling_tyre(2**9, drop=1.2),
+}
+
+
+@pytest.mark.parametrize("name", sorted(STEPS))
+def test_numpy_against_reference(name):
+    st = STEPS[name]()
+    c = ac.detect_swept(st.slave_x0, st.slave_x1, st.master, st.master_x1, backend="numpy")
+    ref = assert_swept_matches(c, st)
+    assert ref.hit.sum() >= 4, "the step should have contact"
+    assert c.backend == "numpy" and c.dtype == "float64" and c.t_tol == 1e-6
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+@pytest.mark.parametrize("name", ["closing_tri3", "closing_quad4", "closing_tri6", "tyre"])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_backends_against_reference(backend, name, dtype):
+    st = STEPS[name]()
+    c = ac.detect_swept(
+        st.slave_x0, st.slave_x1, st.master, st.master_x1, backend=backend, dtype=dtype
+    )
+    assert c.backend == backend and c.dtype == dtype
+    assert_swept_matches(c, st, np.dtype(dtype))
+    if dtype == "float64":  # the same answer as NumPy's, row for row
+        n = ac.detect_swept(st.slave_x0, st.slave_x1, st.master, st.master_x1, backend="numpy")
+        assert np.array_equal(c.face, n.face)
+        np.testing.assert_allclose(c.toi[c.hit], n.toi[n.hit], atol=1e-12)
+
+
+def _plane(n=4, element="tri3", z=0.0):
+    s = np.linspace(-1, 1, n + 1)
+    x, y = np.meshgrid(s, s, indexing="ij")
+    return scenes.grid_surface(x, y, np.full_like(x, z), element)
+
+
+@pytest.mark.parametrize("backend", ALL)
+@pytest.mark.parametrize("element", ["tri3", "quad4", "quad9"])
+def test_closed_form_impact(backend, element):
+    """A node falling at speed 3 onto a plane rising at speed 1 from 2 apart: contact at
+    t = 2 / 4, at the node's position then, normal +z, normal velocity -4."""
+    m = _plane(4, element)
+    m1 = m.points + [0, 0, 1.0]
+    x0 = np.array([[0.13, -0.27, 2.0], [0.5, 0.5, 5.0]])
+    x1 = x0 + [0.2, 0.1, -3.0]
+    c = ac.detect_swept(x0, x1, m, m1, backend=backend)
+    assert c.hit.tolist() == [True, False]
+    assert 0.5 - c.t_tol <= c.toi[0] <= 0.5
+    np.testing.assert_allclose(c.point[0], x0[0] + 0.5 * (x1[0] - x0[0]), atol=1e-5)
+    np.testing.assert_allclose(c.normal[0], [0, 0, 1], atol=1e-9)
+    np.testing.assert_allclose(c.normal_velocity[0], -4.0, rtol=1e-9)
+    assert c.feature[0] == ac.Feature.FACE
+    assert c.status.tolist() == [int(ac.Status.OK), int(ac.Status.OUT_OF_RANGE)]
+
+
+@pytest.mark.parametrize("backend", ALL)
+def test_through_a_thin_plate(backend):
+    """A node that passes through a plate of thickness 0.01 within the step: the end-of-step
+    static detection (d_max below the thickness, as for thin bodies) sees it past the plate
+    and out of range; the swept detection reports the hit on the near side at its time."""
+    top = _plane(4, "tri3", 0.01)
+    bottom = _plane(4, "tri3", 0.0)
+    pts = np.r_[top.points, bottom.points]
+    faces = np.r_[top.faces, bottom.faces[:, ::-1] + len(top.points)]
+    plate = ac.Surface(pts, faces, "tri3")
+    x0 = np.array([[0.1, 0.2, 0.5]])
+    x1 = np.array([[0.1, 0.2, -0.5]])
+    c = ac.detect_swept(x0, x1, plate, pts, backend=backend, static=True, d_max=0.005)
+    assert c.hit[0] and not c.static.active[0]
+    assert c.face[0] < len(top.faces), "the near side, first"
+    assert 0.49 - c.t_tol <= c.toi[0] <= 0.49
+    assert c.normal_velocity[0] < 0
+
+
+@pytest.mark.parametrize("backend", ALL)
+def test_edge_vertex_grazing_and_sliding(backend):
+    """Through a shared edge (a tie: the smaller face id, feature EDGE), through a shared
+    vertex (VERTEX), sliding in the plane from outside onto the surface (hit at the moment it
+    enters), grazing past above it (no hit) and at rest on it (hit at t = 0)."""
+    m = _plane(2, "tri3")  # nodes on a 3 x 3 lattice of spacing 1
+    x0 = np.array(
+        [
+            [0.5, 0.5, 1.0],  # the diagonal of cell (1, 1): the shared edge of two triangles
+            [0.0, 0.0, 1.0],  # the centre vertex
+            [-2.0, 0.3, 0.0],  # in the plane, sliding in from x = -2 (enters at x = -1)
+            [-2.0, 0.3, 1e-3],  # the same, 1e-3 above: never touches
+            [0.2, 0.1, 0.0],  # at rest on the surface
+        ]
+    )
+    x1 = x0 + [[0, 0, -2], [0, 0, -2], [2, 0, 0], [2, 0, 0], [0, 0, 0]]
+    c = ac.detect_swept(x0, x1, m, m.points, backend=backend)
+    ref = ac.reference.swept(x0, x1, m, m.points)
+    assert c.hit.tolist() == [True, True, True, False, True] == ref.hit.tolist()
+    assert c.feature[0] == ac.Feature.EDGE and c.feature[1] == ac.Feature.VERTEX
+    assert c.face[0] == ref.face[0] and c.face[1] == ref.face[1]
+    on_edge = [f for (i, f) in ref.pair_toi if i == 0]
+    assert len(on_edge) == 2 and c.face[0] == min(on_edge)
+    assert 0.5 - c.t_tol <= c.toi[0] <= 0.5 and 0.5 - c.t_tol <= c.toi[1] <= 0.5
+    assert 0.5 - c.t_tol <= c.toi[2] <= 0.5 and c.feature[2] == ac.Feature.EDGE
+    assert c.toi[4] == 0.0
+
+
+@pytest.mark.parametrize("backend", ALL)
+def test_degenerate_inputs(backend):
+    """Nothing moves (only a node lying on a face hits, at t = 0); a zero-area face (its three
+    nodes on a line) is hit only by the segment that meets that line. Such a face meets the
+    node along a curve of its parameters, which the search cannot enclose in few boxes: it
+    may stop at its budget (NOT_CONVERGED), still never late."""
+    m = _plane(2, "tri3")
+    x = np.array([[0.3, 0.2, 0.0], [0.3, 0.2, 0.5]])
+    c = ac.detect_swept(x, x, m, m.points, backend=backend)
+    assert c.hit.tolist() == [True, False] and c.toi[0] == 0.0
+    flat = ac.Surface(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]), np.array([[0, 1, 2]]))
+    x0 = np.array([[0.5, 0.0, 1.0], [0.5, 0.5, 1.0]])
+    x1 = np.array([[0.5, 0.0, -1.0], [0.5, 0.5, -1.0]])
+    c = ac.detect_swept(x0, x1, flat, flat.points, backend=backend)
+    assert c.hit.tolist() == [True, False]  # (the reference's subdivision cannot take it)
+    assert c.toi[0] <= 0.5
+    if c.status[0] == int(ac.Status.OK):
+        assert 0.5 - c.t_tol <= c.toi[0]
+    else:
+        assert c.status[0] == int(ac.Status.NOT_CONVERGED)
+
+
+def test_static_from_the_same_call():
+    st = STEPS["closing_tri3"]()
+    c = ac.detect_swept(
+        st.slave_x0, st.slave_x1, st.master, st.master_x1, backend="numpy", static=True
+    )
+    end = ac.detect(st.slave_x1, st.master.with_points(st.master_x1), backend="numpy")
+    assert np.array_equal(c.static.face, end.face) and np.array_equal(c.static.active, end.active)
+
+
+def test_surface_slaves_and_pairs():
+    st = STEPS["closing_tri3"]()
+    s = st.slave_surface
+    c = ac.detect_swept(s, st.slave_x1, st.master, st.master_x1, backend="numpy")
+    assert np.array_equal(c.slave_ids, s.nodes)
+    assert c.pairs().shape == (c.hit.sum(), 2)
+
+
+def test_bad_input():
+    m = _plane(2)
+    x = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="master_x1"):
+        ac.detect_swept(x, x, m, m.points[:-1])
+    with pytest.raises(ValueError, match="differ in shape"):
+        ac.detect_swept(x, x[:2], m, m.points)
+    with pytest.raises(ValueError, match="slave_x1"):
+        ac.detect_swept(x, np.full((3, 3), np.nan), m, m.points)
+    with pytest.raises(ValueError, match="master must be"):
+        ac.detect_swept(x, x, m.points, m.points)
+    with pytest.raises(ValueError, match="dtype"):
+        ac.detect_swept(x, x, m, m.points, dtype="int32")
+    with pytest.raises(ValueError, match="backend"):
+        ac.detect_swept(x, x, m, m.points, backend="cuda")
+    empty = ac.detect_swept(np.zeros((0, 3)), np.zeros((0, 3)), m, m.points)
+    assert len(empty) == 0
+
+
+def test_warp_worlds():
+    """Two worlds in one launch: each world's slaves see only that world's master."""
+    import arraycontact_warp as acw
+
+    st = STEPS["closing_tri3"]()
+    m = st.master
+    n, npts = len(st.slave_x0), len(m.points)
+    both = ac.Surface(np.r_[m.points, m.points], np.r_[m.faces, m.faces + npts], "tri3")
+    p = acw.plan_swept(
+        both,
+        np.r_[st.slave_x0, st.slave_x0],
+        slave_world=np.r_[np.zeros(n, int), np.ones(n, int)],
+        master_world=np.r_[np.zeros(npts, int), np.ones(npts, int)],
+        dtype="float64",
+    )
+    # World 1's master does not move: its answer is another step.
+    out = acw.detect_swept(
+        p,
+        np.r_[st.slave_x0, st.slave_x0],
+        np.r_[st.slave_x1, st.slave_x1],
+        both.points,
+        np.r_[st.master_x1, m.points],
+    )
+    one = ac.detect_swept(st.slave_x0, st.slave_x1, m, st.master_x1, backend="numpy")
+    still = ac.detect_swept(st.slave_x0, st.slave_x1, m, m.points, backend="numpy")
+    assert np.array_equal(out["face"][:n], one.face)
+    f1 = out["face"][n:]
+    assert np.array_equal(np.where(f1 >= 0, f1 - len(m.faces), -1), still.face)
+    assert not np.array_equal(one.face, still.face)
+
+
+def test_jax_gradients_and_overflow():
+    """toi and the impact point differentiated with respect to all four coordinate arrays
+    against central finite differences of the reference's toi (float64), and a plan sized for
+    a slower step reports overflow, which update_swept_plan mends."""
+    import jax
+    import jax.numpy as jnp
+
+    import arraycontact_jax as acj
+
+    m = _plane(3, "quad4")
+    rng = np.random.default_rng(3)
+    m0 = m.points + rng.normal(0, 0.05, m.points.shape)
+    m1 = m0 + [0, 0, 0.4] + rng.normal(0, 0.05, m.points.shape)
+    x0 = np.array([[0.11, -0.23, 1.0], [-0.41, 0.37, 0.8]])
+    x1 = x0 + [[0.05, 0.02, -1.5], [-0.03, 0.04, -1.2]]
+    mm = m.with_points(m0)
+    with jax.enable_x64(True):
+        p = acj.plan_swept(mm, x0, x1, m1, dtype="float64")
+        args = [jnp.asarray(a) for a in (x0, x1, m0, m1)]
+        res = acj.detect_swept(p, *args)
+        assert bool(res.hit.all()) and not bool(res.counts.overflow)
+
+        def f(a, b, c, d):
+            r = acj.detect_swept(p, a, b, c, d)
+            return jnp.sum(r.toi * jnp.array([1.0, 2.0])) + jnp.sum(r.point[:, 2] * 0.3)
+
+        grads = jax.grad(f, argnums=(0, 1, 2, 3))(*args)
+
+    def g(arrs):
+        r = ac.reference.swept(arrs[0], arrs[1], mm.with_points(arrs[2]), arrs[3])
+        pt = arrs[0] + r.toi[:, None] * (arrs[1] - arrs[0])
+        return np.sum(r.toi * [1.0, 2.0]) + np.sum(pt[:, 2] * 0.3)
+
+    h = 1e-5
+    base = [x0, x1, m0, m1]
+    for k, grad in enumerate(grads):
+        for idx in [(0, 2), (1, 0), (4, 2), (7, 1)] if k >= 2 else [(0, 2), (1, 0), (1, 2)]:
+            plus = [a.copy() for a in base]
+            minus = [a.copy() for a in base]
+            plus[k][idx] += h
+            minus[k][idx] -= h
+            fd = (g(plus) - g(minus)) / (2 * h)
+            assert abs(float(grad[idx]) - fd) <= 1e-4 * max(1, abs(fd)), (k, idx, grad[idx], fd)
+    # Overflow: planned for a still step, run on a moving one.
+    with jax.enable_x64(True):
+        p0 = acj.plan_swept(mm, x0, dtype="float64", growth=1.0)
+        r0 = acj.detect_swept(p0, *args)
+        assert bool(r0.counts.overflow)
+        p1 = acj.update_swept_plan(p0, r0, *args)
+        r1 = acj.detect_swept(p1, *args)
+        assert not bool(r1.counts.overflow)
+        np.testing.assert_array_equal(np.asarray(r1.face), np.asarray(res.face))
+        batched = jax.vmap(lambda b: acj.detect_swept(p, args[0], b, args[2], args[3]).toi)(
+            jnp.stack([args[1], args[0]])
+        )
+        assert np.isfinite(np.asarray(batched[0])).all() and np.isinf(np.asarray(batched[1])).all()
