@@ -578,9 +578,18 @@ def swept(slave_x0, slave_x1, master: Surface, master_x1):
         flo, fhi = c - e.lebesgue * (c - flo), c + e.lebesgue * (fhi - c)
     slo, shi = np.minimum(x0, x1), np.maximum(x0, x1)
     pad = 1e-9 * max(np.abs(np.r_[x0.ravel(), x1.ravel(), xe0.ravel(), xe1.ravel()]).max(), 1e-300)
-    pi, fi = np.nonzero(
-        ((slo[:, None] <= fhi[None] + pad) & (shi[:, None] >= flo[None] - pad)).all(-1)
-    )
+    chunk = max(1, (1 << 22) // max(len(flo), 1))  # (slaves x faces) blocks of 4M pairs
+    blocks = [
+        np.nonzero(
+            (
+                (slo[i : i + chunk, None] <= fhi[None] + pad)
+                & (shi[i : i + chunk, None] >= flo[None] - pad)
+            ).all(-1)
+        )
+        for i in range(0, len(x0), chunk)
+    ]
+    pi = np.concatenate([b[0] + i * chunk for i, b in enumerate(blocks)] + [np.zeros(0, int)])
+    fi = np.concatenate([b[1] for b in blocks] + [np.zeros(0, int)])
     toi = np.full(len(pi), np.inf)
     xi = np.full((len(pi), 2), np.nan)
     if e.name == "tri3":

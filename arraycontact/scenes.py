@@ -32,6 +32,7 @@ __all__ = [
     "crumpled_sheet",
     "two_bodies",
     "Step",
+    "closing_step",
     "closing_rough_surfaces",
     "rolling_tyre",
 ]
@@ -633,20 +634,35 @@ class Step:
     params: dict = field(default_factory=dict)
 
 
+def closing_step(scene: Scene, *, closing=1.6, jitter=0.1, seed=0) -> Step:
+    """A step of a two-surface scene whose master faces +z and slave surface -z (rough,
+    steep, graded): each body moves towards the other by closing / 2 times the scene's gap,
+    and every node sideways by a random `jitter`, both in units of the local element size (the
+    mean edge length around the node), so that a graded scene closes alike everywhere; with
+    the default closing most slaves cross the master mid-step."""
+    from ._surface import mesh_sizes
+
+    rng = np.random.default_rng(seed + 7)
+    gap = float(scene.params.get("gap", 1.0))
+    m, s = scene.master, scene.slave_surface
+    hm = mesh_sizes(m.element, m.faces, m.points)[1][:, None]
+    hs = mesh_sizes(s.element, s.faces, s.points)[1][s.nodes][:, None]
+    up = np.array([0.0, 0.0, 0.5 * closing * gap])
+    side = np.array([1.0, 1.0, 0.0])
+    m1 = m.points + hm * (up + rng.normal(0, jitter, m.points.shape) * side)
+    x0 = scene.slave
+    x1 = x0 + hs * (-up + rng.normal(0, jitter, x0.shape) * side)
+    params = dict(scene.params, closing=closing, jitter=jitter)
+    return Step(scene.name + "_closing", m, m1, x0, x1, s, params)
+
+
 def closing_rough_surfaces(
     n_nodes=2**12, *, gap=1.0, closing=1.6, jitter=0.1, element="tri3", seed=0
 ) -> Step:
-    """Rough surfaces `gap` apart (rough_surfaces) that close by `closing` within the step: the
-    slave surface moves down by closing / 2 and the master up by as much, every node with a
-    random sideways jitter (in element sizes), so most slaves cross the master mid-step."""
+    """Rough surfaces `gap` apart (rough_surfaces) that close by `closing` within the step
+    (closing_step)."""
     sc = rough_surfaces(n_nodes, gap=gap, element=element, seed=seed)
-    rng = np.random.default_rng(seed + 7)
-    m0 = sc.master.points
-    m1 = m0 + np.r_[0, 0, closing / 2] + rng.normal(0, jitter, m0.shape) * [1, 1, 0]
-    x0 = sc.slave
-    x1 = x0 - np.r_[0, 0, closing / 2] + rng.normal(0, jitter, x0.shape) * [1, 1, 0]
-    params = dict(sc.params, closing=closing, jitter=jitter)
-    return Step("closing_rough_surfaces", sc.master, m1, x0, x1, sc.slave_surface, params)
+    return closing_step(sc, closing=closing, jitter=jitter, seed=seed)
 
 
 def rolling_tyre(
