@@ -38,7 +38,11 @@ def assert_swept_matches(c, st, dtype=np.float64):
     assert np.isinf(c.toi[~h]).all() and (c.face[~h] == -1).all()
     for i in np.nonzero(h)[0]:
         f = int(c.face[i])
-        assert (i, f) in ref.pair_toi, f"slave {i}: face {f} is not hit at all"
+        if (i, f) not in ref.pair_toi:
+            # float32: a node through a shared edge may be put on the neighbour whose edge it
+            # passes within rounding of; the contact is then on that edge.
+            assert dtype == np.float32 and c.feature[i] != ac.Feature.FACE, f"slave {i}: {f}"
+            continue
         assert ref.pair_toi[(i, f)] <= ref.toi[i] + 2 * c.t_tol + SWEPT_TOL, f"slave {i}"
     # The point is the node at toi, and lies on the chosen face then.
     t = c.toi[h][:, None]

@@ -17,7 +17,19 @@ import numpy as np
 
 from arraycontact._elements import interpolate, shape_functions
 from arraycontact._surface import _dot, _unit
-from arraycontact._sweep import DEPTH, T_TOL, VISITS, control_points, examine, natural, pair_frame
+from arraycontact._sweep import (
+    CONTRACTIONS,
+    DEPTH,
+    T_TOL,
+    VISITS,
+    control_points,
+    examine,
+    krawczyk,
+    natural,
+    outside,
+    pair_frame,
+    straddles,
+)
 
 
 def roots(element, xe0, xe1, p0, p1, valid):
@@ -49,8 +61,22 @@ def roots(element, xe0, xe1, p0, p1, valid):
         live = active & (box[:, 4] < best)
         cp = control_points(element, xa, va, p, v, box, jnp)
         out, extent, spread = examine(cp, dirs, margin, jnp)
+        empty, inside, kbox = krawczyk(element, xa, va, p, v, box, cp, margin, jnp)
+        out = out | empty | outside(element, box)
+        proven = ~out & inside
+
+        def contract(_, kb):
+            more = (kb[:, 5] - kb[:, 4] > t_tol) | straddles(element, kb)
+            kc = control_points(element, xa, va, p, v, kb, jnp)
+            kb2 = krawczyk(element, xa, va, p, v, kb, kc, margin, jnp)[2]
+            return jnp.where((proven & more)[:, None], kb2, kb)
+
+        kbox = jax.lax.fori_loop(0, CONTRACTIONS, contract, kbox)
+        out = out | (proven & outside(element, kbox))
+        proven = proven & ~out
+        box = jnp.where(proven[:, None], kbox, box)
         small = extent <= delta
-        leaf = live & ~out & small & (box[:, 5] - box[:, 4] <= t_tol)
+        leaf = live & ~out & ((small & (box[:, 5] - box[:, 4] <= t_tol)) | proven)
         full = live & ~out & ~leaf & (top + 2 > DEPTH)
         hit = leaf | full
         conv = conv & ~full

@@ -13,7 +13,7 @@ from typing import Any
 
 import warp as wp
 
-from arraycontact._sweep import DEPTH, ROUND, VISITS
+from arraycontact._sweep import CONTRACTIONS, DEPTH, ROUND, VISITS
 
 from ._geometry import EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, shape
 from ._grid import Grid, Plain, W, box_gap_sq, children, descend, entry, enters, item_hi
@@ -30,18 +30,30 @@ BandF = wp.types.vector(length=BAND, dtype=int)
 BandT = wp.types.vector(length=BAND, dtype=real)
 BandX = wp.types.matrix(shape=(BAND, 2), dtype=real)
 Box6 = wp.types.vector(length=6, dtype=real)
+Mat3 = wp.types.matrix(shape=(3, 3), dtype=real)
 
 
 @wp.func
 def _natural(el: Triangles, s: real, w: real):
-    return vec2(s, (real(1.0) - s) * w)
+    return vec2(s, w)
 
 
 @wp.func
 def _natural(el: Element, s: real, w: real):  # noqa: F811 (a Warp overload)
     if el.n_corners == 3:
-        return vec2(s, (real(1.0) - s) * w)
+        return vec2(s, w)
     return vec2(real(2.0) * s - real(1.0), real(2.0) * w - real(1.0))
+
+
+@wp.func
+def _outside(el: Any, b: Box6):
+    """arraycontact._sweep.outside: wholly past a triangle's diagonal."""
+    return _is_tri(el) and b[0] + b[2] > real(1.0)
+
+
+@wp.func
+def _straddles(el: Any, b: Box6):
+    return _is_tri(el) and b[1] + b[3] > real(1.0) and b[0] + b[2] <= real(1.0)
 
 
 @wp.func
@@ -130,6 +142,10 @@ def _examine(
         for i in range(3):
             a = _bernstein(a, 3, 3 * i, 1)
             b = _bernstein(b, 3, 3 * i, 1)
+    # The Jacobian's bounds over the box (columns s, w, t): the hull of the derivatives'
+    # Bernstein coefficients, differences of the control points.
+    jlo = Mat3(real(3.0e38))
+    jhi = Mat3(real(-3.0e38))
     lo = vec3(real(3.0e38))
     hi = vec3(real(-3.0e38))
     lo0 = real(3.0e38)
@@ -155,11 +171,14 @@ def _examine(
                 if i + 1 < g:
                     d = _row(a, k + g) + box[4 + e] * _row(b, k + g) - f
                     ds = wp.max(ds, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+                    jlo, jhi = _bound(jlo, jhi, 0, real(g - 1) * d / (box[1] - box[0]))
                 if j + 1 < g:
                     d = _row(a, k + 1) + box[4 + e] * _row(b, k + 1) - f
                     dw = wp.max(dw, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+                    jlo, jhi = _bound(jlo, jhi, 1, real(g - 1) * d / (box[3] - box[2]))
             d = (box[5] - box[4]) * _row(b, k)
             dt = wp.max(dt, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+            jlo, jhi = _bound(jlo, jhi, 2, _row(b, k))
     out = lo0 > margin or hi0 < -margin or lo1 > margin or hi1 < -margin
     for c in range(3):
         if lo[c] > margin or hi[c] < -margin:
@@ -170,7 +189,85 @@ def _examine(
         axis = 1
     if dt > wp.max(ds, dw):
         axis = 2
-    return out, extent, axis
+    return out, extent, axis, jlo, jhi
+
+
+@wp.func
+def _bound(jlo: Mat3, jhi: Mat3, c: int, d: vec3):
+    for r in range(3):
+        jlo[r, c] = wp.min(jlo[r, c], d[r])
+        jhi[r, c] = wp.max(jhi[r, c], d[r])
+    return jlo, jhi
+
+
+@wp.func
+def _krawczyk(
+    el: Any,
+    xa: FaceNodes,
+    va: FaceNodes,
+    p: vec3,
+    v: vec3,
+    box: Box6,
+    jlo: Mat3,
+    jhi: Mat3,
+    margin: real,
+):
+    """arraycontact._sweep.krawczyk for one box: (empty, inside, the box X & K)."""
+    jc = real(0.5) * (jlo + jhi)
+    a = vec3(jc[0, 0], jc[1, 0], jc[2, 0])
+    b = vec3(jc[0, 1], jc[1, 1], jc[2, 1])
+    c = vec3(jc[0, 2], jc[1, 2], jc[2, 2])
+    r0 = wp.cross(b, c)
+    r1 = wp.cross(c, a)
+    r2 = wp.cross(a, b)
+    det = wp.dot(a, r0)
+    out = box
+    if not (wp.abs(det) > real(0.0)):
+        return False, False, out
+    y = Mat3(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2]) / det
+    mid = vec3(
+        real(0.5) * (box[0] + box[1]), real(0.5) * (box[2] + box[3]), real(0.5) * (box[4] + box[5])
+    )
+    rr = vec3(
+        real(0.5) * (box[1] - box[0]), real(0.5) * (box[3] - box[2]), real(0.5) * (box[5] - box[4])
+    )
+    am, bm = _ab(el, xa, va, p, v, _natural(el, mid[0], mid[1]))
+    f = am + mid[2] * bm
+    yf = y * f
+    empty = bool(False)
+    inside = bool(True)
+    finite = bool(True)
+    for i in range(3):
+        rad = real(0.0)
+        ay = real(0.0)
+        for j in range(3):
+            lo = real(0.0)
+            hi = real(0.0)
+            for k in range(3):
+                u = y[i, k] * jlo[k, j]
+                w = y[i, k] * jhi[k, j]
+                lo += wp.min(u, w)
+                hi += wp.max(u, w)
+            e = real(0.0)
+            if i == j:
+                e = real(1.0)
+            rad += wp.max(wp.abs(e - hi), wp.abs(e - lo)) * rr[j]
+            ay += wp.abs(y[i, j])
+        rad += real(4.0) * ay * margin + real(16.0) * EPS * (wp.abs(mid[i]) + wp.abs(yf[i]) + rad)
+        ci = mid[i] - yf[i]
+        klo = ci - rad
+        khi = ci + rad
+        if not (wp.isfinite(klo) and wp.isfinite(khi)):
+            finite = False
+        if khi < box[2 * i] or klo > box[2 * i + 1]:
+            empty = True
+        if not (klo > box[2 * i] and khi < box[2 * i + 1]):
+            inside = False
+        out[2 * i] = wp.max(box[2 * i], klo)
+        out[2 * i + 1] = wp.min(box[2 * i + 1], khi)
+    if not finite:
+        return False, False, box
+    return empty, inside, out
 
 
 @wp.func
@@ -274,10 +371,27 @@ def search(
         for c in range(6):
             box[c] = stack[sp, c]
         if box[4] < limit:
-            out, extent, axis = _examine(el, xa, va, p, v, n0, n1, margin, box)
+            out, extent, axis, jlo, jhi = _examine(el, xa, va, p, v, n0, n1, margin, box)
+            proven = bool(False)
+            if not out:
+                out = _outside(el, box)
+            if not out:
+                empty, inside, kb = _krawczyk(el, xa, va, p, v, box, jlo, jhi, margin)
+                out = empty
+                if inside and not empty:
+                    # One zero proven: contract to T_TOL in time and off the diagonal.
+                    for it in range(CONTRACTIONS):
+                        if kb[5] - kb[4] > t_tol or _straddles(el, kb):
+                            o2, e2, a2, jl2, jh2 = _examine(el, xa, va, p, v, n0, n1, margin, kb)
+                            em2, in2, kb2 = _krawczyk(el, xa, va, p, v, kb, jl2, jh2, margin)
+                            kb = kb2
+                    out = _outside(el, kb)
+                    if not out:
+                        proven = bool(True)
+                        box = kb
             if not out:
                 small = extent <= delta
-                leaf = small and box[5] - box[4] <= t_tol
+                leaf = proven or (small and box[5] - box[4] <= t_tol)
                 if not leaf and sp + 2 > DEPTH:
                     leaf = True  # no room: a contact, conservatively
                     converged = 0
