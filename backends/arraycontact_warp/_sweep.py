@@ -323,6 +323,51 @@ def _centre(el: Element):  # noqa: F811
 
 
 @wp.func
+def _visit(
+    el: Any,
+    xa: FaceNodes,
+    va: FaceNodes,
+    p: vec3,
+    v: vec3,
+    n0: vec3,
+    n1: vec3,
+    margin: real,
+    delta: real,
+    t_tol: real,
+    box: Box6,
+):
+    """One box of the search: (0 none in it, 1 a contact at the returned box's earliest time,
+    2 split it along the returned axis), the box (contracted when proven)."""
+    out, extent, axis, jlo, jhi = _examine(el, xa, va, p, v, n0, n1, margin, box)
+    if out or _outside(el, box):
+        return 0, box, axis
+    empty, inside, kb = _krawczyk(el, xa, va, p, v, box, jlo, jhi, margin)
+    if empty:
+        return 0, box, axis
+    if inside:
+        # One zero proven: contract it to T_TOL in time and off the diagonal.
+        for it in range(CONTRACTIONS):
+            if kb[5] - kb[4] > t_tol or _straddles(el, kb):
+                o2, e2, a2, jl2, jh2 = _examine(el, xa, va, p, v, n0, n1, margin, kb)
+                em2, in2, kb2 = _krawczyk(el, xa, va, p, v, kb, jl2, jh2, margin)
+                kb = kb2
+        if _outside(el, kb):
+            return 0, box, axis
+        return 1, kb, axis
+    small = extent <= delta
+    if small and box[5] - box[4] <= t_tol:
+        return 1, box, axis
+    if small:
+        axis = 2
+    return 2, box, axis
+
+
+@wp.func
+def _centre2(b: Box6):
+    return vec2(real(0.5) * (b[0] + b[1]), real(0.5) * (b[2] + b[3]))
+
+
+@wp.func
 def search(
     el: Any,
     xa: FaceNodes,
@@ -334,7 +379,9 @@ def search(
     space_rtol: real,
 ):
     """The pair's earliest contact (arraycontact._sweep.roots for one pair) before `bound`:
-    (toi or 3e38, the contact box's centre (s, w), converged, boxes visited)."""
+    (toi or 3e38, the contact box's centre (s, w), converged, boxes visited). The whole
+    domain is examined first: most pairs end there, before the stack of pending boxes (local
+    memory) is set up."""
     nn = _nodes(el)
     scale = real(0.0)
     for i in range(nn):
@@ -351,64 +398,40 @@ def search(
         xb = _set(xb, i, _row(xa, i) + _row(va, i))
     n0 = _normal(el, xa, _centre(el))
     n1 = _normal(el, xb, _centre(el))
+    root = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
+    state, box, axis = _visit(el, xa, va, p, v, n0, n1, margin, delta, t_tol, root)
+    if state == 0:
+        return real(3.0e38), vec2(real(0.5)), 1, 1
+    if state == 1:
+        if box[4] < bound:
+            return box[4], _centre2(box), 1, 1
+        return real(3.0e38), vec2(real(0.5)), 1, 1
     stack = Stack()
-    stack[0, 0] = real(0.0)
-    stack[0, 1] = real(1.0)
-    stack[0, 2] = real(0.0)
-    stack[0, 3] = real(1.0)
-    stack[0, 4] = real(0.0)
-    stack[0, 5] = real(1.0)
-    sp = int(1)
+    sp = int(0)
     best = real(3.0e38)
     limit = bound
     where = vec2(real(0.5))
     converged = int(1)
-    visits = int(0)
-    while sp > 0:
-        sp -= 1
-        visits += 1
-        box = Box6()
-        for c in range(6):
-            box[c] = stack[sp, c]
-        if box[4] < limit:
-            out, extent, axis, jlo, jhi = _examine(el, xa, va, p, v, n0, n1, margin, box)
-            proven = bool(False)
-            if not out:
-                out = _outside(el, box)
-            if not out:
-                empty, inside, kb = _krawczyk(el, xa, va, p, v, box, jlo, jhi, margin)
-                out = empty
-                if inside and not empty:
-                    # One zero proven: contract to T_TOL in time and off the diagonal.
-                    for it in range(CONTRACTIONS):
-                        if kb[5] - kb[4] > t_tol or _straddles(el, kb):
-                            o2, e2, a2, jl2, jh2 = _examine(el, xa, va, p, v, n0, n1, margin, kb)
-                            em2, in2, kb2 = _krawczyk(el, xa, va, p, v, kb, jl2, jh2, margin)
-                            kb = kb2
-                    out = _outside(el, kb)
-                    if not out:
-                        proven = bool(True)
-                        box = kb
-            if not out:
-                small = extent <= delta
-                leaf = proven or (small and box[5] - box[4] <= t_tol)
-                if not leaf and sp + 2 > DEPTH:
-                    leaf = True  # no room: a contact, conservatively
-                    converged = 0
-                if leaf:
-                    best = box[4]
-                    limit = wp.min(limit, best)
-                    where = vec2(real(0.5) * (box[0] + box[1]), real(0.5) * (box[2] + box[3]))
-                else:
-                    if small:
-                        axis = 2
-                    mid = real(0.5) * (box[2 * axis] + box[2 * axis + 1])
-                    for c in range(6):
-                        stack[sp, c] = box[c]
-                        stack[sp + 1, c] = box[c]
-                    stack[sp, 2 * axis] = mid  # the later half below
-                    stack[sp + 1, 2 * axis + 1] = mid  # the earlier half on top
-                    sp += 2
+    visits = int(1)
+    while state >= 0:
+        if state == 1:
+            best = box[4]
+            limit = wp.min(limit, best)
+            where = _centre2(box)
+        elif state == 2:
+            if sp + 2 > DEPTH:  # no room: a contact, conservatively
+                best = box[4]
+                limit = wp.min(limit, best)
+                where = _centre2(box)
+                converged = 0
+            else:
+                mid = real(0.5) * (box[2 * axis] + box[2 * axis + 1])
+                for c in range(6):
+                    stack[sp, c] = box[c]
+                    stack[sp + 1, c] = box[c]
+                stack[sp, 2 * axis] = mid  # the later half below
+                stack[sp + 1, 2 * axis + 1] = mid  # the earlier half on top
+                sp += 2
         if visits > VISITS and sp > 0:
             # Over budget: the earliest pending box, never late.
             converged = 0
@@ -421,6 +444,15 @@ def search(
                         real(0.5) * (stack[k, 2] + stack[k, 3]),
                     )
             sp = 0
+        # The next pending box that starts before the limit.
+        state = int(-1)
+        while sp > 0 and state < 0:
+            sp -= 1
+            for c in range(6):
+                box[c] = stack[sp, c]
+            if box[4] < limit:
+                visits += 1
+                state, box, axis = _visit(el, xa, va, p, v, n0, n1, margin, delta, t_tol, box)
     return best, where, converged, visits
 
 
