@@ -30,7 +30,6 @@ BandF = wp.types.vector(length=BAND, dtype=int)
 BandT = wp.types.vector(length=BAND, dtype=real)
 BandX = wp.types.matrix(shape=(BAND, 2), dtype=real)
 Box6 = wp.types.vector(length=6, dtype=real)
-Mat3 = wp.types.matrix(shape=(3, 3), dtype=real)
 
 
 @wp.func
@@ -111,9 +110,73 @@ def _bernstein(f: FaceNodes, g: int, i0: int, stride: int):
     return _set(f, i0 + stride, real(2.0) * fm - real(0.5) * (f0 + f1))
 
 
+@wp.struct
+class Jac:
+    """Bounds of F's Jacobian over a box, a column (derivative along s, w, t) at a time."""
+
+    s_lo: vec3
+    s_hi: vec3
+    w_lo: vec3
+    w_hi: vec3
+    t_lo: vec3
+    t_hi: vec3
+
+
+@wp.struct
+class Hull:
+    """A box's control points summed up: their box (lo, hi) and their range along the face
+    normals at both ends of the step (q0, q1: (lo, hi) pairs)."""
+
+    lo: vec3
+    hi: vec3
+    q0: vec2
+    q1: vec2
+
+
+@wp.func
+def _hull_start():
+    h = Hull()
+    h.lo = vec3(real(3.0e38))
+    h.hi = vec3(real(-3.0e38))
+    h.q0 = vec2(real(3.0e38), real(-3.0e38))
+    h.q1 = vec2(real(3.0e38), real(-3.0e38))
+    return h
+
+
+@wp.func
+def _take(h: Hull, f: vec3, n0: vec3, n1: vec3):
+    h.lo = wp.min(h.lo, f)
+    h.hi = wp.max(h.hi, f)
+    a = wp.dot(f, n0)
+    b = wp.dot(f, n1)
+    h.q0 = vec2(wp.min(h.q0[0], a), wp.max(h.q0[1], a))
+    h.q1 = vec2(wp.min(h.q1[0], b), wp.max(h.q1[1], b))
+    return h
+
+
+@wp.func
+def _inf(d: vec3):
+    return wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2])))
+
+
+@wp.func
+def _verdict(h: Hull, margin: real, ds: real, dw: real, dt: real):
+    """(excluded, hull extent, split axis) from the hull and the spreads."""
+    out = h.q0[0] > margin or h.q0[1] < -margin or h.q1[0] > margin or h.q1[1] < -margin
+    out = out or h.lo[0] > margin or h.lo[1] > margin or h.lo[2] > margin
+    out = out or h.hi[0] < -margin or h.hi[1] < -margin or h.hi[2] < -margin
+    extent = wp.max(h.hi[0] - h.lo[0], wp.max(h.hi[1] - h.lo[1], h.hi[2] - h.lo[2]))
+    axis = int(0)
+    if dw > ds:
+        axis = 1
+    if dt > wp.max(ds, dw):
+        axis = 2
+    return out, extent, axis
+
+
 @wp.func
 def _examine(
-    el: Any,
+    el: Triangles,
     xa: FaceNodes,
     va: FaceNodes,
     p: vec3,
@@ -123,81 +186,146 @@ def _examine(
     margin: real,
     box: Box6,
 ):
-    """arraycontact._sweep.examine for one box: (excluded, hull extent, split axis by spread)."""
+    """arraycontact._sweep.examine (and the Jacobian's bounds) for one box of a triangle,
+    written out: F = a + xi e1 + eta e2 + t (b + xi u1 + eta u2), whose control points are its
+    values at the box's 8 corners."""
+    x0 = _row(xa, 0)
+    e1 = _row(xa, 1) - x0
+    e2 = _row(xa, 2) - x0
+    a = x0 - p
+    v0 = _row(va, 0)
+    u1 = _row(va, 1) - v0
+    u2 = _row(va, 2) - v0
+    b = v0 - v
+    a00 = a + box[0] * e1 + box[2] * e2
+    a10 = a00 + (box[1] - box[0]) * e1
+    a01 = a00 + (box[3] - box[2]) * e2
+    a11 = a10 + (box[3] - box[2]) * e2
+    b00 = b + box[0] * u1 + box[2] * u2
+    b10 = b00 + (box[1] - box[0]) * u1
+    b01 = b00 + (box[3] - box[2]) * u2
+    b11 = b10 + (box[3] - box[2]) * u2
+    h = _hull_start()
+    for e in range(2):
+        t = box[4 + e]
+        h = _take(h, a00 + t * b00, n0, n1)
+        h = _take(h, a10 + t * b10, n0, n1)
+        h = _take(h, a01 + t * b01, n0, n1)
+        h = _take(h, a11 + t * b11, n0, n1)
+    ds0 = e1 + box[4] * u1
+    ds1 = e1 + box[5] * u1
+    dw0 = e2 + box[4] * u2
+    dw1 = e2 + box[5] * u2
+    j = Jac()
+    j.s_lo = wp.min(ds0, ds1)
+    j.s_hi = wp.max(ds0, ds1)
+    j.w_lo = wp.min(dw0, dw1)
+    j.w_hi = wp.max(dw0, dw1)
+    j.t_lo = wp.min(wp.min(b00, b10), wp.min(b01, b11))
+    j.t_hi = wp.max(wp.max(b00, b10), wp.max(b01, b11))
+    ds = (box[1] - box[0]) * wp.max(_inf(ds0), _inf(ds1))
+    dw = (box[3] - box[2]) * wp.max(_inf(dw0), _inf(dw1))
+    dt = (box[5] - box[4]) * wp.max(wp.max(_inf(b00), _inf(b10)), wp.max(_inf(b01), _inf(b11)))
+    out, extent, axis = _verdict(h, margin, ds, dw, dt)
+    return out, extent, axis, j
+
+
+@wp.func
+def _examine(  # noqa: F811 (a Warp overload)
+    el: Element,
+    xa: FaceNodes,
+    va: FaceNodes,
+    p: vec3,
+    v: vec3,
+    n0: vec3,
+    n1: vec3,
+    margin: real,
+    box: Box6,
+):
+    """arraycontact._sweep.examine for one box (and the Jacobian's bounds: the hull of the
+    derivatives' Bernstein coefficients, differences of the control points)."""
     g = _grade(el)
     a = FaceNodes()
     b = FaceNodes()
-    h = real(1.0) / real(g - 1)
+    h1 = real(1.0) / real(g - 1)
     for i in range(g):
-        for j in range(g):
-            s = box[0] + (box[1] - box[0]) * real(i) * h
-            w = box[2] + (box[3] - box[2]) * real(j) * h
+        for jj in range(g):
+            s = box[0] + (box[1] - box[0]) * real(i) * h1
+            w = box[2] + (box[3] - box[2]) * real(jj) * h1
             ai, bi = _ab(el, xa, va, p, v, _natural(el, s, w))
-            a = _set(a, i * g + j, ai)
-            b = _set(b, i * g + j, bi)
+            a = _set(a, i * g + jj, ai)
+            b = _set(b, i * g + jj, bi)
     if g == 3:
-        for j in range(3):
-            a = _bernstein(a, 3, j, 3)
-            b = _bernstein(b, 3, j, 3)
+        for jj in range(3):
+            a = _bernstein(a, 3, jj, 3)
+            b = _bernstein(b, 3, jj, 3)
         for i in range(3):
             a = _bernstein(a, 3, 3 * i, 1)
             b = _bernstein(b, 3, 3 * i, 1)
-    # The Jacobian's bounds over the box (columns s, w, t): the hull of the derivatives'
-    # Bernstein coefficients, differences of the control points.
-    jlo = Mat3(real(3.0e38))
-    jhi = Mat3(real(-3.0e38))
-    lo = vec3(real(3.0e38))
-    hi = vec3(real(-3.0e38))
-    lo0 = real(3.0e38)
-    hi0 = real(-3.0e38)
-    lo1 = real(3.0e38)
-    hi1 = real(-3.0e38)
+    j = Jac()
+    j.s_lo = vec3(real(3.0e38))
+    j.s_hi = vec3(real(-3.0e38))
+    j.w_lo = vec3(real(3.0e38))
+    j.w_hi = vec3(real(-3.0e38))
+    j.t_lo = vec3(real(3.0e38))
+    j.t_hi = vec3(real(-3.0e38))
+    h = _hull_start()
     ds = real(0.0)
     dw = real(0.0)
     dt = real(0.0)
     for i in range(g):
-        for j in range(g):
-            k = i * g + j
+        for jj in range(g):
+            k = i * g + jj
             for e in range(2):
                 f = _row(a, k) + box[4 + e] * _row(b, k)
-                lo = wp.min(lo, f)
-                hi = wp.max(hi, f)
-                q0 = wp.dot(f, n0)
-                q1 = wp.dot(f, n1)
-                lo0 = wp.min(lo0, q0)
-                hi0 = wp.max(hi0, q0)
-                lo1 = wp.min(lo1, q1)
-                hi1 = wp.max(hi1, q1)
+                h = _take(h, f, n0, n1)
                 if i + 1 < g:
                     d = _row(a, k + g) + box[4 + e] * _row(b, k + g) - f
-                    ds = wp.max(ds, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
-                    jlo, jhi = _bound(jlo, jhi, 0, real(g - 1) * d / (box[1] - box[0]))
-                if j + 1 < g:
+                    ds = wp.max(ds, _inf(d))
+                    d = real(g - 1) * d / (box[1] - box[0])
+                    j.s_lo = wp.min(j.s_lo, d)
+                    j.s_hi = wp.max(j.s_hi, d)
+                if jj + 1 < g:
                     d = _row(a, k + 1) + box[4 + e] * _row(b, k + 1) - f
-                    dw = wp.max(dw, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
-                    jlo, jhi = _bound(jlo, jhi, 1, real(g - 1) * d / (box[3] - box[2]))
-            d = (box[5] - box[4]) * _row(b, k)
-            dt = wp.max(dt, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
-            jlo, jhi = _bound(jlo, jhi, 2, _row(b, k))
-    out = lo0 > margin or hi0 < -margin or lo1 > margin or hi1 < -margin
-    for c in range(3):
-        if lo[c] > margin or hi[c] < -margin:
-            out = True
-    extent = wp.max(hi[0] - lo[0], wp.max(hi[1] - lo[1], hi[2] - lo[2]))
-    axis = int(0)
-    if dw > ds:
-        axis = 1
-    if dt > wp.max(ds, dw):
-        axis = 2
-    return out, extent, axis, jlo, jhi
+                    dw = wp.max(dw, _inf(d))
+                    d = real(g - 1) * d / (box[3] - box[2])
+                    j.w_lo = wp.min(j.w_lo, d)
+                    j.w_hi = wp.max(j.w_hi, d)
+            dt = wp.max(dt, (box[5] - box[4]) * _inf(_row(b, k)))
+            j.t_lo = wp.min(j.t_lo, _row(b, k))
+            j.t_hi = wp.max(j.t_hi, _row(b, k))
+    out, extent, axis = _verdict(h, margin, ds, dw, dt)
+    return out, extent, axis, j
 
 
 @wp.func
-def _bound(jlo: Mat3, jhi: Mat3, c: int, d: vec3):
-    for r in range(3):
-        jlo[r, c] = wp.min(jlo[r, c], d[r])
-        jhi[r, c] = wp.max(jhi[r, c], d[r])
-    return jlo, jhi
+def _mag(y: vec3, lo: vec3, hi: vec3, d: real):
+    """max |d - (Y J)_ij| over the interval column [lo, hi] of J, for row y of Y."""
+    yp = wp.max(y, vec3(real(0.0)))
+    yn = wp.min(y, vec3(real(0.0)))
+    a = wp.dot(yp, lo) + wp.dot(yn, hi)
+    b = wp.dot(yp, hi) + wp.dot(yn, lo)
+    return wp.max(wp.abs(d - a), wp.abs(d - b))
+
+
+@wp.func
+def _k_row(y: vec3, j: Jac, i: int, rr: vec3, mid: real, yf: real, margin: real):
+    """Row i of Krawczyk's K: (lo, hi)."""
+    d0 = real(0.0)
+    d1 = real(0.0)
+    d2 = real(0.0)
+    if i == 0:
+        d0 = real(1.0)
+    if i == 1:
+        d1 = real(1.0)
+    if i == 2:
+        d2 = real(1.0)
+    rad = _mag(y, j.s_lo, j.s_hi, d0) * rr[0]
+    rad += _mag(y, j.w_lo, j.w_hi, d1) * rr[1]
+    rad += _mag(y, j.t_lo, j.t_hi, d2) * rr[2]
+    ay = wp.abs(y[0]) + wp.abs(y[1]) + wp.abs(y[2])
+    rad += real(4.0) * ay * margin + real(16.0) * EPS * (wp.abs(mid) + wp.abs(yf) + rad)
+    return mid - yf - rad, mid - yf + rad
 
 
 @wp.func
@@ -208,23 +336,22 @@ def _krawczyk(
     p: vec3,
     v: vec3,
     box: Box6,
-    jlo: Mat3,
-    jhi: Mat3,
+    j: Jac,
     margin: real,
 ):
     """arraycontact._sweep.krawczyk for one box: (empty, inside, the box X & K)."""
-    jc = real(0.5) * (jlo + jhi)
-    a = vec3(jc[0, 0], jc[1, 0], jc[2, 0])
-    b = vec3(jc[0, 1], jc[1, 1], jc[2, 1])
-    c = vec3(jc[0, 2], jc[1, 2], jc[2, 2])
+    a = real(0.5) * (j.s_lo + j.s_hi)
+    b = real(0.5) * (j.w_lo + j.w_hi)
+    c = real(0.5) * (j.t_lo + j.t_hi)
     r0 = wp.cross(b, c)
     r1 = wp.cross(c, a)
     r2 = wp.cross(a, b)
     det = wp.dot(a, r0)
-    out = box
     if not (wp.abs(det) > real(0.0)):
-        return False, False, out
-    y = Mat3(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2]) / det
+        return False, False, box
+    r0 = r0 / det
+    r1 = r1 / det
+    r2 = r2 / det
     mid = vec3(
         real(0.5) * (box[0] + box[1]), real(0.5) * (box[2] + box[3]), real(0.5) * (box[4] + box[5])
     )
@@ -233,40 +360,23 @@ def _krawczyk(
     )
     am, bm = _ab(el, xa, va, p, v, _natural(el, mid[0], mid[1]))
     f = am + mid[2] * bm
-    yf = y * f
-    empty = bool(False)
-    inside = bool(True)
-    finite = bool(True)
-    for i in range(3):
-        rad = real(0.0)
-        ay = real(0.0)
-        for j in range(3):
-            lo = real(0.0)
-            hi = real(0.0)
-            for k in range(3):
-                u = y[i, k] * jlo[k, j]
-                w = y[i, k] * jhi[k, j]
-                lo += wp.min(u, w)
-                hi += wp.max(u, w)
-            e = real(0.0)
-            if i == j:
-                e = real(1.0)
-            rad += wp.max(wp.abs(e - hi), wp.abs(e - lo)) * rr[j]
-            ay += wp.abs(y[i, j])
-        rad += real(4.0) * ay * margin + real(16.0) * EPS * (wp.abs(mid[i]) + wp.abs(yf[i]) + rad)
-        ci = mid[i] - yf[i]
-        klo = ci - rad
-        khi = ci + rad
-        if not (wp.isfinite(klo) and wp.isfinite(khi)):
-            finite = False
-        if khi < box[2 * i] or klo > box[2 * i + 1]:
-            empty = True
-        if not (klo > box[2 * i] and khi < box[2 * i + 1]):
-            inside = False
-        out[2 * i] = wp.max(box[2 * i], klo)
-        out[2 * i + 1] = wp.min(box[2 * i + 1], khi)
-    if not finite:
+    lo0, hi0 = _k_row(r0, j, 0, rr, mid[0], wp.dot(r0, f), margin)
+    lo1, hi1 = _k_row(r1, j, 1, rr, mid[1], wp.dot(r1, f), margin)
+    lo2, hi2 = _k_row(r2, j, 2, rr, mid[2], wp.dot(r2, f), margin)
+    if not (wp.isfinite(lo0 + hi0) and wp.isfinite(lo1 + hi1) and wp.isfinite(lo2 + hi2)):
         return False, False, box
+    empty = hi0 < box[0] or lo0 > box[1] or hi1 < box[2] or lo1 > box[3]
+    empty = empty or hi2 < box[4] or lo2 > box[5]
+    inside = lo0 > box[0] and hi0 < box[1] and lo1 > box[2] and hi1 < box[3]
+    inside = inside and lo2 > box[4] and hi2 < box[5]
+    out = Box6(
+        wp.max(box[0], lo0),
+        wp.min(box[1], hi0),
+        wp.max(box[2], lo1),
+        wp.min(box[3], hi1),
+        wp.max(box[4], lo2),
+        wp.min(box[5], hi2),
+    )
     return empty, inside, out
 
 
@@ -338,18 +448,18 @@ def _visit(
 ):
     """One box of the search: (0 none in it, 1 a contact at the returned box's earliest time,
     2 split it along the returned axis), the box (contracted when proven)."""
-    out, extent, axis, jlo, jhi = _examine(el, xa, va, p, v, n0, n1, margin, box)
+    out, extent, axis, jac = _examine(el, xa, va, p, v, n0, n1, margin, box)
     if out or _outside(el, box):
         return 0, box, axis
-    empty, inside, kb = _krawczyk(el, xa, va, p, v, box, jlo, jhi, margin)
+    empty, inside, kb = _krawczyk(el, xa, va, p, v, box, jac, margin)
     if empty:
         return 0, box, axis
     if inside:
         # One zero proven: contract it to T_TOL in time and off the diagonal.
         for it in range(CONTRACTIONS):
             if kb[5] - kb[4] > t_tol or _straddles(el, kb):
-                o2, e2, a2, jl2, jh2 = _examine(el, xa, va, p, v, n0, n1, margin, kb)
-                em2, in2, kb2 = _krawczyk(el, xa, va, p, v, kb, jl2, jh2, margin)
+                o2, e2, a2, j2 = _examine(el, xa, va, p, v, n0, n1, margin, kb)
+                em2, in2, kb2 = _krawczyk(el, xa, va, p, v, kb, j2, margin)
                 kb = kb2
         if _outside(el, kb):
             return 0, box, axis
