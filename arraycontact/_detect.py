@@ -671,7 +671,9 @@ def _swept_numpy(x0, x1, master, m1, su: SweptSetup, dtype, chunk=1 << 13):
     p1 = (x1[su.slave_rows] - o).astype(dtype)
     faces = master.faces
     lap = _Laps()
-    tree = _grid.build(np, su.face_ids, su.lo.astype(dtype), su.hi.astype(dtype), su.lo.astype(dtype))
+    tree = _grid.build(
+        np, su.face_ids, su.lo.astype(dtype), su.hi.astype(dtype), su.lo.astype(dtype)
+    )
     lap("grid")
     mid, half = 0.5 * (p0 + p1), 0.5 * norm(np, p1 - p0)
     slaves, fids = [], []
@@ -694,11 +696,10 @@ def _swept_numpy(x0, x1, master, m1, su: SweptSetup, dtype, chunk=1 << 13):
         toi[k], where[k], conv[k], v = _sweep.roots(e, xe0[k], xe1[k], p0[slave[k]], p1[slave[k]])
         visits += int(v.sum())
     lap("search")
-    pick = _sweep.select(slave, face, toi, len(p0), _sweep.T_TOL[np.dtype(dtype)])
+    pick, first = _sweep.select(slave, face, toi, len(p0), _sweep.T_TOL[np.dtype(dtype)])
     k = pick[pick >= 0]
     rows = np.nonzero(pick >= 0)[0]
     xi = _sweep.natural(e, where[k, 0], where[k, 1])
-    first = segment_min_time(toi, slave, len(p0))
     point, normal, vn = _sweep.impact(e, xe0[k], xe1[k], p0[rows], p1[rows], first[rows], xi)
     out = dict(
         rows=rows,
@@ -713,12 +714,6 @@ def _swept_numpy(x0, x1, master, m1, su: SweptSetup, dtype, chunk=1 << 13):
     )
     lap("select")
     return out, {"pairs": len(slave), "visits": visits}, lap.times
-
-
-def segment_min_time(toi, slave, n):
-    out = np.full(n, np.inf, toi.dtype)
-    np.minimum.at(out, slave, toi)
-    return out
 
 
 def detect_swept(
@@ -803,7 +798,13 @@ def detect_swept(
             master_faces_in_box=0 if su is None else len(su.face_ids),
             count=count,
         ),
-        timings={"prepare": t1 - t0, **laps, "detect": t2 - t1, "static": t3 - t2, "total": t3 - t0},
+        timings={
+            "prepare": t1 - t0,
+            **laps,
+            "detect": t2 - t1,
+            "static": t3 - t2,
+            "total": t3 - t0,
+        },
         backend=backend,
         device=device,
         dtype=dtype.name,

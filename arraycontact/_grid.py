@@ -156,9 +156,7 @@ def facing(normal, nlo, nhi):
     return min_dot(normal, nlo, nhi) < FACING_MARGIN
 
 
-def query(
-    xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=None, shrink=True
-):
+def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=None, shrink=True):
     """The items whose box is within reach of each query point, reach shrunk on the way to the
     smallest representative distance + slack (items farther than some point of the surface
     cannot hold the closest point, nor be within the tie band of it).

@@ -295,7 +295,7 @@ def impact(element, xe0, xe1, p0, p1, toi, xi, xp=np):
 
 def select(slave, face, toi, n, t_tol):
     """Per slave, the chosen pair (index, -1 when none hits): the smallest face id among the
-    pairs whose toi is within t_tol of the slave's earliest (NumPy)."""
+    pairs whose toi is within t_tol of the slave's earliest (NumPy); and that earliest toi."""
     first = np.full(n, np.inf, toi.dtype)
     np.minimum.at(first, slave, toi)
     band = np.isfinite(toi) & (toi <= first[slave] + t_tol)
@@ -304,4 +304,4 @@ def select(slave, face, toi, n, t_tol):
     pick = np.full(n, -1, np.int64)
     k = np.nonzero(band & (face == low[slave]))[0]
     pick[slave[k]] = k
-    return pick
+    return pick, first

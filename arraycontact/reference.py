@@ -610,5 +610,7 @@ def swept(slave_x0, slave_x1, master: Surface, master_x1):
     first = order[np.r_[True, pi[order][1:] != pi[order][:-1]]] if len(order) else order
     first = first[hit_pairs[first]]
     face[pi[first]], out_xi[pi[first]] = fi[first], xi[first]
-    pair_toi = {(int(a), int(b)): float(t) for a, b, t in zip(pi[hit_pairs], fi[hit_pairs], toi[hit_pairs])}
+    pair_toi = {
+        (int(a), int(b)): float(t) for a, b, t in zip(pi[hit_pairs], fi[hit_pairs], toi[hit_pairs])
+    }
     return SweptReference(hit=np.isfinite(best), toi=best, face=face, xi=out_xi, pair_toi=pair_toi)

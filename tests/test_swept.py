@@ -46,8 +46,11 @@ def assert_swept_matches(c, st, dtype=np.float64):
         assert ref.pair_toi[(i, f)] <= ref.toi[i] + 2 * c.t_tol + SWEPT_TOL, f"slave {i}"
     # The point is the node at toi, and lies on the chosen face then.
     t = c.toi[h][:, None]
-    np.testing.assert_allclose(c.point[h], st.slave_x0[h] + t * (st.slave_x1[h] - st.slave_x0[h]),
-                               atol=1e-9 if dtype == np.float64 else 1e-4)
+    np.testing.assert_allclose(
+        c.point[h],
+        st.slave_x0[h] + t * (st.slave_x1[h] - st.slave_x0[h]),
+        atol=1e-9 if dtype == np.float64 else 1e-4,
+    )
     e = st.master.element
     xe = st.master.points[st.master.faces[c.face[h]]]
     xe1 = st.master_x1[st.master.faces[c.face[h]]]
@@ -260,10 +263,9 @@ def test_jax_gradients_and_overflow():
     """toi and the impact point differentiated with respect to all four coordinate arrays
     against central finite differences of the reference's toi (float64), and a plan sized for
     a slower step reports overflow, which update_swept_plan mends."""
+    import arraycontact_jax as acj
     import jax
     import jax.numpy as jnp
-
-    import arraycontact_jax as acj
 
     m = _plane(3, "quad4")
     rng = np.random.default_rng(3)

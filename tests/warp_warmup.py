@@ -26,3 +26,10 @@ for element in ("tri3", "quad4"):
     for dtype in ("float32", "float64"):
         for mode in ("exact", "node"):
             ac.detect_self(s.master, backend="warp", dtype=dtype, mode=mode, d_max=0.65)
+# Swept detection's kernels: the tri3 specialisation and the other elements.
+for element, n in (("tri3", 2**6), ("quad4", 2**6), ("tri6", 2**6)):
+    st = scenes.closing_rough_surfaces(n, element=element)
+    for dtype in ("float32", "float64"):
+        ac.detect_swept(
+            st.slave_x0, st.slave_x1, st.master, st.master_x1, backend="warp", dtype=dtype
+        )

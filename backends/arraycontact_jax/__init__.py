@@ -10,17 +10,17 @@ update_swept_plan(plan, result, slave_x0, slave_x1, master_x0, master_x1)   on o
 """
 
 from ._detect import Plan as Plan
+from ._detect import SweptPlan as SweptPlan
 from ._detect import detect as detect
 from ._detect import detect_self as detect_self
+from ._detect import detect_swept as detect_swept
 from ._detect import plan as plan
 from ._detect import plan_self as plan_self
-from ._detect import run_one_shot as run_one_shot
-from ._detect import update_plan as update_plan
-from ._detect import SweptPlan as SweptPlan
 from ._detect import plan_swept as plan_swept
-from ._detect import detect_swept as detect_swept
-from ._detect import update_swept_plan as update_swept_plan
+from ._detect import run_one_shot as run_one_shot
 from ._detect import run_swept as run_swept
+from ._detect import update_plan as update_plan
+from ._detect import update_swept_plan as update_swept_plan
 
 __all__ = [
     "Plan",

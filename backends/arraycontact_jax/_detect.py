@@ -665,8 +665,16 @@ def plan_swept(
     pad = 4 * (SPACE_RTOL[dtype] + 4 * ROUND * float(np.finfo(dtype).eps)) * scale
     order = morton_order(0.5 * (lo + hi), b_lo, extent).astype(np.int32)
     _, _, _, counts = _swept_pairs(
-        np, e, order, x0 - origin, x1 - origin, master.points - origin, m1 - origin,
-        master.faces, pad, None,
+        np,
+        e,
+        order,
+        x0 - origin,
+        x1 - origin,
+        master.points - origin,
+        m1 - origin,
+        master.faces,
+        pad,
+        None,
     )
     cap = {k: max(int(np.ceil(int(v) * growth)), len(x0)) for k, v in counts.items()}
     for k, v in (minimum or {}).items():
@@ -723,21 +731,23 @@ def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1) -> Swep
     big = jnp.iinfo(jnp.int32).max
     low = jax.ops.segment_min(jnp.where(band, face, big), slave, num_segments=n)
     k = jnp.arange(slave.shape[0], dtype=jnp.int32)
-    pick = jax.ops.segment_min(jnp.where(band & (face == low[slave]), k, big), slave, num_segments=n)
+    pick = jax.ops.segment_min(
+        jnp.where(band & (face == low[slave]), k, big), slave, num_segments=n
+    )
     hit = pick < big
     pk = jnp.where(hit, pick, 0)
     f = jnp.where(hit, face[pk], 0)
     t0 = jnp.where(hit, first, 0.5)
-    t, xi, point, normal, vn = _sweep.impact(
-        e, m0[faces[f]], m1[faces[f]], s0, s1, t0, where[pk]
-    )
+    t, xi, point, normal, vn = _sweep.impact(e, m0[faces[f]], m1[faces[f]], s0, s1, t0, where[pk])
     nan = jnp.asarray(jnp.nan, dtype)
 
     def masked(v):
         return jnp.where(hit.reshape(hit.shape + (1,) * (v.ndim - 1)), v, nan)
 
     status = jnp.where(
-        hit, jnp.where(conv[pk], int(Status.OK), int(Status.NOT_CONVERGED)), int(Status.OUT_OF_RANGE)
+        hit,
+        jnp.where(conv[pk], int(Status.OK), int(Status.NOT_CONVERGED)),
+        int(Status.OUT_OF_RANGE),
     )
     return SweptContacts(
         hit=hit,
@@ -753,8 +763,9 @@ def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1) -> Swep
         status=status.astype(jnp.int32),
         slave_ids=jnp.arange(n, dtype=jnp.int32),
         t_tol=T_TOL[np.dtype(dtype)],
-        counts=Counts(slaves_in_box=n, master_faces_in_box=p.master.n_faces, count=counts,
-                      capacity=cap),
+        counts=Counts(
+            slaves_in_box=n, master_faces_in_box=p.master.n_faces, count=counts, capacity=cap
+        ),
         backend="jax",
         dtype=np.dtype(dtype).name,
     )
@@ -789,8 +800,10 @@ def run_swept(x0, x1, master, m1, su, dtype):
             res = detect_swept(p, *args)
     hit = np.asarray(res.hit)
     k = np.nonzero(hit)[0]
-    out = {n: np.asarray(getattr(res, n))[k] for n in
-           ("face", "toi", "xi", "point", "normal", "feature", "normal_velocity")}
+    out = {
+        n: np.asarray(getattr(res, n))[k]
+        for n in ("face", "toi", "xi", "point", "normal", "feature", "normal_velocity")
+    }
     out["point"] = out["point"].astype(float) - su.origin  # detect_swept adds it back
     out["converged"] = np.asarray(res.status)[k] == int(Status.OK)
     out["rows"] = k

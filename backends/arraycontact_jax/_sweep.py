@@ -96,7 +96,9 @@ def roots(element, xe0, xe1, p0, p1, valid):
         sp = jnp.where(active, top + 2 * split.astype(jnp.int32), sp)
         # Over budget: the earliest pending box (never late), then stop.
         over = (visits > VISITS) & (sp > 0)
-        pend = jnp.where(jnp.arange(DEPTH, dtype=jnp.int32)[None, :] < sp[:, None], stack[:, :, 4], inf)
+        pend = jnp.where(
+            jnp.arange(DEPTH, dtype=jnp.int32)[None, :] < sp[:, None], stack[:, :, 4], inf
+        )
         j = jnp.argmin(pend, 1)
         b = stack[ar, j]
         earlier = over & (b[:, 4] < best)

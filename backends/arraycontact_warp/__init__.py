@@ -16,14 +16,14 @@
 AVAILABLE = True
 
 from ._detect import Plan as Plan  # noqa: E402
+from ._detect import SweptPlan as SweptPlan  # noqa: E402
 from ._detect import detect as detect  # noqa: E402
 from ._detect import detect_self as detect_self  # noqa: E402
+from ._detect import detect_swept as detect_swept  # noqa: E402
 from ._detect import plan as plan  # noqa: E402
 from ._detect import plan_self as plan_self  # noqa: E402
-from ._detect import run_one_shot as run_one_shot  # noqa: E402
-from ._detect import SweptPlan as SweptPlan  # noqa: E402
 from ._detect import plan_swept as plan_swept  # noqa: E402
-from ._detect import detect_swept as detect_swept  # noqa: E402
+from ._detect import run_one_shot as run_one_shot  # noqa: E402
 from ._detect import run_swept as run_swept  # noqa: E402
 from ._geometry import Element as Element  # noqa: E402
 from ._geometry import FaceNodes as FaceNodes  # noqa: E402

@@ -31,12 +31,12 @@ import numpy as np
 import warp as wp
 
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, SIZE_RTOL, TIE_RTOL
+from arraycontact._select import boundary_topology
+from arraycontact._surface import Surface, bounds, validate_points
 from arraycontact._sweep import FEATURE_TOL as SWEPT_FEATURE_TOL
 from arraycontact._sweep import ROUND as SWEPT_ROUND
 from arraycontact._sweep import SPACE_RTOL as SWEPT_SPACE_RTOL
 from arraycontact._sweep import T_TOL as SWEPT_T_TOL
-from arraycontact._select import boundary_topology
-from arraycontact._surface import Surface, bounds, validate_points
 
 from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
@@ -938,7 +938,6 @@ def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
         out["finer"] = out["finer"].astype(bool)
     out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back
     return out, {}, {}, str(p.device)
-
 
 
 # --- swept detection -----------------------------------------------------------------------

@@ -16,8 +16,22 @@ import warp as wp
 from arraycontact._sweep import CONTRACTIONS, DEPTH, ROUND, VISITS
 
 from ._geometry import EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, shape
-from ._grid import Grid, Plain, W, box_gap_sq, children, descend, entry, enters, item_hi
-from ._grid import item_lo, item_world, morton_key, next_pending, write_item
+from ._grid import (
+    Grid,
+    Plain,
+    W,
+    box_gap_sq,
+    children,
+    descend,
+    enters,
+    entry,
+    item_hi,
+    item_lo,
+    item_world,
+    morton_key,
+    next_pending,
+    write_item,
+)
 from ._prepare import face_bounds
 from ._real import EPS, real, vec2, vec3
 
@@ -45,14 +59,14 @@ def _natural(el: Element, s: real, w: real):  # noqa: F811 (a Warp overload)
 
 
 @wp.func
-def _outside(el: Any, b: Box6):
+def _outside(q: Any, b: Box6):
     """arraycontact._sweep.outside: wholly past a triangle's diagonal."""
-    return _is_tri(el) and b[0] + b[2] > real(1.0)
+    return _pair_tri(q) and b[0] + b[2] > real(1.0)
 
 
 @wp.func
-def _straddles(el: Any, b: Box6):
-    return _is_tri(el) and b[1] + b[3] > real(1.0) and b[0] + b[2] <= real(1.0)
+def _straddles(q: Any, b: Box6):
+    return _pair_tri(q) and b[1] + b[3] > real(1.0) and b[0] + b[2] <= real(1.0)
 
 
 @wp.func
@@ -108,6 +122,120 @@ def _bernstein(f: FaceNodes, g: int, i0: int, stride: int):
     fm = _row(f, i0 + stride)
     f1 = _row(f, i0 + 2 * stride)
     return _set(f, i0 + stride, real(2.0) * fm - real(0.5) * (f0 + f1))
+
+
+@wp.struct
+class TriPair:
+    """A (node, tri3 face) pair in its frame: F = a + xi e1 + eta e2 + t (b + xi u1 + eta u2);
+    the face normals at both ends of the step, the rounding margin and contact tolerance."""
+
+    a: vec3
+    e1: vec3
+    e2: vec3
+    b: vec3
+    u1: vec3
+    u2: vec3
+    n0: vec3
+    n1: vec3
+    margin: real
+    delta: real
+
+
+@wp.struct
+class CurvedPair:
+    """A (node, face) pair of any element in its frame: face nodes xa at t = 0 and their
+    motion va, the node's p and v; as TriPair's the rest."""
+
+    el: Element
+    xa: FaceNodes
+    va: FaceNodes
+    p: vec3
+    v: vec3
+    n0: vec3
+    n1: vec3
+    margin: real
+    delta: real
+
+
+@wp.func
+def _scale(x: vec3, s: real):
+    return wp.max(s, wp.max(wp.abs(x[0]), wp.max(wp.abs(x[1]), wp.abs(x[2]))))
+
+
+@wp.func
+def _pair(
+    el: Triangles,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    f: int,
+    s0: vec3,
+    s1: vec3,
+    space_rtol: real,
+):
+    """Face f and the node moving from s0 to s1 as a pair, face node 0 at t = 0 the origin."""
+    o = x0[faces[f, 0]]
+    q = TriPair()
+    q.a = o - s0
+    q.e1 = x0[faces[f, 1]] - o
+    q.e2 = x0[faces[f, 2]] - o
+    v0 = x1[faces[f, 0]] - o
+    q.b = v0 - (s1 - s0)
+    q.u1 = x1[faces[f, 1]] - o - q.e1 - v0
+    q.u2 = x1[faces[f, 2]] - o - q.e2 - v0
+    sc = _scale(q.e1, _scale(q.e2, _scale(v0, real(0.0))))
+    sc = _scale(q.e1 + q.u1 + v0, _scale(q.e2 + q.u2 + v0, sc))
+    sc = _scale(s0 - o, _scale(s1 - o, sc))
+    q.n0 = wp.normalize(wp.cross(q.e1, q.e2))
+    q.n1 = wp.normalize(wp.cross(q.e1 + q.u1, q.e2 + q.u2))
+    q.margin = real(ROUND) * EPS * sc
+    q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    return q
+
+
+@wp.func
+def _pair(  # noqa: F811 (a Warp overload)
+    el: Element,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    f: int,
+    s0: vec3,
+    s1: vec3,
+    space_rtol: real,
+):
+    o = x0[faces[f, 0]]
+    q = CurvedPair()
+    q.el = el
+    xb = FaceNodes()
+    sc = real(0.0)
+    for i in range(el.nn):
+        a = x0[faces[f, i]] - o
+        b = x1[faces[f, i]] - o
+        q.xa = _set(q.xa, i, a)
+        q.va = _set(q.va, i, b - a)
+        xb = _set(xb, i, b)
+        sc = _scale(a, _scale(b, sc))
+    q.p = s0 - o
+    q.v = s1 - s0
+    sc = _scale(q.p, _scale(q.p + q.v, sc))
+    q.n0 = _normal(el, q.xa, el.centre)
+    q.n1 = _normal(el, xb, el.centre)
+    q.margin = real(ROUND) * EPS * sc
+    q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    return q
+
+
+@wp.func
+def _f(q: TriPair, s: real, w: real, t: real):
+    """F at (s, w, t)."""
+    return q.a + s * q.e1 + w * q.e2 + t * (q.b + s * q.u1 + w * q.u2)
+
+
+@wp.func
+def _f(q: CurvedPair, s: real, w: real, t: real):  # noqa: F811
+    a, b = _ab(q.el, q.xa, q.va, q.p, q.v, _natural(q.el, s, w))
+    return a + t * b
 
 
 @wp.struct
@@ -175,47 +303,29 @@ def _verdict(h: Hull, margin: real, ds: real, dw: real, dt: real):
 
 
 @wp.func
-def _examine(
-    el: Triangles,
-    xa: FaceNodes,
-    va: FaceNodes,
-    p: vec3,
-    v: vec3,
-    n0: vec3,
-    n1: vec3,
-    margin: real,
-    box: Box6,
-):
+def _examine(q: TriPair, box: Box6):
     """arraycontact._sweep.examine (and the Jacobian's bounds) for one box of a triangle,
-    written out: F = a + xi e1 + eta e2 + t (b + xi u1 + eta u2), whose control points are its
-    values at the box's 8 corners."""
-    x0 = _row(xa, 0)
-    e1 = _row(xa, 1) - x0
-    e2 = _row(xa, 2) - x0
-    a = x0 - p
-    v0 = _row(va, 0)
-    u1 = _row(va, 1) - v0
-    u2 = _row(va, 2) - v0
-    b = v0 - v
-    a00 = a + box[0] * e1 + box[2] * e2
-    a10 = a00 + (box[1] - box[0]) * e1
-    a01 = a00 + (box[3] - box[2]) * e2
-    a11 = a10 + (box[3] - box[2]) * e2
-    b00 = b + box[0] * u1 + box[2] * u2
-    b10 = b00 + (box[1] - box[0]) * u1
-    b01 = b00 + (box[3] - box[2]) * u2
-    b11 = b10 + (box[3] - box[2]) * u2
+    written out: the control points are F's values at the box's 8 corners. Returns
+    (excluded, hull extent, split axis, Jac)."""
+    a00 = q.a + box[0] * q.e1 + box[2] * q.e2
+    a10 = a00 + (box[1] - box[0]) * q.e1
+    a01 = a00 + (box[3] - box[2]) * q.e2
+    a11 = a10 + (box[3] - box[2]) * q.e2
+    b00 = q.b + box[0] * q.u1 + box[2] * q.u2
+    b10 = b00 + (box[1] - box[0]) * q.u1
+    b01 = b00 + (box[3] - box[2]) * q.u2
+    b11 = b10 + (box[3] - box[2]) * q.u2
     h = _hull_start()
     for e in range(2):
         t = box[4 + e]
-        h = _take(h, a00 + t * b00, n0, n1)
-        h = _take(h, a10 + t * b10, n0, n1)
-        h = _take(h, a01 + t * b01, n0, n1)
-        h = _take(h, a11 + t * b11, n0, n1)
-    ds0 = e1 + box[4] * u1
-    ds1 = e1 + box[5] * u1
-    dw0 = e2 + box[4] * u2
-    dw1 = e2 + box[5] * u2
+        h = _take(h, a00 + t * b00, q.n0, q.n1)
+        h = _take(h, a10 + t * b10, q.n0, q.n1)
+        h = _take(h, a01 + t * b01, q.n0, q.n1)
+        h = _take(h, a11 + t * b11, q.n0, q.n1)
+    ds0 = q.e1 + box[4] * q.u1
+    ds1 = q.e1 + box[5] * q.u1
+    dw0 = q.e2 + box[4] * q.u2
+    dw1 = q.e2 + box[5] * q.u2
     j = Jac()
     j.s_lo = wp.min(ds0, ds1)
     j.s_hi = wp.max(ds0, ds1)
@@ -226,24 +336,15 @@ def _examine(
     ds = (box[1] - box[0]) * wp.max(_inf(ds0), _inf(ds1))
     dw = (box[3] - box[2]) * wp.max(_inf(dw0), _inf(dw1))
     dt = (box[5] - box[4]) * wp.max(wp.max(_inf(b00), _inf(b10)), wp.max(_inf(b01), _inf(b11)))
-    out, extent, axis = _verdict(h, margin, ds, dw, dt)
+    out, extent, axis = _verdict(h, q.margin, ds, dw, dt)
     return out, extent, axis, j
 
 
 @wp.func
-def _examine(  # noqa: F811 (a Warp overload)
-    el: Element,
-    xa: FaceNodes,
-    va: FaceNodes,
-    p: vec3,
-    v: vec3,
-    n0: vec3,
-    n1: vec3,
-    margin: real,
-    box: Box6,
-):
+def _examine(q: CurvedPair, box: Box6):  # noqa: F811 (a Warp overload)
     """arraycontact._sweep.examine for one box (and the Jacobian's bounds: the hull of the
     derivatives' Bernstein coefficients, differences of the control points)."""
+    el = q.el
     g = _grade(el)
     a = FaceNodes()
     b = FaceNodes()
@@ -252,7 +353,7 @@ def _examine(  # noqa: F811 (a Warp overload)
         for jj in range(g):
             s = box[0] + (box[1] - box[0]) * real(i) * h1
             w = box[2] + (box[3] - box[2]) * real(jj) * h1
-            ai, bi = _ab(el, xa, va, p, v, _natural(el, s, w))
+            ai, bi = _ab(el, q.xa, q.va, q.p, q.v, _natural(el, s, w))
             a = _set(a, i * g + jj, ai)
             b = _set(b, i * g + jj, bi)
     if g == 3:
@@ -278,7 +379,7 @@ def _examine(  # noqa: F811 (a Warp overload)
             k = i * g + jj
             for e in range(2):
                 f = _row(a, k) + box[4 + e] * _row(b, k)
-                h = _take(h, f, n0, n1)
+                h = _take(h, f, q.n0, q.n1)
                 if i + 1 < g:
                     d = _row(a, k + g) + box[4 + e] * _row(b, k + g) - f
                     ds = wp.max(ds, _inf(d))
@@ -294,7 +395,7 @@ def _examine(  # noqa: F811 (a Warp overload)
             dt = wp.max(dt, (box[5] - box[4]) * _inf(_row(b, k)))
             j.t_lo = wp.min(j.t_lo, _row(b, k))
             j.t_hi = wp.max(j.t_hi, _row(b, k))
-    out, extent, axis = _verdict(h, margin, ds, dw, dt)
+    out, extent, axis = _verdict(h, q.margin, ds, dw, dt)
     return out, extent, axis, j
 
 
@@ -329,16 +430,7 @@ def _k_row(y: vec3, j: Jac, i: int, rr: vec3, mid: real, yf: real, margin: real)
 
 
 @wp.func
-def _krawczyk(
-    el: Any,
-    xa: FaceNodes,
-    va: FaceNodes,
-    p: vec3,
-    v: vec3,
-    box: Box6,
-    j: Jac,
-    margin: real,
-):
+def _krawczyk(q: Any, box: Box6, j: Jac):
     """arraycontact._sweep.krawczyk for one box: (empty, inside, the box X & K)."""
     a = real(0.5) * (j.s_lo + j.s_hi)
     b = real(0.5) * (j.w_lo + j.w_hi)
@@ -358,11 +450,10 @@ def _krawczyk(
     rr = vec3(
         real(0.5) * (box[1] - box[0]), real(0.5) * (box[3] - box[2]), real(0.5) * (box[5] - box[4])
     )
-    am, bm = _ab(el, xa, va, p, v, _natural(el, mid[0], mid[1]))
-    f = am + mid[2] * bm
-    lo0, hi0 = _k_row(r0, j, 0, rr, mid[0], wp.dot(r0, f), margin)
-    lo1, hi1 = _k_row(r1, j, 1, rr, mid[1], wp.dot(r1, f), margin)
-    lo2, hi2 = _k_row(r2, j, 2, rr, mid[2], wp.dot(r2, f), margin)
+    f = _f(q, mid[0], mid[1], mid[2])
+    lo0, hi0 = _k_row(r0, j, 0, rr, mid[0], wp.dot(r0, f), q.margin)
+    lo1, hi1 = _k_row(r1, j, 1, rr, mid[1], wp.dot(r1, f), q.margin)
+    lo2, hi2 = _k_row(r2, j, 2, rr, mid[2], wp.dot(r2, f), q.margin)
     if not (wp.isfinite(lo0 + hi0) and wp.isfinite(lo1 + hi1) and wp.isfinite(lo2 + hi2)):
         return False, False, box
     empty = hi0 < box[0] or lo0 > box[1] or hi1 < box[2] or lo1 > box[3]
@@ -433,38 +524,26 @@ def _centre(el: Element):  # noqa: F811
 
 
 @wp.func
-def _visit(
-    el: Any,
-    xa: FaceNodes,
-    va: FaceNodes,
-    p: vec3,
-    v: vec3,
-    n0: vec3,
-    n1: vec3,
-    margin: real,
-    delta: real,
-    t_tol: real,
-    box: Box6,
-):
+def _visit(q: Any, t_tol: real, box: Box6):
     """One box of the search: (0 none in it, 1 a contact at the returned box's earliest time,
     2 split it along the returned axis), the box (contracted when proven)."""
-    out, extent, axis, jac = _examine(el, xa, va, p, v, n0, n1, margin, box)
-    if out or _outside(el, box):
+    out, extent, axis, jac = _examine(q, box)
+    if out or _outside(q, box):
         return 0, box, axis
-    empty, inside, kb = _krawczyk(el, xa, va, p, v, box, jac, margin)
+    empty, inside, kb = _krawczyk(q, box, jac)
     if empty:
         return 0, box, axis
     if inside:
         # One zero proven: contract it to T_TOL in time and off the diagonal.
-        for it in range(CONTRACTIONS):
-            if kb[5] - kb[4] > t_tol or _straddles(el, kb):
-                o2, e2, a2, j2 = _examine(el, xa, va, p, v, n0, n1, margin, kb)
-                em2, in2, kb2 = _krawczyk(el, xa, va, p, v, kb, j2, margin)
+        for _it in range(CONTRACTIONS):
+            if kb[5] - kb[4] > t_tol or _straddles(q, kb):
+                o2, e2, a2, j2 = _examine(q, kb)
+                em2, in2, kb2 = _krawczyk(q, kb, j2)
                 kb = kb2
-        if _outside(el, kb):
+        if _outside(q, kb):
             return 0, box, axis
         return 1, kb, axis
-    small = extent <= delta
+    small = extent <= q.delta
     if small and box[5] - box[4] <= t_tol:
         return 1, box, axis
     if small:
@@ -478,38 +557,13 @@ def _centre2(b: Box6):
 
 
 @wp.func
-def search(
-    el: Any,
-    xa: FaceNodes,
-    va: FaceNodes,
-    p: vec3,
-    v: vec3,
-    bound: real,
-    t_tol: real,
-    space_rtol: real,
-):
+def search(q: Any, bound: real, t_tol: real):
     """The pair's earliest contact (arraycontact._sweep.roots for one pair) before `bound`:
-    (toi or 3e38, the contact box's centre (s, w), converged, boxes visited). The whole
-    domain is examined first: most pairs end there, before the stack of pending boxes (local
-    memory) is set up."""
-    nn = _nodes(el)
-    scale = real(0.0)
-    for i in range(nn):
-        x0 = _row(xa, i)
-        x1 = x0 + _row(va, i)
-        for c in range(3):
-            scale = wp.max(scale, wp.max(wp.abs(x0[c]), wp.abs(x1[c])))
-    for c in range(3):
-        scale = wp.max(scale, wp.max(wp.abs(p[c]), wp.abs(p[c] + v[c])))
-    margin = real(ROUND) * EPS * scale
-    delta = wp.max(space_rtol * scale, real(4.0) * margin)
-    xb = FaceNodes()
-    for i in range(nn):
-        xb = _set(xb, i, _row(xa, i) + _row(va, i))
-    n0 = _normal(el, xa, _centre(el))
-    n1 = _normal(el, xb, _centre(el))
+    (toi or 3e38, the contact box's centre (s, w), converged, boxes visited). q: TriPair or
+    CurvedPair (_pair). The whole domain is examined first: most pairs end there, before the
+    stack of pending boxes (local memory) is set up."""
     root = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
-    state, box, axis = _visit(el, xa, va, p, v, n0, n1, margin, delta, t_tol, root)
+    state, box, axis = _visit(q, t_tol, root)
     if state == 0:
         return real(3.0e38), vec2(real(0.5)), 1, 1
     if state == 1:
@@ -562,7 +616,7 @@ def search(
                 box[c] = stack[sp, c]
             if box[4] < limit:
                 visits += 1
-                state, box, axis = _visit(el, xa, va, p, v, n0, n1, margin, delta, t_tol, box)
+                state, box, axis = _visit(q, t_tol, box)
     return best, where, converged, visits
 
 
@@ -635,6 +689,16 @@ def _feature(el: Any, xi: vec2, tol: real):
 
 
 @wp.func
+def _pair_tri(q: TriPair):
+    return True
+
+
+@wp.func
+def _pair_tri(q: CurvedPair):  # noqa: F811
+    return q.el.n_corners == 3
+
+
+@wp.func
 def _is_tri(el: Triangles):
     return True
 
@@ -703,18 +767,11 @@ def swept_scan(
                             near = item_world(grid, kk) == world
                         if near:
                             f = grid.sorted_ids[kk]
-                            o = x0[faces[f, 0]]
-                            xa = _face(x0, faces, f, nn, o)
-                            xb = _face(x1, faces, f, nn, o)
-                            va = FaceNodes()
-                            for q in range(nn):
-                                va = _set(va, q, _row(xb, q) - _row(xa, q))
+                            pr = _pair(el, x0, x1, faces, f, a, b, space_rtol)
                             bound = real(3.0e38)
                             if first < real(2.0):
                                 bound = first + t_tol
-                            t, where, cv, n_vis = search(
-                                el, xa, va, a - o, b - a, bound, t_tol, space_rtol
-                            )
+                            t, where, cv, n_vis = search(pr, bound, t_tol)
                             total += n_vis
                             if t < bound:
                                 if cv == 0:
