@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from arraycontact._elements import interpolate, shape_functions
-from arraycontact._surface import _dot, _unit
 from arraycontact._sweep import (
     CONTRACTIONS,
     DEPTH,
@@ -30,6 +29,7 @@ from arraycontact._sweep import (
     pair_frame,
     straddles,
 )
+from arraycontact._sweep import impact as swept_impact
 
 
 def roots(element, xe0, xe1, p0, p1, valid):
@@ -148,10 +148,5 @@ def impact(element, xe0, xe1, p0, p1, toi, s_w, iterations=12):
     z = zs - dz
     t = sg(toi) + (z[:, 2] - sg(z[:, 2]))
     xi = sg(xi0) + (z[:, :2] - sg(z[:, :2]))
-    point = p0 + t[:, None] * (p1 - p0)
-    xe = xe0 + t[:, None, None] * (xe1 - xe0)
-    _, dx = interpolate(element, xe, xi, jnp)
-    normal = _unit(jnp.cross(dx[..., 0], dx[..., 1]), jnp)
-    n = shape_functions(element, xi, jnp)
-    vface = jnp.sum(n[..., :, None] * (xe1 - xe0), -2)
-    return t, xi, point, normal, _dot(normal, (p1 - p0) - vface)
+    point, normal, vn = swept_impact(element, xe0, xe1, p0, p1, t, xi, jnp)
+    return t, xi, point, normal, vn

@@ -862,8 +862,13 @@ def detect(p: Plan, slave_points, master_points=None):
         p.last_key = key
     else:
         _launch(p, xs, s_origin, master)
-    o = p.out
-    kind = _kind(slave_points)
+    return _outputs(p.out, slave_points, p.origin)
+
+
+def _outputs(o: dict, like, origin):
+    """The plan's output buffers as the kind of the caller's slaves (`like`): themselves
+    (wp.array), JAX arrays, or NumPy copies with `point` in the global frame."""
+    kind = _kind(like)
     if kind == "warp":
         return o
     if kind == "jax":
@@ -872,7 +877,7 @@ def detect(p: Plan, slave_points, master_points=None):
     # overwrites.
     res = {k: v.numpy().copy() for k, v in o.items()}
     # NumPy slaves were staged in the plan's frame: back to the global frame in float64.
-    res["point"] = res["point"].astype(np.float64) + p.origin
+    res["point"] = res["point"].astype(np.float64) + origin
     return res
 
 
@@ -1121,15 +1126,7 @@ def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1):
             wp.launch(_prepare.localise, n, inputs=[x, org], outputs=[st], device=p.device)
         xs.append(st)
     _swept_launch(p, xs)
-    o = p.out
-    kind = _kind(slave_x0)
-    if kind == "warp":
-        return o
-    if kind == "jax":
-        return {k: wp.to_jax(v) for k, v in o.items()}
-    res = {k: v.numpy().copy() for k, v in o.items()}
-    res["point"] = res["point"].astype(np.float64) + p.origin
-    return res
+    return _outputs(p.out, slave_x0, p.origin)
 
 
 def run_swept(x0, x1, master, m1, su, dtype):

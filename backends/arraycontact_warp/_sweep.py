@@ -15,7 +15,7 @@ import warp as wp
 
 from arraycontact._sweep import CONTRACTIONS, DEPTH, ROUND, VISITS
 
-from ._geometry import EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, shape
+from ._geometry import EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, _row, face_nodes, shape
 from ._grid import (
     Grid,
     Plain,
@@ -67,11 +67,6 @@ def _outside(q: Any, b: Box6):
 @wp.func
 def _straddles(q: Any, b: Box6):
     return _pair_tri(q) and b[1] + b[3] > real(1.0) and b[0] + b[2] <= real(1.0)
-
-
-@wp.func
-def _row(x: FaceNodes, i: int):
-    return vec3(x.x[i, 0], x.x[i, 1], x.x[i, 2])
 
 
 @wp.func
@@ -657,14 +652,6 @@ def capture_gather(
 
 
 @wp.func
-def _face(x: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, nn: int, o: vec3):
-    xe = FaceNodes()
-    for i in range(nn):
-        xe = _set(xe, i, x[faces[f, i]] - o)
-    return xe
-
-
-@wp.func
 def _feature(el: Any, xi: vec2, tol: real):
     """FACE, EDGE or VERTEX from the domain's constraints active at xi (within tol)."""
     k = int(0)
@@ -695,7 +682,7 @@ def _pair_tri(q: TriPair):
 
 @wp.func
 def _pair_tri(q: CurvedPair):  # noqa: F811
-    return q.el.n_corners == 3
+    return _is_tri(q.el)
 
 
 @wp.func
@@ -815,8 +802,8 @@ def swept_scan(
     f = band_f[pick]
     z = _natural(el, band_x[pick, 0], band_x[pick, 1])
     o = x0[faces[f, 0]]
-    xa = _face(x0, faces, f, nn, o)
-    xb = _face(x1, faces, f, nn, o)
+    xa = face_nodes(x0, faces, f, o)
+    xb = face_nodes(x1, faces, f, o)
     xt = FaceNodes()
     vf = vec3(0.0)
     for q in range(nn):
