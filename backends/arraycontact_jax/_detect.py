@@ -74,9 +74,18 @@ def _kernel(sc, m, slave_x, ids=None, *, st, capacity):
 
 @partial(jax.jit, static_argnames=("st",))
 def _count(sc, m, slave_x, ids=None, *, st):
-    """The counts that size the capacities, on the device (the scans of stages 3-4 with no
-    candidate slots): the most candidate faces of one slave (exact mode), or the faces
-    attached to the closest nodes (node mode)."""
+    """The counts that size the capacities, on the device: the most candidate faces of one
+    slave (exact mode), or the faces attached to the closest nodes (node mode)."""
+    per = _per_slave(sc, m, slave_x, ids, st=st)
+    if st.mode == "exact":
+        return {"face_candidates": jnp.max(per, initial=0)}
+    return {"attached": jnp.sum(per)}
+
+
+@partial(jax.jit, static_argnames=("st",))
+def _per_slave(sc, m, slave_x, ids=None, *, st):
+    """Each slave's work (the scans of stages 3-4 with no candidate slots): its candidate
+    faces (exact mode), or the faces attached to its closest node (node mode)."""
     grids = build_grids(jnp, st, sc, m)
     own = None if ids is None else (ids, m["node_normals"][ids], m["node_normals"])
     node, dn, _ = _grid.closest_node(
@@ -93,19 +102,16 @@ def _count(sc, m, slave_x, ids=None, *, st):
         rho = jnp.minimum(dn, sc["d_max"]) + sc["slack"]
         if own is not None:  # as run_stages
             rho = self_reach(jnp, st, sc, m, own, slave_x, node)
-        counts = _grid.candidate_faces(
-            jnp,
+        return _grid.candidate_counts(
             grids["face"],
             slave_x,
             rho,
             slack=sc["slack"],
-            capacity={"face_candidates": 0},
             normal=None if own is None else own[1],
-        )[3]
-        return {"face_candidates": counts["face_candidates"]}
+        )
     nd = jnp.maximum(node, 0)
     deg = m["nf_offsets"][nd + 1] - m["nf_offsets"][nd]
-    return {"attached": jnp.sum(jnp.where(node >= 0, deg, 0))}
+    return jnp.where(node >= 0, deg, 0)
 
 
 def _grown(counts, growth, n_slaves):
@@ -207,6 +213,9 @@ def plan(
     minimum=None,
     search="jax",
     self_contact=False,
+    mesh=None,
+    axis="space",
+    margin=None,
 ) -> Plan:
     """Size every buffer of `detect` from the current coordinates (eager, on the host).
 
@@ -217,7 +226,15 @@ def plan(
     `growth` (and at least `minimum`, a dict of counts, used when re-planning).
     search: "jax" (the stages in jax.numpy) or "warp" (exact mode: the Warp kernels through
     Warp's JAX FFI on the JAX device, for speed; the same contacts and gradients).
-    self_contact: the slaves are the master's own nodes (use `plan_self`)."""
+    self_contact: the slaves are the master's own nodes (use `plan_self`).
+
+    mesh: a `jax.sharding.Mesh` with the one axis `axis`: the detection runs over its devices
+    (a ShardedPlan, see _shard): the slaves and faces split by recursive coordinate bisection
+    weighted by each slave's candidate faces, each device detecting its part's slaves against
+    its halo faces; `detect` takes and returns arrays sharded over the axis (or replicated) and
+    gives one device's answer row for row. margin: how far slaves and master nodes may move
+    from the plan's configuration, together, before `detect` reports the halos' overflow
+    (count `halo_motion`; default (growth - 1)(d_max + largest face radius))."""
     if dtype is None:
         dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
@@ -236,6 +253,23 @@ def plan(
         raise ValueError("master has no faces")
     if len(slave_x) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
+    if mesh is not None:
+        from . import _shard
+
+        return _shard.plan(
+            master,
+            slave_x,
+            mesh=mesh,
+            axis=axis,
+            mode=mode,
+            d_max=d_max,
+            dtype=dtype,
+            growth=growth,
+            minimum=minimum,
+            search=search,
+            self_contact=self_contact,
+            margin=margin,
+        )
     x_lo, x_hi = bounds(slave_x)
     lo = np.minimum(x_lo, master.node_box[0]) - d_max
     hi = np.maximum(x_hi, master.node_box[1]) + d_max
@@ -305,9 +339,13 @@ def plan_self(
     growth=GROWTH,
     minimum=None,
     search="jax",
+    mesh=None,
+    axis="space",
+    margin=None,
 ) -> Plan:
     """`plan` for self-contact (arraycontact.detect_self's rule): the surface is master and
-    slave, every node its faces use a slave. Detect with `detect_self(plan, points)`."""
+    slave, every node its faces use a slave. Detect with `detect_self(plan, points)`.
+    mesh, axis, margin: over several devices, as `plan`."""
     if not isinstance(surface, Surface):
         raise ValueError("surface must be an arraycontact.Surface")
     return plan(
@@ -320,25 +358,53 @@ def plan_self(
         minimum=minimum,
         search=search,
         self_contact=True,
+        mesh=mesh,
+        axis=axis,
+        margin=margin,
     )
 
 
 def detect_self(p: Plan, points) -> Contacts:
     """Self-contact of the plan's surface at node coordinates `points` [n_points, 3] (jitted
     as `detect`, differentiable with respect to `points`); rows: the surface's nodes."""
+    from ._shard import ShardedPlan
+
+    if isinstance(p, ShardedPlan) and p.local.static.self_contact:
+        return _detect_sharded(p, None, points)
     if not (isinstance(p, Plan) and p.static.self_contact):
         raise ValueError("detect_self needs a plan from plan_self")
     return detect(p, points[p.topology["slave_nodes"]], points)
 
 
+@jax.jit
+def _detect_sharded(p, slave_points, master_points):
+    from . import _shard
+
+    return _shard.detect(p, slave_points, master_points, self_points=slave_points is None)
+
+
+def _shard_detect(p, slave_points, master_points):
+    from . import _shard
+
+    return _shard.detect(p, slave_points, master_points)
+
+
 def _topology(master, prep, self_contact=False):
+    return {k: jnp.asarray(v) for k, v in _topology_arrays(master, prep, self_contact).items()}
+
+
+def _topology_arrays(master, prep, self_contact=False, whole=None):
+    """The plan's topology on the host. whole: the master `master` is a part of (a sharded
+    plan): the node-face table is kept when the whole master's is."""
     topo = master_topology(master, prep)
-    if self_contact:
+    if self_contact and whole is None:
         topo["slave_nodes"] = master.nodes.astype(np.int32)
     table = padded_node_faces(master)  # the smooth outputs' vertex normals
+    if whole is not None and padded_node_faces(whole) is None:
+        table = None
     if table is not None:
         topo["node_faces"] = table
-    return {k: jnp.asarray(v) for k, v in topo.items()}
+    return topo
 
 
 def _check(p: Plan, slave_points, master_points):
@@ -359,8 +425,37 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
 
     Jitted, static shapes, no host synchronisation; differentiable with respect to both
     coordinate arrays. Check `contacts.overflow` (or call `update_plan`): where a count exceeds
-    its capacity the result may be incomplete."""
+    its capacity the result may be incomplete. With a sharded plan (`plan(..., mesh=)`), the
+    arrays may be sharded over its mesh axis by rows, or replicated; the result is sharded."""
+    from ._shard import ShardedPlan
+
+    if isinstance(p, ShardedPlan):
+        if p.local.static.self_contact:
+            raise ValueError("a self-contact plan detects with detect_self(plan, points)")
+        return _shard_detect(p, slave_points, master_points)
     _check(p, slave_points, master_points)
+    fields, counts = local_detect(p, p.topology, slave_points, master_points)
+    ids = p.topology.get("slave_nodes")
+    n = slave_points.shape[0]
+    return Contacts(
+        **fields,
+        slave_ids=jnp.arange(n, dtype=jnp.int32) if ids is None else ids,
+        d_max=p.d_max,
+        counts=Counts(
+            slaves_in_box=n,
+            master_nodes_in_box=len(p.master.nodes),
+            master_faces_in_box=p.master.n_faces,
+            count=counts,
+            capacity=dict(p.capacity),
+        ),
+        backend="jax",
+        dtype=p.dtype,
+    )
+
+
+def local_detect(p: Plan, topo, slave_points, master_points):
+    """The detection of `detect` on topology `topo` (the plan's, or one part's under
+    shard_map): (Contacts' per-slave fields, counts)."""
     dtype = jnp.dtype(p.dtype)
     origin = jnp.asarray(p.origin, dtype)
 
@@ -368,8 +463,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         return (x - jnp.asarray(p.origin, x.dtype)[None, :]).astype(dtype)
 
     s, xm = local(slave_points), local(master_points)
-    st, topo, sc = p.static, p.topology, dict(p.constants)
-    cap = dict(p.capacity)
+    st, sc = p.static, dict(p.constants)
     ids = topo.get("slave_nodes")
     if p.search is not None:
         out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
@@ -378,7 +472,15 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
         grids = build_grids(jnp, st, sc, m)
         out, counts = run_stages(
-            jnp, st, sc, m, grids, jax.lax.stop_gradient(s), cap, search=_grid, slave_ids=ids
+            jnp,
+            st,
+            sc,
+            m,
+            grids,
+            jax.lax.stop_gradient(s),
+            dict(p.capacity),
+            search=_grid,
+            slave_ids=ids,
         )
     keep = out["active"] | (out["status"] == int(Status.PASSING_BY))
     face = jnp.where(keep, out["face"], -1)
@@ -400,8 +502,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     def masked(v):
         return jnp.where(keep.reshape(keep.shape + (1,) * (v.ndim - 1)), v, nan)
 
-    n = s.shape[0]
-    return Contacts(
+    fields = dict(
         active=out["active"],
         face=face,
         xi=masked(xi),
@@ -412,19 +513,9 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         feature=feature,
         master_node=out["master_node"],
         status=out["status"],
-        slave_ids=jnp.arange(n, dtype=jnp.int32) if ids is None else ids,
-        d_max=p.d_max,
-        counts=Counts(
-            slaves_in_box=n,
-            master_nodes_in_box=len(p.master.nodes),
-            master_faces_in_box=p.master.n_faces,
-            count=counts,
-            capacity=cap,
-        ),
-        backend="jax",
-        dtype=np.dtype(dtype).name,
         finer=out.get("finer"),
     )
+    return fields, counts
 
 
 class _WarpSearch:
@@ -524,8 +615,27 @@ def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Pla
     coordinates and at least the counts `contacts` reports (outside `jit`)."""
     if not bool(contacts.overflow):
         return p
+    from ._shard import ShardedPlan
+
     count = {k: float(np.max(np.asarray(v))) for k, v in contacts.counts.count.items()}
     master = p.master.with_points(np.asarray(master_points, np.float64))
+    if isinstance(p, ShardedPlan):  # partitioned again from the current configuration
+        lp = p.local
+        return plan(
+            master,
+            master.points[master.nodes]
+            if lp.static.self_contact
+            else np.asarray(slave_points, np.float64),
+            mode=lp.static.mode,
+            d_max=p.d_max,
+            dtype=lp.dtype,
+            growth=lp.growth,
+            minimum=count,
+            self_contact=lp.static.self_contact,
+            mesh=p.mesh,
+            axis=p.axis,
+            margin=p.partition.margin,
+        )
     return plan(
         master,
         np.asarray(slave_points, np.float64),

@@ -208,6 +208,28 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=Non
     largest number of candidates of one slave (above K: overflow, the extra ones dropped)."""
     n = slave_x.shape[0]
     K = capacity["face_candidates"]
+    found, count, steps = _collect(tree, slave_x, rho, slack, K, normal)
+    valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
+    face = tree.ids[found.reshape(-1)]
+    slave = jnp.repeat(jnp.arange(n), K)
+    return (
+        slave,
+        face,
+        valid,
+        {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps},
+    )
+
+
+def candidate_counts(tree: Tree, slave_x, rho, *, slack, normal=None):
+    """The number of candidate faces of each slave [n] (`candidate_faces` without slots): the
+    work per slave that the sharded plan balances."""
+    return _collect(tree, slave_x, rho, slack, 0, normal)[1]
+
+
+def _collect(tree, slave_x, rho, slack, K, normal):
+    """The scan of candidate_faces: the first K candidates of each slave [n, K] (tree
+    positions), their count [n] and the scan's steps."""
+    n = slave_x.shape[0]
     flat = flatten(tree)
     rows = jnp.arange(n)[:, None]
 
@@ -219,12 +241,4 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=Non
 
     carry = (jnp.zeros((n, K), jnp.int32), jnp.zeros(n, jnp.int32))
     (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry, None, normal)
-    valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
-    face = tree.ids[found.reshape(-1)]
-    slave = jnp.repeat(jnp.arange(n), K)
-    return (
-        slave,
-        face,
-        valid,
-        {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps},
-    )
+    return found, count, steps

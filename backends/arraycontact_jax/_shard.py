@@ -1,0 +1,474 @@
+"""Detection over the devices of a `jax.sharding.Mesh` (seed 004's RCB, seed 000's MDMR).
+
+`plan(..., mesh=mesh)` splits the slaves and the master's faces by recursive coordinate
+bisection (arraycontact._partition), weighted by each slave's candidate faces, one part per
+device along the mesh axis. Each part gets a master of its own: its halo faces, the ring
+around them (so node normals, edges and boundary are the whole master's) and inert padding
+(small faces far from everything) to the shapes every part shares, which shard_map needs.
+
+`detect` takes the coordinates as arrays sharded by rows over the axis (or replicated):
+device d holds rows [d B, (d + 1) B). Inside shard_map each device
+
+1. sends the rows of its block that other parts need and receives its own part's (one
+   all_to_all for the master's nodes, one for the slaves): only halo data moves;
+2. runs the one-device detection (arraycontact_jax._detect.local_detect) on its part, with the
+   scene's constants (d_max, tolerances, frame), so every row is the one-device answer;
+3. sends each answer back to the device holding the slave's row (one all_to_all for the float
+   fields, one for the integer ones) and reduces the counts (pmax).
+
+Gradients flow through the gathers and all_to_alls as through the one-device detection. The
+halos hold as long as slaves and master nodes move less than the partition's margin from the
+plan-time configuration, together; the motion is reported as the count `halo_motion` against
+the capacity `margin` (overflow), and `update_plan` partitions again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from arraycontact._contacts import Contacts, Counts
+from arraycontact._detect import Static, check_options, scalars
+from arraycontact._grid import level_sizes, morton_order
+from arraycontact._partition import Partition, partition
+from arraycontact._prepare import Prepared
+from arraycontact._surface import Surface, bounds
+
+from ._detect import Plan, _grown, _per_slave, _topology_arrays, local_detect, master_arrays
+
+_FLOATS = (("xi", 2), ("point", 3), ("gap", 1), ("distance", 1), ("normal", 3))
+
+
+@dataclass(frozen=True, eq=False)
+class ShardedPlan:
+    """A detection split over the devices of `mesh` along `axis` (build it with
+    `plan(..., mesh=mesh)`); a pytree whose leaves are sharded over the axis.
+
+    local: the one-device Plan every device runs (its topology leaves stacked [D, ...]);
+    exchange: the index arrays of the all_to_alls and the plan-time coordinates;
+    partition: the RCB cuts, halos and per-part counts (`counts`)."""
+
+    local: object
+    exchange: dict
+    mesh: object = None
+    axis: str = "space"
+    partition: Partition = field(default=None, repr=False)
+    n_slaves: int = 0
+    blocks: tuple = (0, 0)  # rows a device holds: slaves, master points
+    lebesgue: float = 1.0
+    counts: tuple = ()  # sorted (name, per-part list): the balance the plan measured
+
+    @property
+    def d_max(self) -> float:
+        return self.local.d_max
+
+    @property
+    def master(self) -> Surface:
+        return self.local.master
+
+    @property
+    def n_devices(self) -> int:
+        return self.mesh.shape[self.axis]
+
+    @property
+    def capacity(self) -> dict:
+        return {**dict(self.local.capacity), "halo_motion": self.partition.margin}
+
+
+jax.tree_util.register_pytree_node(
+    ShardedPlan,
+    lambda p: (
+        (p.local, p.exchange),
+        (p.mesh, p.axis, p.partition, p.n_slaves, p.blocks, p.lebesgue, p.counts),
+    ),
+    lambda aux, ch: ShardedPlan(ch[0], ch[1], *aux),
+)
+
+
+def plan(
+    master,
+    slave_x,
+    *,
+    mesh,
+    axis,
+    mode,
+    d_max,
+    dtype,
+    growth,
+    minimum,
+    search,
+    self_contact,
+    margin=None,
+):
+    """The sharded plan (see arraycontact_jax.plan: `mesh`, `axis`, `margin`)."""
+    if search != "jax":
+        raise ValueError("a sharded plan runs search='jax' (search='warp' on one device)")
+    if axis not in mesh.shape:
+        raise ValueError(f"mesh has no axis {axis!r} (its axes: {tuple(mesh.shape)})")
+    n_dev = mesh.shape[axis]
+    if len(mesh.shape) != 1:
+        raise ValueError("the mesh must have the one axis the parts are split over")
+    d_max, dtype = check_options(master, mode, d_max, None, dtype)
+    element = master.element
+    centres, radii = master.face_bounds
+    r_max = float(radii.max())
+    all_x = master.points[master.nodes] if self_contact else slave_x
+    lo = np.minimum(bounds(all_x)[0], master.node_box[0]) - d_max
+    hi = np.maximum(bounds(all_x)[1], master.node_box[1]) + d_max
+    origin = lo if dtype == np.float32 else np.zeros(3)
+    extent = float((hi - lo).max())
+    # The scene's constants, shared by every part: the answer is the one-device answer.
+    prep = Prepared(
+        slave_rows=np.arange(len(all_x)),
+        node_ids=master.nodes,
+        face_ids=np.arange(master.n_faces),
+        origin=origin,
+        d_max=d_max,
+        r_max=r_max * growth,
+        node_levels=level_sizes(len(master.nodes)),
+        face_levels=level_sizes(master.n_faces),
+        extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
+    )
+    sc = scalars(prep, master, dtype)
+    st_global = Static.of(master, mode, prep, self_contact)
+
+    # 1. Work per slave (its candidate faces) on one device, then the RCB.
+    sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
+    x_dev = jnp.asarray((all_x - origin).astype(dtype))
+    ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
+    m = {
+        k: jnp.asarray(v)
+        for k, v in master_arrays(master, _ordered(master, prep, lo, extent), dtype).items()
+    }
+    per = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global))
+    weights = 1.0 + per if mode == "exact" else np.ones(len(all_x))
+    part = partition(
+        master,
+        None if self_contact else slave_x,
+        n_dev,
+        d_max=d_max,
+        margin=(growth - 1) * (d_max + r_max) if margin is None else margin,
+        weights=weights,
+        self_contact=self_contact,
+    )
+    parts = [part.part(e) for e in range(n_dev)]
+
+    # 2. Each part's master, padded to shared shapes.
+    k = element.nodes_per_face
+    f_cap = max(len(q.faces) for q in parts) + 1  # one spare face at least: padded slaves' own
+    p_cap = max(len(q.nodes) + k * (f_cap - len(q.faces)) for q in parts)
+    s_cap = max(max(len(q.slaves) for q in parts), 1)
+    reach = d_max + part.margin
+    spacing = 4 * (reach + r_max) + 2 * master.longest_edge
+    far = hi + spacing  # the padding's corner, beyond reach of every slave
+    nowhere = lo - spacing  # where padded slave rows sit, beyond reach of every face
+    locals_, tables = [], []
+    for q in parts:
+        surf, pad_x = _padded(q, element, f_cap, p_cap, far, spacing, master.longest_edge)
+        pq = _ordered(surf, prep, lo, extent)
+        locals_.append((surf, pq))
+        tables.append(pad_x)
+
+    topo = [_topology_arrays(surf, pq, self_contact, master) for surf, pq in locals_]
+    if self_contact:
+        for t, q in zip(topo, parts):
+            own = np.searchsorted(q.nodes, master.nodes[q.slaves]).astype(np.int32)
+            t["slave_nodes"] = np.full(s_cap, len(q.nodes), np.int32)  # a padding node
+            t["slave_nodes"][: len(own)] = own
+    topo = _stack(topo)
+    st = replace(st_global, node_levels=level_sizes(p_cap), face_levels=level_sizes(f_cap))
+
+    # 3. The exchange: rows a device sends to each part and where each part reads them.
+    n_rows, n_pts = len(all_x), len(master.points)
+    b_s, b_m = -(-n_rows // n_dev), -(-n_pts // n_dev)
+    s_send, s_sent, s_take, s_ok, c_s = _routes([q.slaves for q in parts], b_s, n_dev, s_cap)
+    m_send, _, m_take, m_ok, c_m = _routes([q.nodes for q in parts], b_m, n_dev, p_cap)
+    pad_x = np.stack(tables)
+    x_ref = np.zeros((n_dev * b_s, 3))
+    x_ref[:n_rows] = all_x
+    m_ref = np.zeros((n_dev * b_m, 3))
+    m_ref[:n_pts] = master.points
+    s_used = np.arange(n_dev * b_s) < n_rows
+    m_used = np.zeros(n_dev * b_m, bool)
+    m_used[master.nodes] = True
+    face_ids = np.full((n_dev, f_cap), -1, np.int32)
+    node_ids = np.full((n_dev, p_cap), -1, np.int32)
+    for e, q in enumerate(parts):
+        face_ids[e, : len(q.faces)] = q.faces
+        node_ids[e, : len(q.nodes)] = q.nodes
+    exchange = dict(
+        s_send=s_send,
+        s_sent=s_sent,
+        s_take=s_take,
+        s_ok=s_ok,
+        s_ref=x_ref.reshape(n_dev, b_s, 3),
+        s_used=s_used.reshape(n_dev, b_s),
+        m_send=m_send,
+        m_take=m_take,
+        m_ok=m_ok,
+        m_pad=pad_x,
+        m_ref=m_ref.reshape(n_dev, b_m, 3),
+        m_used=m_used.reshape(n_dev, b_m),
+        face_ids=face_ids,
+        node_ids=node_ids,
+        nowhere=np.broadcast_to(nowhere, (n_dev, 3)),
+    )
+    # The capacities: each part's own counts, the largest, times growth.
+    cand = []
+    for e, (surf, pq) in enumerate(locals_):
+        mine = parts[e].slaves
+        xs = (all_x[mine] - origin).astype(dtype)
+        if len(xs) == 0:
+            cand.append(np.zeros(0))
+            continue
+        m_e = {k2: jnp.asarray(v) for k2, v in master_arrays(surf, pq, dtype).items()}
+        own = None
+        if self_contact:
+            own = jnp.asarray(topo["slave_nodes"][e, : len(mine)])
+        cand.append(np.asarray(_per_slave(sc_dev, m_e, jnp.asarray(xs), own, st=st)))
+    if mode == "exact":
+        counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
+    else:
+        counts = {"attached": max(int(c.sum()) for c in cand)}
+    cap = _grown(counts, growth, s_cap)
+    for key, v in (minimum or {}).items():
+        if key in cap:
+            cap[key] = max(cap[key], int(np.ceil(v * growth)))
+    balance = dict(
+        slaves=[len(q.slaves) for q in parts],
+        halo_faces=[len(h) for h in part.halo],
+        local_faces=[len(q.faces) for q in parts],
+        candidates=[int(c.sum()) for c in cand],
+        work=[float(w) for w in part.work],
+        sent_slave_rows=int(sum(len(q.slaves) for q in parts) if not self_contact else 0),
+        sent_master_rows=int(sum(len(q.nodes) for q in parts)),
+        route_widths=[c_s, c_m],
+    )
+    sharding = NamedSharding(mesh, P(axis))
+
+    def put(a):
+        a = np.ascontiguousarray(a)
+        return jax.make_array_from_callback(a.shape, sharding, lambda i: a[i])
+
+    local = Plan(
+        jax.tree_util.tree_map(put, topo),
+        master,
+        st,
+        tuple(sorted(cap.items())),
+        tuple(sorted(sc.items())),
+        tuple(float(v) for v in origin),
+        np.dtype(dtype).name,
+        s_cap,
+        growth,
+    )
+    return ShardedPlan(
+        local,
+        {k2: put(v.astype(dtype) if v.dtype.kind == "f" else v) for k2, v in exchange.items()},
+        mesh,
+        axis,
+        part,
+        n_rows,
+        (b_s, b_m),
+        float(element.lebesgue),
+        tuple(sorted(balance.items())),
+    )
+
+
+def _ordered(surf, prep, lo, extent):
+    """prep with every node and face of `surf`, in the Morton order of the scene's cube."""
+    centres = surf.face_bounds[0]
+    nodes = np.arange(len(surf.points))
+    return replace(
+        prep,
+        node_ids=nodes[morton_order(surf.points, lo, extent)],
+        face_ids=morton_order(centres, lo, extent),
+        node_levels=level_sizes(len(nodes)),
+        face_levels=level_sizes(surf.n_faces),
+    )
+
+
+def _padded(q, element, f_cap, p_cap, far, spacing, size):
+    """Part q's master with f_cap faces and p_cap points: its own, then small flat faces on
+    nodes of their own on a grid beyond `far` (apart by `spacing`: none within reach of
+    another or of the scene), then unused points there. Also [p_cap, 3]: the padding's
+    coordinates (0 on the part's own rows)."""
+    k = element.nodes_per_face
+    n_pad = f_cap - len(q.faces)
+    side = max(int(np.ceil(n_pad ** (1 / 3))), 1)
+    j = np.arange(n_pad)
+    corner = far + spacing * np.stack([j % side, (j // side) % side, j // side**2], -1)
+    flat = np.c_[element.nodes, np.zeros(k)] * size  # the reference element, scaled
+    pts = (corner[:, None, :] + flat[None]).reshape(-1, 3)
+    n_real = len(q.nodes)
+    unused = p_cap - n_real - len(pts)
+    pts = np.concatenate([pts, np.repeat(far[None] - spacing, unused, 0)])
+    faces = np.concatenate([q.master.faces, n_real + np.arange(n_pad * k).reshape(n_pad, k)])
+    points = np.concatenate([q.master.points, pts])
+    pad_x = np.zeros((p_cap, 3))
+    pad_x[n_real:] = pts
+    return Surface(points, faces, element), pad_x
+
+
+def _routes(members, block, n_dev, cap):
+    """The all_to_all routes of items held in row blocks of `block` rows (device d: rows
+    [d block, (d + 1) block)) to the parts whose sorted ids are `members[e]`:
+    send [D(src), D(dst), C] local rows each device sends to each part and sent [.., C] which
+    slots are real; take [D(dst), cap]: where each part reads its i-th item in the flattened
+    [D(src) C] buffer it receives, ok [D, cap] which are real; C the route width."""
+    src = [m // block for m in members]
+    c = max([int(np.bincount(s, minlength=n_dev).max(initial=0)) for s in src] + [1])
+    send = np.zeros((n_dev, n_dev, c), np.int32)
+    sent = np.zeros((n_dev, n_dev, c), bool)
+    take = np.zeros((n_dev, cap), np.int32)
+    ok = np.zeros((n_dev, cap), bool)
+    for e, (m, s) in enumerate(zip(members, src)):
+        # members are sorted, so those of one source block are consecutive
+        first = np.searchsorted(s, np.arange(n_dev))
+        slot = np.arange(len(m)) - first[s]
+        send[s, e, slot] = m - s * block
+        sent[s, e, slot] = True
+        take[e, : len(m)] = s * c + slot
+        ok[e, : len(m)] = True
+    return send, sent, take, ok, c
+
+
+def _stack(tables):
+    """Per-part topology dicts -> one dict of [D, ...] arrays (rows padded with -1 where the
+    parts' sizes differ: edges, the node-face table's width)."""
+    out = {}
+    for key in tables[0]:
+        arrs = [np.asarray(t[key]) for t in tables]
+        shape = np.max([a.shape for a in arrs], 0)
+        full = np.full((len(arrs), *shape), -1 if arrs[0].dtype.kind == "i" else 0, arrs[0].dtype)
+        for i, a in enumerate(arrs):
+            full[(i, *[slice(0, s) for s in a.shape])] = a
+        out[key] = full
+    return out
+
+
+def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Contacts:
+    """The sharded detection (called by arraycontact_jax.detect / detect_self, under jit)."""
+    n_dev, axis = p.n_devices, p.axis
+    b_s, b_m = p.blocks
+    n_pts = p.master.points.shape[0]
+    if master_points.ndim != 2 or master_points.shape != (n_pts, 3):
+        raise ValueError(
+            f"master_points must have shape {(n_pts, 3)} (the plan's master), got "
+            f"{master_points.shape}"
+        )
+    if not self_points and (slave_points.ndim != 2 or slave_points.shape[1] != 3):
+        raise ValueError(f"slave_points must have shape [n, 3], got {slave_points.shape}")
+    if not self_points and slave_points.shape[0] != p.n_slaves:
+        raise ValueError(
+            f"slave_points must have the plan's {p.n_slaves} rows (its partition), got "
+            f"{slave_points.shape[0]}"
+        )
+    xm = jnp.pad(master_points, ((0, n_dev * b_m - n_pts), (0, 0)))
+    if self_points:
+        xs = jnp.zeros((n_dev * b_s, 3), master_points.dtype)  # the slaves are master nodes
+    else:
+        xs = jnp.pad(slave_points, ((0, n_dev * b_s - p.n_slaves), (0, 0)))
+    self_contact = p.local.static.self_contact
+    spec = P(axis)
+
+    def body(topo, ex, s_blk, m_blk):
+        topo = jax.tree_util.tree_map(lambda a: a[0], topo)
+        ex = jax.tree_util.tree_map(lambda a: a[0], ex)
+        ref_m = ex["m_ref"].astype(m_blk.dtype)
+        recv = jax.lax.all_to_all(m_blk[ex["m_send"]], axis, 0, 0)
+        x_m = recv.reshape(-1, 3)[ex["m_take"]]
+        x_m = jnp.where(ex["m_ok"][:, None], x_m, ex["m_pad"].astype(x_m.dtype))
+        if self_contact:
+            s = x_m[topo["slave_nodes"]]
+        else:
+            recv_s = jax.lax.all_to_all(s_blk[ex["s_send"]], axis, 0, 0)
+            s = recv_s.reshape(-1, 3)[ex["s_take"]]
+            s = jnp.where(ex["s_ok"][:, None], s, ex["nowhere"].astype(s.dtype))
+        fields, counts = local_detect(p.local, topo, s, x_m)
+        # Global ids of the answer.
+        face = jnp.where(fields["face"] >= 0, ex["face_ids"][jnp.maximum(fields["face"], 0)], -1)
+        node = fields["master_node"]
+        node = jnp.where(node >= 0, ex["node_ids"][jnp.maximum(node, 0)], -1)
+        ints = [fields["active"], face, fields["feature"], node, fields["status"]]
+        if self_contact:
+            ints.append(fields["finer"])
+        ints = jnp.stack([jnp.asarray(a, jnp.int32) for a in ints], -1)
+        floats = jnp.concatenate([fields[k].reshape(s.shape[0], -1) for k, _ in _FLOATS], -1)
+        f_blk = _home(floats, ex, axis, n_dev, b_s)
+        i_blk = _home(ints, ex, axis, n_dev, b_s)
+        # Motion since the plan (halo check): the slaves this device holds, its master rows.
+        dm = jnp.where(ex["m_used"], _norm(jax.lax.stop_gradient(m_blk) - ref_m), 0)
+        motion_m = jax.lax.pmax(jnp.max(dm), axis)
+        if self_contact:
+            motion_s = motion_m  # a slave's motion is its node's
+        else:
+            ds = _norm(jax.lax.stop_gradient(s_blk) - ex["s_ref"].astype(s_blk.dtype))
+            motion_s = jax.lax.pmax(jnp.max(jnp.where(ex["s_used"], ds, 0)), axis)
+        counts = {k: jax.lax.pmax(v, axis) for k, v in counts.items()}
+        counts["halo_motion"] = motion_s + p.lebesgue * motion_m
+        return f_blk, i_blk, counts
+
+    f_out, i_out, counts = jax.shard_map(
+        body,
+        mesh=p.mesh,
+        in_specs=(spec, spec, spec, spec),
+        out_specs=(spec, spec, P()),
+        # The one-device stages build their while_loop carries from constants; the counts
+        # are pmax-reduced, hence the same on every device.
+        check_vma=False,
+    )(p.local.topology, p.exchange, xs, xm)
+    n = p.n_slaves
+    f_out, i_out = f_out[:n], i_out[:n]
+    fields, col = {}, 0
+    for k, w in _FLOATS:
+        v = f_out[:, col : col + w]
+        fields[k] = v[:, 0] if w == 1 else v
+        col += w
+    names = ["active", "face", "feature", "master_node", "status"]
+    if self_contact:
+        names.append("finer")
+    for c, k in enumerate(names):
+        fields[k] = i_out[:, c]
+    fields["active"] = fields["active"].astype(bool)
+    if self_contact:
+        fields["finer"] = fields["finer"].astype(bool)
+    slave_ids = (
+        jnp.asarray(p.master.nodes.astype(np.int32))
+        if self_contact
+        else jnp.arange(n, dtype=jnp.int32)
+    )
+    return Contacts(
+        **fields,
+        slave_ids=slave_ids,
+        d_max=p.d_max,
+        counts=Counts(
+            slaves_in_box=n,
+            master_nodes_in_box=len(p.master.nodes),
+            master_faces_in_box=p.master.n_faces,
+            count=counts,
+            capacity=p.capacity,
+        ),
+        backend="jax",
+        dtype=p.local.dtype,
+    )
+
+
+def _norm(v):
+    return jnp.sqrt(jnp.sum(v * v, -1))
+
+
+def _home(vals, ex, axis, n_dev, b_s):
+    """Rows of a part's slaves [cap, w] back to the devices holding them: [b_s, w] blocks."""
+    w = vals.shape[1]
+    c = ex["s_send"].shape[1]
+    buf = jnp.zeros((n_dev * c, w), vals.dtype)
+    buf = buf.at[jnp.where(ex["s_ok"], ex["s_take"], n_dev * c)].set(vals, mode="drop")
+    recv = jax.lax.all_to_all(buf.reshape(n_dev, c, w), axis, 0, 0)
+    rows = jnp.where(ex["s_sent"], ex["s_send"], b_s)
+    out = jnp.zeros((b_s, w), vals.dtype)
+    return out.at[rows.reshape(-1)].set(recv.reshape(-1, w), mode="drop")
