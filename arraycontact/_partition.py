@@ -42,7 +42,8 @@ class Partition:
     cuts: (axis, position, parts on the low side, parts in all) per cut, depth first from the
     root; regions [P, 2, 3]: each part's cell (outer sides at +-inf); slave_part [n] and
     face_part [F]: the owning part of each slave and face (a face by its centre);
-    halo[p]: sorted face ids within `d_max + margin` of part p's slave box `boxes[p]`;
+    halo[p]: sorted face ids within `d_max + margin` of part p's slave box `boxes[p]` (or of
+    its slaves one by one, `pairs`);
     weights: what the cuts balanced, per part (`work`)."""
 
     n_parts: int
@@ -90,15 +91,22 @@ def partition(
     d_max=None,
     margin=None,
     weights=None,
+    face_weights=None,
     self_contact=False,
+    pairs=None,
 ) -> Partition:
     """RCB of `slave_points` [n, 3] and `master`'s faces into `n_parts` parts, with halos.
 
     d_max: the detection distance (default: the seed's rule on `master`); margin: how far slaves
     and master nodes may move, together, before the halos no longer hold every face a slave
     can reach (default: half of d_max plus the largest face radius). weights: the work of each
-    slave [n] (default 1; the JAX plan passes 1 + its candidate faces), each face counting 1.
-    self_contact: the slaves are the master's nodes (`master.nodes`; slave_points not given)."""
+    slave [n] (default 1; the JAX plan passes 1 + its candidate faces); face_weights: each
+    face's [F] (default 1; the JAX plan passes 1 where a slave has the face as a candidate,
+    else 0: a face no slave reaches costs no part anything).
+    self_contact: the slaves are the master's nodes (`master.nodes`; slave_points not given).
+    pairs: (slave rows, face ids) of every face within d_max + margin of each slave, when the
+    caller has them (the JAX plan finds them with its tree): a part's halo is then the faces
+    its own slaves reach, tighter than the faces that reach the box around them all."""
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if master.n_faces == 0:
@@ -127,8 +135,11 @@ def partition(
     if w_s.shape != (len(slave_x),) or not (np.isfinite(w_s).all() and (w_s >= 0).all()):
         raise ValueError(f"weights must be {len(slave_x)} finite values >= 0")
 
+    w_f = np.ones(master.n_faces) if face_weights is None else np.asarray(face_weights, float)
+    if w_f.shape != (master.n_faces,) or not (np.isfinite(w_f).all() and (w_f >= 0).all()):
+        raise ValueError(f"face_weights must be {master.n_faces} finite values >= 0")
     x = np.concatenate([slave_x, centres])
-    w = np.concatenate([w_s, np.ones(master.n_faces)])
+    w = np.concatenate([w_s, w_f])
     owner = np.zeros(len(x), np.int32)
     regions = np.empty((n_parts, 2, 3))
     cuts = []
@@ -154,6 +165,10 @@ def partition(
     boxes = np.empty((n_parts, 2, 3))
     halo = []
     reach = d_max + margin
+    if pairs is not None:
+        rows, faces = (np.asarray(a, np.int64) for a in pairs)
+        key = np.unique(slave_part[rows].astype(np.int64) * master.n_faces + faces)
+        first = np.searchsorted(key, np.arange(n_parts + 1) * master.n_faces)
     for p in range(n_parts):
         mine = slave_x[slave_part == p]
         if len(mine) == 0:  # a part with faces only: nothing to detect
@@ -162,9 +177,12 @@ def partition(
             continue
         lo, hi = bounds(mine)
         boxes[p] = lo, hi
+        if pairs is not None:
+            halo.append(key[first[p] : first[p + 1]] - p * master.n_faces)
+            continue
         out = np.maximum(np.maximum(lo - centres, centres - hi), 0)
         halo.append(np.flatnonzero(np.linalg.norm(out, axis=1) - radii <= reach))
-    work = np.bincount(slave_part, w_s, n_parts) + np.bincount(face_part, minlength=n_parts)
+    work = np.bincount(slave_part, w_s, n_parts) + np.bincount(face_part, w_f, n_parts)
     return Partition(
         n_parts=int(n_parts),
         cuts=tuple(cuts),

@@ -25,6 +25,7 @@ the capacity `margin` (overflow), and `update_plan` partitions again.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -33,12 +34,13 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from arraycontact._contacts import Contacts, Counts
-from arraycontact._detect import Static, check_options, scalars
+from arraycontact._detect import Static, build_grids, check_options, master_geometry, scalars
 from arraycontact._grid import level_sizes, morton_order
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds
 
+from . import _grid
 from ._detect import Plan, _grown, _per_slave, _topology_arrays, local_detect, master_arrays
 
 _FLOATS = (("xi", 2), ("point", 3), ("gap", 1), ("distance", 1), ("normal", 3))
@@ -146,15 +148,27 @@ def plan(
         for k, v in master_arrays(master, _ordered(master, prep, lo, extent), dtype).items()
     }
     per = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global))
-    weights = 1.0 + per if mode == "exact" else np.ones(len(all_x))
+    weights, face_weights = np.ones(len(all_x)), None
+    if mode == "exact":
+        # A slave costs its candidate faces; a face costs where some slave needs it (faces
+        # beyond every slave's reach are in no halo).
+        weights += per
+        slots = max(int(per.max(initial=0)), 1)
+        used = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global, slots=slots))
+        face_weights = (used > 0).astype(float)
+    margin = (growth - 1) * (d_max + r_max) if margin is None else float(margin)
+    if not margin >= 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
     part = partition(
         master,
         None if self_contact else slave_x,
         n_dev,
         d_max=d_max,
-        margin=(growth - 1) * (d_max + r_max) if margin is None else margin,
+        margin=margin,
         weights=weights,
+        face_weights=face_weights,
         self_contact=self_contact,
+        pairs=_reach_pairs(sc_dev, m, x_dev, d_max + margin, st_global),
     )
     parts = [part.part(e) for e in range(n_dev)]
 
@@ -219,18 +233,18 @@ def plan(
         nowhere=np.broadcast_to(nowhere, (n_dev, 3)),
     )
     # The capacities: each part's own counts, the largest, times growth.
+    # Padded like detect's inputs: one compilation serves every part.
     cand = []
     for e, (surf, pq) in enumerate(locals_):
         mine = parts[e].slaves
-        xs = (all_x[mine] - origin).astype(dtype)
-        if len(xs) == 0:
-            cand.append(np.zeros(0))
-            continue
-        m_e = {k2: jnp.asarray(v) for k2, v in master_arrays(surf, pq, dtype).items()}
-        own = None
-        if self_contact:
-            own = jnp.asarray(topo["slave_nodes"][e, : len(mine)])
-        cand.append(np.asarray(_per_slave(sc_dev, m_e, jnp.asarray(xs), own, st=st)))
+        xs = np.repeat(nowhere[None], s_cap, 0)
+        xs[: len(mine)] = all_x[mine]
+        t_e = {k2: v[e] for k2, v in topo.items()}
+        m_e = {**t_e, **master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))}
+        own = jnp.asarray(t_e["slave_nodes"]) if self_contact else None
+        xs = jnp.asarray((xs - origin).astype(dtype))
+        m_e = {k2: jnp.asarray(v) for k2, v in m_e.items()}
+        cand.append(np.asarray(_per_slave(sc_dev, m_e, xs, own, st=st))[: len(mine)])
     if mode == "exact":
         counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
     else:
@@ -277,6 +291,42 @@ def plan(
         float(element.lebesgue),
         tuple(sorted(balance.items())),
     )
+
+
+def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
+    """(slave row, face) pairs whose face box is within `reach` of the slave (the halos of
+    each slave on its own: a part holding slaves both near and far from the master needs
+    the faces near each, not those near the box around them all). In chunks of slaves that
+    keep the candidate slots under `slots`."""
+    grid = _face_tree(sc, m, st=st)
+    rho = jnp.full(x.shape[0], reach, x.dtype)
+    count = _counts_within(grid, x, rho, sc["slack"])
+    rows, faces = [], []
+    start, n = 0, x.shape[0]
+    while start < n:
+        k = max(int(jnp.max(count[start : start + chunk])), 1)
+        stop = min(n, start + max(slots // k, 1), start + chunk)
+        slave, face, valid, _ = _candidates(grid, x[start:stop], rho[start:stop], sc["slack"], k)
+        valid = np.asarray(valid)
+        rows.append(np.asarray(slave)[valid] + start)
+        faces.append(np.asarray(face)[valid])
+        start = stop
+    return np.concatenate(rows), np.concatenate(faces)
+
+
+@partial(jax.jit, static_argnames=("st",))
+def _face_tree(sc, m, *, st):
+    return build_grids(jnp, st, sc, m)["face"]
+
+
+@jax.jit
+def _counts_within(grid, x, rho, slack):
+    return _grid.candidate_counts(grid, x, rho, slack=slack)
+
+
+@partial(jax.jit, static_argnames=("k",))
+def _candidates(grid, x, rho, slack, k):
+    return _grid.candidate_faces(jnp, grid, x, rho, slack=slack, capacity={"face_candidates": k})
 
 
 def _ordered(surf, prep, lo, extent):

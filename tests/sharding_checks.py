@@ -1,0 +1,189 @@
+"""Detection over several devices (arraycontact_jax.plan(..., mesh=)): run by test_sharding.py
+in a child process with XLA_FLAGS=--xla_force_host_platform_device_count=4 (four CPU devices).
+
+The expected answers are the one-device plan's, checked against the brute-force reference in
+test_jax and test_self_contact."""
+
+import arraycontact_jax as acj
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+import arraycontact as ac
+from arraycontact import scenes
+
+INTS = ("active", "face", "feature", "master_node", "status", "slave_ids")
+FLOATS = ("gap", "distance", "xi", "point", "normal")
+
+
+@pytest.fixture(autouse=True)
+def x64():
+    assert len(jax.devices()) == 4, "run with --xla_force_host_platform_device_count=4"
+    with jax.enable_x64(True):
+        yield
+
+
+def _mesh(n):
+    return Mesh(np.array(jax.devices()[:n]), ("space",))
+
+
+def _loss(c):
+    # Every differentiable output of the active rows, so that each one's gradient is checked.
+    a = c.active
+    g = jnp.where(a, c.gap, 0)
+    x = jnp.where(a[:, None], c.point, 0) + jnp.where(a[:, None], c.normal, 0)
+    return jnp.sum(g**2) + jnp.sum(jnp.sin(x)) + jnp.sum(jnp.where(a[:, None], c.xi, 0) ** 2)
+
+
+def _same(c, r):
+    """Sharded contacts `c` equal one device's `r`: integers exactly, floats to rounding (the
+    node normals sum the same faces, in an order XLA may change)."""
+    for k in INTS:
+        assert np.array_equal(np.asarray(getattr(c, k)), np.asarray(getattr(r, k))), k
+    for k in FLOATS:
+        a, b = np.asarray(getattr(c, k)), np.asarray(getattr(r, k))
+        assert np.array_equal(np.isnan(a), np.isnan(b)), k
+        assert np.allclose(np.nan_to_num(a), np.nan_to_num(b), rtol=1e-12, atol=1e-12), k
+
+
+SCENES = {
+    "rough": lambda: scenes.rough_surfaces(2**10, seed=5),
+    "graded": lambda: scenes.graded_surfaces(2**10, ratio=30.0, seed=6),
+    "spiral": lambda: scenes.spiral_strip(700, element="tri3"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_one_to_four_devices_give_one_devices_contacts_and_gradients(name):
+    s = SCENES[name]()
+    spiral = name == "spiral"
+
+    def run(p, slave, pts):
+        if spiral:
+            return acj.detect_self(p, pts)
+        return acj.detect(p, slave, pts)
+
+    def value_and_grads(p):
+        def f(slave, pts):
+            c = run(p, slave, pts)
+            return _loss(c), c
+
+        (_, c), g = jax.jit(jax.value_and_grad(f, argnums=(0, 1), has_aux=True))(
+            jnp.asarray(s.slave), jnp.asarray(s.master.points)
+        )
+        return c, g
+
+    if spiral:
+        one = acj.plan_self(s.master, dtype=np.float64)
+    else:
+        one = acj.plan(s.master, s.slave, dtype=np.float64)
+    r, g_r = value_and_grads(one)
+    assert int(np.asarray(r.active).sum()) > 0.5 * len(r.active)
+    for n in (1, 2, 3, 4):
+        if spiral:
+            p = acj.plan_self(s.master, dtype=np.float64, mesh=_mesh(n))
+        else:
+            p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=_mesh(n))
+        c, g = value_and_grads(p)
+        assert not bool(c.overflow), n
+        _same(c, r)
+        for a, b in zip(g, g_r):
+            scale = float(np.abs(np.asarray(b)).max())
+            assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-10 * scale), n
+        if n > 1:  # every device got a share of the slaves
+            assert min(dict(p.counts)["slaves"]) > 0
+
+
+def test_all_contact_in_one_corner_still_balances():
+    """The slaves over most of the master are beyond d_max; those over one corner are close,
+    with several candidate faces each. Weighted by candidates, the parts' work (slaves,
+    candidate faces and local faces, the plan's own counts) is within 20 % of the mean."""
+    s = scenes.rough_surfaces(2**12, seed=7, gap=0.5)
+    slave = s.slave.copy()
+    lo, hi = s.master.node_box
+    corner = (slave[:, 0] < lo[0] + 0.2 * (hi - lo)[0]) & (slave[:, 1] < lo[1] + 0.2 * (hi - lo)[1])
+    slave[~corner, 2] += 20 * s.master.longest_edge
+    p = acj.plan(s.master, slave, dtype=np.float64, mesh=_mesh(4))
+    k = dict(p.counts)
+    work = np.add(np.add(k["slaves"], k["candidates"]), k["local_faces"])
+    assert sum(k["candidates"]) > 0
+    assert work.max() <= 1.2 * work.mean(), k
+    # Unweighted, the corner's part would hold a quarter of the slaves and most candidates.
+    assert max(k["slaves"]) > 2 * min(k["slaves"]), k
+    c = acj.detect(p, slave, s.master.points)
+    r = acj.detect(acj.plan(s.master, slave, dtype=np.float64), slave, s.master.points)
+    _same(c, r)
+
+
+def test_motion_beyond_the_margin_is_overflow_and_update_plan_partitions_again():
+    s = scenes.rough_surfaces(2**10, seed=8)
+    mesh = _mesh(3)
+    p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=mesh)
+    margin = p.partition.margin
+    one = acj.plan(s.master, s.slave, dtype=np.float64)
+    rng = np.random.default_rng(0)
+    # Within the margin (slaves and master together): no overflow, one device's answer.
+    d = rng.normal(size=s.slave.shape)
+    d *= 0.4 * margin / np.linalg.norm(d, axis=1).max()
+    m = s.master.points.copy()
+    m[:, :2] += 0.4 * margin * np.array([0.6, 0.8])
+    c = acj.detect(p, s.slave + d, m)
+    assert not bool(c.overflow)
+    assert float(c.counts.count["halo_motion"]) <= margin
+    _same(c, acj.detect(one, s.slave + d, m))
+    # Beyond it: reported, and update_plan's new partition gives one device's answer.
+    shift = s.slave + np.array([1.5 * margin, 0, 0])
+    c = acj.detect(p, shift, s.master.points)
+    assert bool(c.overflow)
+    assert float(c.counts.count["halo_motion"]) > margin
+    q = acj.update_plan(p, c, shift, s.master.points)
+    assert q is not p and q.mesh is mesh
+    c = acj.detect(q, shift, s.master.points)
+    assert not bool(c.overflow)
+    r = acj.detect(acj.plan(s.master, shift, dtype=np.float64), shift, s.master.points)
+    _same(c, r)
+
+
+def test_sharded_or_replicated_inputs_give_sharded_outputs():
+    s = scenes.rough_surfaces(2**10, seed=9)
+    mesh = _mesh(4)
+    p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=mesh)
+    rows = NamedSharding(mesh, P("space"))
+    n_m = len(s.master.points)
+    assert len(s.slave) % 4 == 0 and n_m % 4 == 0
+    sharded = acj.detect(p, jax.device_put(s.slave, rows), jax.device_put(s.master.points, rows))
+    replicated = acj.detect(
+        p,
+        jax.device_put(s.slave, NamedSharding(mesh, P())),
+        jax.device_put(s.master.points, NamedSharding(mesh, P())),
+    )
+    _same(sharded, replicated)
+    assert len(sharded.gap.sharding.device_set) == 4
+
+
+def test_bad_input_is_named():
+    s = scenes.rough_surfaces(2**8, seed=1)
+    with pytest.raises(ValueError, match="axis"):
+        acj.plan(s.master, s.slave, mesh=Mesh(np.array(jax.devices()[:2]), ("x",)))
+    with pytest.raises(ValueError, match="search"):
+        acj.plan(s.master, s.slave, mesh=_mesh(2), search="warp")
+    p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=_mesh(2))
+    with pytest.raises(ValueError, match="rows"):
+        acj.detect(p, s.slave[:-1], s.master.points)
+    with pytest.raises(ValueError, match="detect_self"):
+        acj.detect_self(p, s.master.points)
+    with pytest.raises(ValueError, match="margin"):
+        acj.plan(s.master, s.slave, mesh=_mesh(2), margin=-1.0)
+
+
+def test_partition_of_the_sharded_plan_is_arraycontacts():
+    """The plan's cuts are ac.partition's on the same weights: the Warp helper's parts."""
+    s = scenes.rough_surfaces(2**10, seed=10)
+    p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=_mesh(4))
+    part = p.partition
+    q = ac.partition(s.master, s.slave, 4, d_max=p.d_max, margin=part.margin)
+    assert part.n_parts == q.n_parts == 4 and len(part.cuts) == 3
+    assert np.array_equal(np.bincount(part.slave_part, minlength=4), dict(p.counts)["slaves"])
