@@ -1,0 +1,178 @@
+"""Issue 23: detection over several GPUs with the JAX back end's sharded plan.
+
+    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 --out results/sharding_h200x2.jsonl
+
+Weak scaling: D * 2^weak nodes per surface on D = 1, 2, ... devices (the scene grows with the
+devices: a wider rough square, or the graded family at a fixed ratio); strong scaling: 2^strong
+nodes per surface on each D. Every run: the plan's time, the first and steady-state detection
+(median of --repeats), the one-device plan/detect of the same scene in the same run (the
+baseline of the efficiencies, and the answer the sharded rows must equal), the time of the
+exchange alone (the same all_to_alls on the plan's routes, no detection) and the balance
+(the plan's per-device counts). Efficiency (weak): one device's time at 2^weak over D devices'
+time at D * 2^weak.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).parent
+sys.path[:0] = [str(HERE.parent), str(HERE.parent / "backends")]
+
+
+def _scene(name, n, seed=0):
+    from arraycontact import scenes
+
+    if name == "rough":
+        return scenes.rough_surfaces(n, seed=seed)
+    if name == "graded":
+        return scenes.graded_surfaces(n, ratio=10.0, seed=seed)
+    raise ValueError(name)
+
+
+def _timed(f, repeats):
+    import jax
+
+    t = time.perf_counter()
+    out = jax.block_until_ready(f())
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(f())
+        times.append(time.perf_counter() - t)
+    return out, first, float(np.median(times))
+
+
+def _exchange_only(p):
+    """The sharded detection's four all_to_alls on the plan's routes, without the detection."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import PartitionSpec as P
+
+    axis, n_dev = p.axis, p.n_devices
+    dtype = jnp.dtype(p.local.dtype)
+
+    def body(ex, s_blk, m_blk):
+        ex = jax.tree_util.tree_map(lambda a: a[0], ex)
+        r_m = jax.lax.all_to_all(m_blk[ex["m_send"]], axis, 0, 0)
+        r_s = jax.lax.all_to_all(s_blk[ex["s_send"]], axis, 0, 0)
+        c = ex["s_send"].shape[1]
+        back_f = jnp.zeros((n_dev, c, 10), dtype) + r_s[..., :1]
+        back_i = jnp.zeros((n_dev, c, 5), jnp.int32) + r_m[:, :c, :1].astype(jnp.int32)
+        r_f = jax.lax.all_to_all(back_f, axis, 0, 0)
+        r_i = jax.lax.all_to_all(back_i, axis, 0, 0)
+        return (jnp.sum(r_f) + jnp.sum(r_i))[None]
+
+    f = jax.jit(
+        jax.shard_map(
+            body, mesh=p.mesh, in_specs=(P(axis),) * 3, out_specs=P(axis), check_vma=False
+        )
+    )
+    b_s, b_m = p.blocks
+    xs = jnp.zeros((n_dev * b_s, 3), dtype)
+    xm = jnp.zeros((n_dev * b_m, 3), dtype)
+    return lambda: f(p.exchange, xs, xm)
+
+
+def _diff(c, r):
+    ints = {
+        k: int((np.asarray(getattr(c, k)) != np.asarray(getattr(r, k))).sum())
+        for k in ("active", "face", "feature", "master_node", "status")
+    }
+    floats = {
+        k: float(
+            np.nanmax(np.abs(np.asarray(getattr(c, k)) - np.asarray(getattr(r, k))), initial=0)
+        )
+        for k in ("gap", "point", "normal", "xi")
+    }
+    return ints, floats
+
+
+def run(scene_name, n, n_dev, repeats, dtype, baseline):
+    import arraycontact_jax as acj
+    import jax
+    from jax.sharding import Mesh
+
+    s = _scene(scene_name, n)
+    slave = jax.device_put(s.slave.astype(dtype))
+    pts = jax.device_put(s.master.points.astype(dtype))
+    rec = dict(scene=scene_name, nodes_per_surface=n, devices=n_dev, dtype=np.dtype(dtype).name)
+    rec["faces"], rec["slaves"] = s.master.n_faces, len(s.slave)
+    if baseline:
+        t = time.perf_counter()
+        one = acj.plan(s.master, s.slave, dtype=dtype)
+        rec["one_device_plan_s"] = time.perf_counter() - t
+        r, rec["one_device_first_s"], rec["one_device_s"] = _timed(
+            lambda: acj.detect(one, slave, pts), repeats
+        )
+        r = jax.tree.map(np.asarray, r)
+        rec["active"] = int(r.active.sum())
+        del one
+    mesh = Mesh(np.array(jax.devices()[:n_dev]), ("space",))
+    t = time.perf_counter()
+    p = acj.plan(s.master, s.slave, dtype=dtype, mesh=mesh)
+    rec["plan_s"] = time.perf_counter() - t
+    c, rec["first_s"], rec["detect_s"] = _timed(lambda: acj.detect(p, slave, pts), repeats)
+    rec["overflow"] = bool(c.overflow)
+    _, _, rec["exchange_s"] = _timed(_exchange_only(p), repeats)
+    rec["balance"] = {k: v for k, v in p.counts}
+    if baseline:
+        rec["mismatch"], rec["float_diff"] = _diff(jax.tree.map(np.asarray, c), r)
+    return rec
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--weak-log2", type=int, default=20)
+    ap.add_argument("--strong-log2", type=int, default=23)
+    ap.add_argument("--scenes", nargs="+", default=["rough", "graded"])
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--dtype", default="float32")
+    ap.add_argument("--only", choices=["weak", "strong"], default=None)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    import jax
+
+    devices = jax.devices()
+    n_max = len(devices)
+    commit = (
+        os.environ.get("ARRAYCONTACT_COMMIT")
+        or subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
+        ).stdout.strip()
+    )
+    dtype = np.dtype(args.dtype)
+    out = open(args.out, "a") if args.out else None
+    counts = [d for d in (1, 2, 4, 8) if d <= n_max]
+    jobs = []
+    if args.only in (None, "weak"):
+        for name in args.scenes:
+            jobs += [("weak", name, d * 2**args.weak_log2, d) for d in counts]
+    if args.only in (None, "strong"):
+        jobs += [("strong", args.scenes[0], 2**args.strong_log2, d) for d in counts]
+    for kind, name, n, d in jobs:
+        rec = run(name, n, d, args.repeats, dtype, baseline=True)
+        rec.update(
+            kind=kind,
+            device=devices[0].device_kind,
+            n_visible=n_max,
+            commit=commit,
+            command=" ".join(sys.argv),
+        )
+        print(json.dumps(rec), flush=True)
+        if out:
+            out.write(json.dumps(rec) + "\n")
+            out.flush()
+
+
+if __name__ == "__main__":
+    main()
