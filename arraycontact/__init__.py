@@ -17,9 +17,9 @@ from ._detect import detect_self as detect_self
 from ._detect import detect_swept as detect_swept
 from ._elements import ELEMENTS as ELEMENTS
 from ._io import read_surface as read_surface
+from ._io import surface_from_meshio as surface_from_meshio
 from ._partition import Partition as Partition
 from ._partition import partition as partition
-from ._io import surface_from_meshio as surface_from_meshio
 from ._prepare import default_d_max as default_d_max
 from ._surface import Surface as Surface
 

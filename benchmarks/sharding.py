@@ -1,6 +1,7 @@
 """Issue 23: detection over several GPUs with the JAX back end's sharded plan.
 
-    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 --out results/sharding_h200x2.jsonl
+    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 \
+        --out benchmarks/results/sharding_h200x2.jsonl
 
 Weak scaling: D * 2^weak nodes per surface on D = 1, 2, ... devices (the scene grows with the
 devices: a wider rough square, or the graded family at a fixed ratio); strong scaling: 2^strong

@@ -235,7 +235,7 @@ def plan(
     # The capacities: each part's own counts, the largest, times growth.
     # Padded like detect's inputs: one compilation serves every part.
     cand = []
-    for e, (surf, pq) in enumerate(locals_):
+    for e, (surf, _) in enumerate(locals_):
         mine = parts[e].slaves
         xs = np.repeat(nowhere[None], s_cap, 0)
         xs[: len(mine)] = all_x[mine]
