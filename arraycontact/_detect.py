@@ -183,15 +183,25 @@ def build_grids(xp, st: Static, sc: dict, m: dict):
     if st.self_contact:
         n = m["node_normals"][m["node_ids"]]
         nodes_n = (n, n)
-    grids = {"node": _grid.build(xp, m["node_ids"], x, x, x, nodes_n)}
+    lo, hi = _inert(xp, m.get("node_live"), x, x)
+    grids = {"node": _grid.build(xp, m["node_ids"], lo, hi, x, nodes_n)}
     if st.mode == "exact":
         xe = m["nodes_x"][m["faces"][m["face_ids"]]]
-        lo, hi = face_boxes(element, xe, xp)
+        lo, hi = _inert(xp, m.get("face_live"), *face_boxes(element, xe, xp))
         faces_n = normal_boxes(element, xe, xp) if st.self_contact else None
         grids["face"] = _grid.build(xp, m["face_ids"], lo, hi, xe[:, 0], faces_n)
     if st.self_contact:
         grids["sizes"] = mesh_sizes(element, m["faces"], m["nodes_x"], xp)
     return grids
+
+
+def _inert(xp, live, lo, hi):
+    """Boxes of the items in tree order; where `live` [n] is false (a sharded plan's padding)
+    an empty box (lo > hi), which no search enters and no parent box grows by."""
+    if live is None:
+        return lo, hi
+    big = _grid._empty(lo.dtype)
+    return xp.where(live[:, None], lo, big), xp.where(live[:, None], hi, -big)
 
 
 def run_stages(

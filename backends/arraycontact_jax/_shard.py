@@ -194,6 +194,10 @@ def plan(
             own = np.searchsorted(q.nodes, master.nodes[q.slaves]).astype(np.int32)
             t["slave_nodes"] = np.full(s_cap, len(q.nodes), np.int32)  # a padding node
             t["slave_nodes"][: len(own)] = own
+    for t, q, (surf, pq) in zip(topo, parts, locals_):
+        # The padding's items are in no tree (empty boxes): the trees are the part's own.
+        t["node_live"] = pq.node_ids < len(q.nodes)
+        t["face_live"] = pq.face_ids < len(q.faces)
     topo = _stack(topo)
     st = replace(st_global, node_levels=level_sizes(p_cap), face_levels=level_sizes(f_cap))
 
