@@ -67,7 +67,7 @@ def flatten(tree: Tree) -> Flat:
     return Flat(jnp.concatenate(rows), jnp.asarray(offset[:-1], jnp.int32), top)
 
 
-def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None):
+def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, shrink=True):
     """Depth-first scans of `flat` from the root, one per query point q [n, 3], with reach [n].
 
     At each step every busy slave tests the W children of its entry; the reach becomes
@@ -76,8 +76,8 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None):
     whose normal box may face the normal are entered); `visit(carry, pos, keep, dist)` is called
     with, per slave, the W children's positions in their level `pos` [n, W], which of them
     are items within reach (`keep`, false except where the children are items) and the
-    representatives' distances `dist` [n, W], and returns the new carry. Returns (carry,
-    reach, steps)."""
+    representatives' distances `dist` [n, W], and returns the new carry. shrink=False: the
+    reach stays (every item within it is visited). Returns (carry, reach, steps)."""
     n = q.shape[0]
     top = flat.top
     # Row vectors: the tests run JAX with rank promotion off (broadcasts written out).
@@ -108,7 +108,8 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None):
         r = rep - qs
         dr = jnp.where(filled, jnp.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2 + r[:, 2] ** 2), jnp.inf)
         if normal is None:
-            reach = jnp.where(done, reach, jnp.minimum(reach, jnp.min(dr, -1) + slack))
+            if shrink:
+                reach = jnp.where(done, reach, jnp.minimum(reach, jnp.min(dr, -1) + slack))
         else:
             nq = normal[:, :, None]
             nlo, nhi = box[:, 9:12], box[:, 12:15]
@@ -200,7 +201,7 @@ def closest_node(
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
 
-def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=None):
+def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=None, shrink=True):
     """Candidate (slave, face) pairs: the faces whose box is within the slave's reach (rho,
     shrunk by the scan to the nearest surface point it meets; self-contact, `normal` given:
     those that may face it), K = capacity["face_candidates"]
@@ -208,7 +209,7 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=Non
     largest number of candidates of one slave (above K: overflow, the extra ones dropped)."""
     n = slave_x.shape[0]
     K = capacity["face_candidates"]
-    found, count, steps = _collect(tree, slave_x, rho, slack, K, normal)
+    found, count, steps = _collect(tree, slave_x, rho, slack, K, normal, shrink)
     valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
     face = tree.ids[found.reshape(-1)]
     slave = jnp.repeat(jnp.arange(n), K)
@@ -220,13 +221,14 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=Non
     )
 
 
-def candidate_counts(tree: Tree, slave_x, rho, *, slack, normal=None):
+def candidate_counts(tree: Tree, slave_x, rho, *, slack, normal=None, shrink=True):
     """The number of candidate faces of each slave [n] (`candidate_faces` without slots): the
-    work per slave that the sharded plan balances."""
-    return _collect(tree, slave_x, rho, slack, 0, normal)[1]
+    work per slave that the sharded plan balances. shrink=False: every face whose box is
+    within rho (the sharded plan's halos)."""
+    return _collect(tree, slave_x, rho, slack, 0, normal, shrink)[1]
 
 
-def _collect(tree, slave_x, rho, slack, K, normal):
+def _collect(tree, slave_x, rho, slack, K, normal, shrink=True):
     """The scan of candidate_faces: the first K candidates of each slave [n, K] (tree
     positions), their count [n] and the scan's steps."""
     n = slave_x.shape[0]
@@ -240,5 +242,5 @@ def _collect(tree, slave_x, rho, slack, K, normal):
         return found, count + jnp.sum(keep, -1, dtype=jnp.int32)
 
     carry = (jnp.zeros((n, K), jnp.int32), jnp.zeros(n, jnp.int32))
-    (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry, None, normal)
+    (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry, None, normal, shrink)
     return found, count, steps

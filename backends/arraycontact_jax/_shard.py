@@ -35,7 +35,7 @@ from jax.sharding import PartitionSpec as P
 
 from arraycontact._contacts import Contacts, Counts
 from arraycontact._detect import Static, build_grids, check_options, master_geometry, scalars
-from arraycontact._grid import level_sizes, morton_order
+from arraycontact._grid import W, level_sizes, morton_order
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds
@@ -143,10 +143,13 @@ def plan(
     sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
     x_dev = jnp.asarray((all_x - origin).astype(dtype))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
-    m = {
-        k: jnp.asarray(v)
-        for k, v in master_arrays(master, _ordered(master, prep, lo, extent), dtype).items()
-    }
+    # The one-device plan's trees: the nodes and faces in the Morton order of the scene's cube.
+    prep = replace(
+        prep,
+        node_ids=master.nodes[morton_order(master.points[master.nodes], lo, extent)],
+        face_ids=morton_order(centres, lo, extent),
+    )
+    m = {k: jnp.asarray(v) for k, v in master_arrays(master, prep, dtype).items()}
     per = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global))
     weights, face_weights = np.ones(len(all_x)), None
     if mode == "exact":
@@ -181,12 +184,27 @@ def plan(
     spacing = 4 * (reach + r_max) + 2 * master.longest_edge
     far = hi + spacing  # the padding's corner, beyond reach of every slave
     nowhere = lo - spacing  # where padded slave rows sit, beyond reach of every face
-    locals_, tables = [], []
-    for q in parts:
+    node_rank = np.zeros(len(master.points), np.int64)
+    node_rank[prep.node_ids] = np.arange(len(prep.node_ids))
+    face_rank = np.argsort(prep.face_ids)
+    layouts = [(_aligned(node_rank[q.nodes]), _aligned(face_rank[q.faces])) for q in parts]
+    t_n = max(len(a[0][0]) for a in layouts)
+    t_f = max(len(a[1][0]) for a in layouts)
+    locals_, tables, lives = [], [], []
+    for q, ((n_ids, n_live), (f_ids, f_live)) in zip(parts, layouts):
         surf, pad_x = _padded(q, element, f_cap, p_cap, far, spacing, master.longest_edge)
-        pq = _ordered(surf, prep, lo, extent)
+        pq = replace(
+            prep,
+            node_ids=np.pad(n_ids, (0, t_n - len(n_ids))),
+            face_ids=np.pad(f_ids, (0, t_f - len(f_ids))),
+            node_levels=level_sizes(t_n),
+            face_levels=level_sizes(t_f),
+        )
         locals_.append((surf, pq))
         tables.append(pad_x)
+        lives.append(
+            (np.pad(n_live, (0, t_n - len(n_live))), np.pad(f_live, (0, t_f - len(f_live))))
+        )
 
     topo = [_topology_arrays(surf, pq, self_contact, master) for surf, pq in locals_]
     if self_contact:
@@ -194,12 +212,10 @@ def plan(
             own = np.searchsorted(q.nodes, master.nodes[q.slaves]).astype(np.int32)
             t["slave_nodes"] = np.full(s_cap, len(q.nodes), np.int32)  # a padding node
             t["slave_nodes"][: len(own)] = own
-    for t, q, (surf, pq) in zip(topo, parts, locals_):
-        # The padding's items are in no tree (empty boxes): the trees are the part's own.
-        t["node_live"] = pq.node_ids < len(q.nodes)
-        t["face_live"] = pq.face_ids < len(q.faces)
+    for t, (n_live, f_live) in zip(topo, lives):
+        t["node_live"], t["face_live"] = n_live, f_live
     topo = _stack(topo)
-    st = replace(st_global, node_levels=level_sizes(p_cap), face_levels=level_sizes(f_cap))
+    st = replace(st_global, node_levels=level_sizes(t_n), face_levels=level_sizes(t_f))
 
     # 3. The exchange: rows a device sends to each part and where each part reads them.
     n_rows, n_pts = len(all_x), len(master.points)
@@ -325,25 +341,31 @@ def _face_tree(sc, m, *, st):
 
 @jax.jit
 def _counts_within(grid, x, rho, slack):
-    return _grid.candidate_counts(grid, x, rho, slack=slack)
+    return _grid.candidate_counts(grid, x, rho, slack=slack, shrink=False)
 
 
 @partial(jax.jit, static_argnames=("k",))
 def _candidates(grid, x, rho, slack, k):
-    return _grid.candidate_faces(jnp, grid, x, rho, slack=slack, capacity={"face_candidates": k})
-
-
-def _ordered(surf, prep, lo, extent):
-    """prep with every node and face of `surf`, in the Morton order of the scene's cube."""
-    centres = surf.face_bounds[0]
-    nodes = np.arange(len(surf.points))
-    return replace(
-        prep,
-        node_ids=nodes[morton_order(surf.points, lo, extent)],
-        face_ids=morton_order(centres, lo, extent),
-        node_levels=level_sizes(len(nodes)),
-        face_levels=level_sizes(surf.n_faces),
+    return _grid.candidate_faces(
+        jnp, grid, x, rho, slack=slack, capacity={"face_candidates": k}, shrink=False
     )
+
+
+def _aligned(rank, block=W**3):
+    """A part's tree layout from its items' positions `rank` in the one-device tree's order:
+    (ids [L], live [L]), the part's items (local ids) in that order, each kept at its position
+    modulo `block` with dead slots (empty boxes) where the one-device tree has items of other
+    parts. The groups of the lowest log_W(block) levels are then the one-device tree's (a
+    compacted order would shift the groups of W off the Morton cells and loosen every box
+    after the first gap)."""
+    b = rank // block
+    blocks = np.unique(b)
+    slot = np.searchsorted(blocks, b) * block + rank % block
+    ids = np.zeros(len(blocks) * block, np.int64)
+    live = np.zeros(len(ids), bool)
+    ids[slot] = np.arange(len(rank))
+    live[slot] = True
+    return ids, live
 
 
 def _padded(q, element, f_cap, p_cap, far, spacing, size):
