@@ -166,9 +166,8 @@ def partition(
     halo = []
     reach = d_max + margin
     if pairs is not None:
-        rows, faces = (np.asarray(a, np.int64) for a in pairs)
-        key = np.unique(slave_part[rows].astype(np.int64) * master.n_faces + faces)
-        first = np.searchsorted(key, np.arange(n_parts + 1) * master.n_faces)
+        rows, faces = (np.asarray(a) for a in pairs)
+        pair_part = slave_part[rows]
     for p in range(n_parts):
         mine = slave_x[slave_part == p]
         if len(mine) == 0:  # a part with faces only: nothing to detect
@@ -178,7 +177,9 @@ def partition(
         lo, hi = bounds(mine)
         boxes[p] = lo, hi
         if pairs is not None:
-            halo.append(key[first[p] : first[p + 1]] - p * master.n_faces)
+            hit = np.zeros(master.n_faces, bool)
+            hit[faces[pair_part == p]] = True
+            halo.append(np.flatnonzero(hit))
             continue
         out = np.maximum(np.maximum(lo - centres, centres - hi), 0)
         halo.append(np.flatnonzero(np.linalg.norm(out, axis=1) - radii <= reach))

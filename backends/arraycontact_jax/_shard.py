@@ -220,8 +220,8 @@ def plan(
     # 3. The exchange: rows a device sends to each part and where each part reads them.
     n_rows, n_pts = len(all_x), len(master.points)
     b_s, b_m = -(-n_rows // n_dev), -(-n_pts // n_dev)
-    s_send, s_sent, s_take, s_ok, c_s = _routes([q.slaves for q in parts], b_s, n_dev, s_cap)
-    m_send, _, m_take, m_ok, c_m = _routes([q.nodes for q in parts], b_m, n_dev, p_cap)
+    s_route = _routes([q.slaves for q in parts], b_s, n_dev, s_cap, "s_")
+    m_route = _routes([q.nodes for q in parts], b_m, n_dev, p_cap, "m_")
     pad_x = np.stack(tables)
     x_ref = np.zeros((n_dev * b_s, 3))
     x_ref[:n_rows] = all_x
@@ -236,15 +236,10 @@ def plan(
         face_ids[e, : len(q.faces)] = q.faces
         node_ids[e, : len(q.nodes)] = q.nodes
     exchange = dict(
-        s_send=s_send,
-        s_sent=s_sent,
-        s_take=s_take,
-        s_ok=s_ok,
+        **s_route,
+        **m_route,
         s_ref=x_ref.reshape(n_dev, b_s, 3),
         s_used=s_used.reshape(n_dev, b_s),
-        m_send=m_send,
-        m_take=m_take,
-        m_ok=m_ok,
         m_pad=pad_x,
         m_ref=m_ref.reshape(n_dev, b_m, 3),
         m_used=m_used.reshape(n_dev, b_m),
@@ -281,7 +276,9 @@ def plan(
         work=[float(w) for w in part.work],
         sent_slave_rows=int(sum(len(q.slaves) for q in parts) if not self_contact else 0),
         sent_master_rows=int(sum(len(q.nodes) for q in parts)),
-        route_widths=[c_s, c_m],
+        # Rows each device keeps and the widest route to another device (slaves, master).
+        own_rows=[s_route["s_own"].shape[1], m_route["m_own"].shape[1]],
+        route_widths=[s_route["s_send"].shape[2], m_route["m_send"].shape[2]],
     )
     sharding = NamedSharding(mesh, P(axis))
 
@@ -390,27 +387,52 @@ def _padded(q, element, f_cap, p_cap, far, spacing, size):
     return Surface(points, faces, element), pad_x
 
 
-def _routes(members, block, n_dev, cap):
-    """The all_to_all routes of items held in row blocks of `block` rows (device d: rows
-    [d block, (d + 1) block)) to the parts whose sorted ids are `members[e]`:
-    send [D(src), D(dst), C] local rows each device sends to each part and sent [.., C] which
-    slots are real; take [D(dst), cap]: where each part reads its i-th item in the flattened
-    [D(src) C] buffer it receives, ok [D, cap] which are real; C the route width."""
-    src = [m // block for m in members]
-    c = max([int(np.bincount(s, minlength=n_dev).max(initial=0)) for s in src] + [1])
+def _routes(members, block, n_dev, cap, prefix):
+    """The routes of items held in row blocks of `block` rows (device d: rows
+    [d block, (d + 1) block)) to the parts whose sorted ids are `members[e]`. A part's items
+    in its own device's block stay there (`own` [D, C0]: their rows, `own_ok`); the others
+    travel by one all_to_all (`send` [D(src), D(dst), C]: the rows each device sends to each
+    other part, `sent`: which slots are real; C the widest route, 1 at least). `take` [D, cap]:
+    where a part reads its i-th item in [own C0 rows; received D C rows], `ok`: which are
+    real."""
+    c0 = max([int(np.sum(m // block == e)) for e, m in enumerate(members)] + [1])
+    c = max(
+        [
+            int(np.sum(m // block == d))
+            for e, m in enumerate(members)
+            for d in range(n_dev)
+            if d != e
+        ]
+        + [1]
+    )
+    own = np.zeros((n_dev, c0), np.int32)
+    own_ok = np.zeros((n_dev, c0), bool)
     send = np.zeros((n_dev, n_dev, c), np.int32)
     sent = np.zeros((n_dev, n_dev, c), bool)
     take = np.zeros((n_dev, cap), np.int32)
     ok = np.zeros((n_dev, cap), bool)
-    for e, (m, s) in enumerate(zip(members, src)):
+    for e, m in enumerate(members):
+        src = m // block
         # members are sorted, so those of one source block are consecutive
-        first = np.searchsorted(s, np.arange(n_dev))
-        slot = np.arange(len(m)) - first[s]
-        send[s, e, slot] = m - s * block
-        sent[s, e, slot] = True
-        take[e, : len(m)] = s * c + slot
+        slot = np.arange(len(m)) - np.searchsorted(src, np.arange(n_dev))[src]
+        home = src == e
+        own[e, slot[home]] = m[home] - e * block
+        own_ok[e, slot[home]] = True
+        away = ~home
+        send[src[away], e, slot[away]] = m[away] - src[away] * block
+        sent[src[away], e, slot[away]] = True
+        take[e, : len(m)] = np.where(home, slot, c0 + src * c + slot)
         ok[e, : len(m)] = True
-    return send, sent, take, ok, c
+    names = ("own", "own_ok", "send", "sent", "take", "ok")
+    return {prefix + k: v for k, v in zip(names, (own, own_ok, send, sent, take, ok))}
+
+
+def _gather(blk, ex, prefix, axis):
+    """A part's items from the row blocks: its own device's rows, and the others' by one
+    all_to_all (only the rows another part needs cross devices)."""
+    recv = jax.lax.all_to_all(blk[ex[prefix + "send"]], axis, 0, 0)
+    rows = jnp.concatenate([blk[ex[prefix + "own"]], recv.reshape(-1, blk.shape[1])])
+    return rows[ex[prefix + "take"]]
 
 
 def _stack(tables):
@@ -456,14 +478,12 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         topo = jax.tree_util.tree_map(lambda a: a[0], topo)
         ex = jax.tree_util.tree_map(lambda a: a[0], ex)
         ref_m = ex["m_ref"].astype(m_blk.dtype)
-        recv = jax.lax.all_to_all(m_blk[ex["m_send"]], axis, 0, 0)
-        x_m = recv.reshape(-1, 3)[ex["m_take"]]
+        x_m = _gather(m_blk, ex, "m_", axis)
         x_m = jnp.where(ex["m_ok"][:, None], x_m, ex["m_pad"].astype(x_m.dtype))
         if self_contact:
             s = x_m[topo["slave_nodes"]]
         else:
-            recv_s = jax.lax.all_to_all(s_blk[ex["s_send"]], axis, 0, 0)
-            s = recv_s.reshape(-1, 3)[ex["s_take"]]
+            s = _gather(s_blk, ex, "s_", axis)
             s = jnp.where(ex["s_ok"][:, None], s, ex["nowhere"].astype(s.dtype))
         fields, counts = local_detect(p.local, topo, s, x_m)
         # Global ids of the answer.
@@ -539,12 +559,14 @@ def _norm(v):
 
 
 def _home(vals, ex, axis, n_dev, b_s):
-    """Rows of a part's slaves [cap, w] back to the devices holding them: [b_s, w] blocks."""
+    """Rows of a part's slaves [cap, w] back to the devices holding them: [b_s, w] blocks
+    (`_gather` reversed)."""
     w = vals.shape[1]
-    c = ex["s_send"].shape[1]
-    buf = jnp.zeros((n_dev * c, w), vals.dtype)
-    buf = buf.at[jnp.where(ex["s_ok"], ex["s_take"], n_dev * c)].set(vals, mode="drop")
-    recv = jax.lax.all_to_all(buf.reshape(n_dev, c, w), axis, 0, 0)
-    rows = jnp.where(ex["s_sent"], ex["s_send"], b_s)
+    c0, c = ex["s_own"].shape[0], ex["s_send"].shape[1]
+    buf = jnp.zeros((c0 + n_dev * c, w), vals.dtype)
+    buf = buf.at[jnp.where(ex["s_ok"], ex["s_take"], c0 + n_dev * c)].set(vals, mode="drop")
+    recv = jax.lax.all_to_all(buf[c0:].reshape(n_dev, c, w), axis, 0, 0)
     out = jnp.zeros((b_s, w), vals.dtype)
+    out = out.at[jnp.where(ex["s_own_ok"], ex["s_own"], b_s)].set(buf[:c0], mode="drop")
+    rows = jnp.where(ex["s_sent"], ex["s_send"], b_s)
     return out.at[rows.reshape(-1)].set(recv.reshape(-1, w), mode="drop")
