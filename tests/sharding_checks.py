@@ -98,9 +98,10 @@ def test_one_to_four_devices_give_one_devices_contacts_and_gradients(name):
 
 
 def test_all_contact_in_one_corner_still_balances():
-    """The slaves over most of the master are beyond d_max; those over one corner are close,
-    with several candidate faces each. Weighted by candidates, the parts' work (slaves,
-    candidate faces and local faces, the plan's own counts) is within 20 % of the mean."""
+    """The slaves over most of the master are beyond d_max; those over one corner are close.
+    Each device's work in the JAX search (a lane per slave, a tree entry per local face: the
+    plan's own counts) is within 20 % of the mean, though the faces the slaves reach are all
+    in the corner."""
     s = scenes.rough_surfaces(2**12, seed=7, gap=0.5)
     slave = s.slave.copy()
     lo, hi = s.master.node_box
@@ -108,11 +109,12 @@ def test_all_contact_in_one_corner_still_balances():
     slave[~corner, 2] += 20 * s.master.longest_edge
     p = acj.plan(s.master, slave, dtype=np.float64, mesh=_mesh(4))
     k = dict(p.counts)
-    work = np.add(np.add(k["slaves"], k["candidates"]), k["local_faces"])
+    work = np.add(k["slaves"], k["local_faces"])
     assert sum(k["candidates"]) > 0
     assert work.max() <= 1.2 * work.mean(), k
-    # Unweighted, the corner's part would hold a quarter of the slaves and most candidates.
-    assert max(k["slaves"]) > 2 * min(k["slaves"]), k
+    # The part holding the reached faces holds fewer slaves.
+    corner_part = int(np.argmax(k["local_faces"]))
+    assert k["slaves"][corner_part] < 0.9 * np.mean(k["slaves"]), k
     c = acj.detect(p, slave, s.master.points)
     r = acj.detect(acj.plan(s.master, slave, dtype=np.float64), slave, s.master.points)
     _same(c, r)
