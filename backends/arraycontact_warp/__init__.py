@@ -9,11 +9,17 @@
     plan_swept(master, slave_points, *, slave_world, master_world, device, dtype),
     detect_swept(plan, slave_x0, slave_x1, master_x0, master_x1): swept detection over a
         step (arraycontact.detect_swept's contract)
+    partition(master, slave_points, n_parts, d_max=...) -> Partition: arraycontact.partition,
+        the RCB cuts and halos of a plan per device (`Partition.part(e)`: each part's
+        slaves and master, see the README's "Several GPUs")
     closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
     face_point: @wp.func (float32; `geometry("float64")` holds their float64 twins)
 """
 
 AVAILABLE = True
+
+from arraycontact._partition import Partition as Partition  # noqa: E402
+from arraycontact._partition import partition as partition  # noqa: E402
 
 from ._detect import Plan as Plan  # noqa: E402
 from ._detect import SweptPlan as SweptPlan  # noqa: E402
