@@ -97,6 +97,25 @@ def test_one_to_four_devices_give_one_devices_contacts_and_gradients(name):
             assert min(dict(p.counts)["slaves"]) > 0
 
 
+@pytest.mark.parametrize(
+    "make, mode, n",
+    [
+        (lambda: scenes.rough_surfaces(2**10, seed=5), "node", 3),
+        (lambda: scenes.rough_layers(2**8, quadratic=True, seed=1), "exact", 2),
+    ],
+    ids=["node_mode", "tri6"],
+)
+def test_node_mode_and_curved_faces(make, mode, n):
+    s = make()
+    r = acj.detect(
+        acj.plan(s.master, s.slave, dtype=np.float64, mode=mode), s.slave, s.master.points
+    )
+    p = acj.plan(s.master, s.slave, dtype=np.float64, mode=mode, mesh=_mesh(n))
+    c = acj.detect(p, s.slave, s.master.points)
+    assert not bool(c.overflow)
+    _same(c, r)
+
+
 def test_all_contact_in_one_corner_still_balances():
     """The slaves over most of the master are beyond d_max; those over one corner are close.
     Each device's work in the JAX search (a lane per slave, a tree entry per local face: the

@@ -316,7 +316,8 @@ def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
     each slave on its own: a part holding slaves both near and far from the master needs
     the faces near each, not those near the box around them all). In chunks of slaves that
     keep the candidate slots under `slots`."""
-    grid = _face_tree(sc, m, st=st)
+    # (Node mode too: a face incident to a node within reach has its box within reach.)
+    grid = _face_tree(sc, m, st=replace(st, mode="exact"))
     rho = jnp.full(x.shape[0], reach, x.dtype)
     count = _counts_within(grid, x, rho, sc["slack"])
     rows, faces = [], []
