@@ -208,16 +208,20 @@ def test_partition_of_the_sharded_plan_is_arraycontacts():
     q = ac.partition(s.master, s.slave, 4, d_max=p.d_max, margin=part.margin)
     assert part.n_parts == q.n_parts == 4 and len(part.cuts) == 3
     assert np.array_equal(np.bincount(part.slave_part, minlength=4), dict(p.counts)["slaves"])
-    # Each halo holds every face within d_max + margin of each of its slaves (brute force
-    # over the faces' sample points: a face some point of which is that close).
+    # Each halo holds every face within min(dn + margin, d_max) + margin of each of its
+    # slaves, dn the slave's closest master node within d_max (brute force over the faces'
+    # sample points: a face some point of which is that close).
     xe = s.master.points[s.master.faces]
     w = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [2, 1, 1], [1, 2, 1], [1, 1, 2]])
     samples = np.einsum("sk,fkd->fsd", w / w.sum(1, keepdims=True), xe)
-    reach = p.d_max + part.margin
+    nodes = s.master.points[s.master.nodes]
+    m = part.margin
     for e in range(4):
         mine = s.slave[part.slave_part == e]
         near = set()
         for x in mine[::7]:
+            dn = np.linalg.norm(nodes - x, axis=1).min()
+            reach = min(dn + m, p.d_max) + m if dn <= p.d_max else p.d_max + m
             d = np.linalg.norm(samples - x, axis=-1).min(1)
             near.update(np.flatnonzero(d <= reach).tolist())
         assert near <= set(part.halo[e].tolist()), e

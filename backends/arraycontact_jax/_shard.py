@@ -172,7 +172,9 @@ def plan(
         weights=weights,
         face_weights=face_weights,
         self_contact=self_contact,
-        pairs=_reach_pairs(sc_dev, m, x_dev, d_max + margin, st_global),
+        pairs=_reach_pairs(
+            sc_dev, m, x_dev, _reach(sc_dev, m, x_dev, margin, st_global), st_global
+        ),
     )
     parts = [part.part(e) for e in range(n_dev)]
 
@@ -311,14 +313,43 @@ def plan(
     )
 
 
+def _reach(sc, m, x, margin, st):
+    """How far from each slave [n] its halo reaches: the faces it may need while slaves and
+    master nodes move less than `margin` together. The search needs the faces within
+    min(dn, d_max) of a slave (dn: its closest master node's distance, which such motion
+    changes by at most the margin), and a face comes at most the margin closer: so
+    min(dn + margin, d_max) + margin, tighter than d_max + margin where the mesh is finer
+    than d_max (graded meshes). Self-contact's reach is bounded by faces, not nodes: d_max +
+    margin."""
+    d_max, slack = float(sc["d_max"]), float(sc["slack"])
+    if st.self_contact:
+        return np.full(x.shape[0], d_max + margin + slack)
+    dn = np.asarray(_closest_distance(sc, m, x, st=st), np.float64)
+    return np.minimum(dn + margin, d_max) + margin + slack
+
+
+@partial(jax.jit, static_argnames=("st",))
+def _closest_distance(sc, m, x, *, st):
+    grids = build_grids(jnp, st, sc, m)
+    return _grid.closest_node(
+        jnp,
+        grids["node"],
+        m["nodes_x"],
+        x,
+        d_max=sc["d_max"],
+        tie=sc["tie"],
+        slack=sc["slack"],
+    )[1]
+
+
 def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
-    """(slave row, face) pairs whose face box is within `reach` of the slave (the halos of
+    """(slave row, face) pairs whose face box is within `reach` [n] of the slave (the halos of
     each slave on its own: a part holding slaves both near and far from the master needs
     the faces near each, not those near the box around them all). In chunks of slaves that
     keep the candidate slots under `slots`."""
     # (Node mode too: a face incident to a node within reach has its box within reach.)
     grid = _face_tree(sc, m, st=replace(st, mode="exact"))
-    rho = jnp.full(x.shape[0], reach, x.dtype)
+    rho = jnp.asarray(reach, x.dtype)
     count = _counts_within(grid, x, rho, sc["slack"])
     rows, faces = [], []
     start, n = 0, x.shape[0]
