@@ -277,9 +277,10 @@ def plan(
         local_faces=[len(q.faces) for q in parts],
         candidates=[int(c.sum()) for c in cand],
         work=[float(w) for w in part.work],
-        sent_slave_rows=int(sum(len(q.slaves) for q in parts) if not self_contact else 0),
-        sent_master_rows=int(sum(len(q.nodes) for q in parts)),
-        # Rows each device keeps and the widest route to another device (slaves, master).
+        # Rows that cross devices in each exchange (slaves: none in self-contact), the rows
+        # each device keeps, and the widest route to another device (slaves, master).
+        sent_slave_rows=0 if self_contact else int(s_route["s_sent"].sum()),
+        sent_master_rows=int(m_route["m_sent"].sum()),
         own_rows=[s_route["s_own"].shape[1], m_route["m_own"].shape[1]],
         route_widths=[s_route["s_send"].shape[2], m_route["m_send"].shape[2]],
     )
