@@ -1,16 +1,19 @@
 """Detection over the devices of a `jax.sharding.Mesh` (seed 004's RCB, seed 000's MDMR).
 
 `plan(..., mesh=mesh)` splits the slaves and the master's faces by recursive coordinate
-bisection (arraycontact._partition), weighted by each slave's candidate faces, one part per
-device along the mesh axis. Each part gets a master of its own: its halo faces, the ring
-around them (so node normals, edges and boundary are the whole master's) and inert padding
-(small faces far from everything) to the shapes every part shares, which shard_map needs.
+bisection (arraycontact._partition), balancing the JAX search's work (a lane per slave, a tree
+entry per face some slave reaches), one part per device along the mesh axis. Each part gets a
+master of its own: its halo faces (those its slaves may reach, listed by the tree), the ring
+around them (so node normals, edges and boundary are the whole master's) and padding (small
+faces far from everything) to the shapes every part shares, which shard_map needs. Its trees
+keep the one-device tree's groups (`_aligned`); the padding's items are dead in them.
 
 `detect` takes the coordinates as arrays sharded by rows over the axis (or replicated):
 device d holds rows [d B, (d + 1) B). Inside shard_map each device
 
-1. sends the rows of its block that other parts need and receives its own part's (one
-   all_to_all for the master's nodes, one for the slaves): only halo data moves;
+1. keeps the rows of its block that its own part needs, sends those other parts need and
+   receives the rest of its own (one all_to_all for the master's nodes, one for the slaves):
+   only rows another part needs cross devices;
 2. runs the one-device detection (arraycontact_jax._detect.local_detect) on its part, with the
    scene's constants (d_max, tolerances, frame), so every row is the one-device answer;
 3. sends each answer back to the device holding the slave's row (one all_to_all for the float
