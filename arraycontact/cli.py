@@ -37,14 +37,20 @@ class Progress:
 
         t = threading.Thread(target=tick, daemon=True)
         t.start()
+        ok = False
         try:
             yield
+            ok = True
         finally:
             done.set()
             t.join()
             if self._late():
                 t = time.perf_counter() - start
-                print(f"\r{label}: {t:.2f} s   ", file=self.stream, flush=True)
+                if ok:
+                    print(f"\r{label}: {t:.2f} s   ", file=self.stream, flush=True)
+                else:  # a failed stage: its live line is erased, the error is the one line
+                    blank = " " * (len(label) + 12)
+                    print(f"\r{blank}\r", end="", file=self.stream, flush=True)
 
 
 def topology(surface):

@@ -38,6 +38,16 @@ def test_progress_lists_the_stages_of_a_long_run():
     with Progress(after=60.0, stream=quiet).stage("reading"):
         pass
     assert quiet.getvalue() == ""
+    # A stage that fails leaves no line of its own: the error that follows is the one line.
+    failed = io.StringIO()
+    try:
+        with Progress(after=0.0, stream=failed).stage("reading"):
+            time.sleep(0.3)
+            raise ValueError("unreadable")
+    except ValueError:
+        pass
+    assert "reading" in failed.getvalue() and "\n" not in failed.getvalue()
+    assert failed.getvalue().endswith("\r")
 
 
 def test_detect_files(tmp_path, capsys):
