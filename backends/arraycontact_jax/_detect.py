@@ -124,15 +124,19 @@ def _per_slave(sc, m, slave_x, ids=None, *, st, slots=0):
     return jnp.where(node >= 0, deg, 0)
 
 
-def _grown(counts, growth, n_slaves):
+def _grown(counts, growth, n_slaves, minimum=None):
     """Capacities from counts, times growth: at least MIN_CANDIDATES candidate faces a slave;
     at least 64 + 2 a slave for the attached faces of node mode (a total, which on a small
-    scene a new configuration can double)."""
+    scene a new configuration can double); at least `minimum` (counts) times growth."""
     floor = {"face_candidates": MIN_CANDIDATES}
-    return {
+    cap = {
         k: max(int(np.ceil(int(v) * growth)), floor.get(k, 64 + 2 * n_slaves))
         for k, v in counts.items()
     }
+    for k, v in (minimum or {}).items():
+        if k in cap:
+            cap[k] = max(cap[k], int(np.ceil(v * growth)))
+    return cap
 
 
 def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
@@ -323,10 +327,8 @@ def plan(
         _count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), ids, st=st),
         growth,
         len(slave_x),
+        minimum,
     )
-    for k, v in (minimum or {}).items():
-        if k in cap:
-            cap[k] = max(cap[k], int(np.ceil(v * growth)))
     return Plan(
         _topology(master, prep, self_contact),
         master,
@@ -447,19 +449,25 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     fields, counts = local_detect(p, p.topology, slave_points, master_points)
     ids = p.topology.get("slave_nodes")
     n = slave_points.shape[0]
+    ids = jnp.arange(n, dtype=jnp.int32) if ids is None else ids
+    return contacts_of(fields, ids, p, counts, dict(p.capacity))
+
+
+def contacts_of(fields, slave_ids, p, count, capacity) -> Contacts:
+    """The Contacts pytree of a detection on plan `p` (one device's or sharded)."""
     return Contacts(
         **fields,
-        slave_ids=jnp.arange(n, dtype=jnp.int32) if ids is None else ids,
+        slave_ids=slave_ids,
         d_max=p.d_max,
         counts=Counts(
-            slaves_in_box=n,
+            slaves_in_box=slave_ids.shape[0],
             master_nodes_in_box=len(p.master.nodes),
             master_faces_in_box=p.master.n_faces,
-            count=counts,
-            capacity=dict(p.capacity),
+            count=count,
+            capacity=capacity,
         ),
         backend="jax",
-        dtype=p.dtype,
+        dtype=jnp.dtype(p.dtype).name,
     )
 
 

@@ -36,7 +36,7 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from arraycontact._contacts import Contacts, Counts
+from arraycontact._contacts import Contacts
 from arraycontact._detect import Static, build_grids, check_options, master_geometry, scalars
 from arraycontact._grid import W, level_sizes, morton_order
 from arraycontact._partition import Partition, partition
@@ -44,7 +44,15 @@ from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds
 
 from . import _grid
-from ._detect import Plan, _grown, _per_slave, _topology_arrays, local_detect, master_arrays
+from ._detect import (
+    Plan,
+    _grown,
+    _per_slave,
+    _topology_arrays,
+    contacts_of,
+    local_detect,
+    master_arrays,
+)
 
 _FLOATS = (("xi", 2), ("point", 3), ("gap", 1), ("distance", 1), ("normal", 3))
 
@@ -71,6 +79,10 @@ class ShardedPlan:
     @property
     def d_max(self) -> float:
         return self.local.d_max
+
+    @property
+    def dtype(self) -> str:
+        return self.local.dtype
 
     @property
     def master(self) -> Surface:
@@ -270,10 +282,7 @@ def plan(
         counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
     else:
         counts = {"attached": max(int(c.sum()) for c in cand)}
-    cap = _grown(counts, growth, s_cap)
-    for key, v in (minimum or {}).items():
-        if key in cap:
-            cap[key] = max(cap[key], int(np.ceil(v * growth)))
+    cap = _grown(counts, growth, s_cap, minimum)
     balance = dict(
         slaves=[len(q.slaves) for q in parts],
         halo_faces=[len(h) for h in part.halo],
@@ -575,20 +584,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         if self_contact
         else jnp.arange(n, dtype=jnp.int32)
     )
-    return Contacts(
-        **fields,
-        slave_ids=slave_ids,
-        d_max=p.d_max,
-        counts=Counts(
-            slaves_in_box=n,
-            master_nodes_in_box=len(p.master.nodes),
-            master_faces_in_box=p.master.n_faces,
-            count=counts,
-            capacity=p.capacity,
-        ),
-        backend="jax",
-        dtype=p.local.dtype,
-    )
+    return contacts_of(fields, slave_ids, p, counts, p.capacity)
 
 
 def _norm(v):
