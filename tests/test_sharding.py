@@ -82,7 +82,8 @@ def test_partition_rejects_bad_input():
 def test_warp_plans_per_part_give_one_plans_contacts():
     """The Warp recipe of the README: one plan per part (a device each on a GPU machine; the
     CPU device here), the master's points of each part's nodes in, the part's face ids out."""
-    acw = pytest.importorskip("arraycontact_warp")
+    import arraycontact_warp as acw
+
     s = scenes.rough_surfaces(2**10, seed=14)
     p1 = acw.plan(s.master, s.slave, device="cpu", dtype="float64")
     one = acw.detect(p1, s.slave, s.master.points)
