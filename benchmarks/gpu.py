@@ -1,18 +1,19 @@
-"""GPU benchmarks (issues 5 and 6): arraycontact's jitted JAX detection against Warp's own
-BVH closest-point query and hash-grid closest-node search, same points, same run.
+"""GPU benchmark of the rough-surface scene: our Warp and JAX detection against Warp's own BVH
+closest-point query and hash-grid closest-node search, same points, same run.
 
-    python benchmarks/gpu.py all --sizes 16 20 22 --out DIR    # on a CUDA machine with Warp
+    python benchmarks/gpu.py all --sizes 16 20 22 [--run ID] [--out DIR]   # CUDA and Warp
+    python benchmarks/gpu.py table [--machine h100]    # newest record per back end and size
 
 For each size: two rough surfaces of 2^k nodes each (float32), the JAX plan time, the first
 detect (compilation) and the steady-state detect (median of synchronised repeats, coordinates
 as device arrays, as inside a simulation loop), the error against the brute-force reference on
 a random subset, and the peers: `wp.Mesh` build + `mesh_query_point_no_sign`, refit + query, and
-`wp.HashGrid` build + closest-node query. One JSON record per size goes to DIR/gpu.jsonl.
+`wp.HashGrid` build + closest-node query. One JSON record per size and back end goes to
+DIR/gpu_<machine>.jsonl (default DIR: results/).
 """
 
 import argparse
 import functools
-import json
 import statistics
 import sys
 import time
@@ -23,6 +24,7 @@ import numpy as np
 from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
+import _records  # noqa: E402
 from run import errors, make_scene, warp_contacts  # noqa: E402
 
 
@@ -318,23 +320,26 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument(
         "what",
-        choices=["jax", "jax-warp", "warp", "all"],
+        choices=["jax", "jax-warp", "warp", "all", "table"],
         help="jax-warp: the JAX back end with search='warp' (Warp kernels through Warp's JAX FFI)",
     )
     ap.add_argument("--sizes", type=int, nargs="*", default=[16, 20])
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--check", type=int, default=256)
     ap.add_argument("--device", default="cuda", help="Warp device of the peers")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    ap.add_argument("--out", default=None, help="folder of the records (default results/)")
+    ap.add_argument("--run", default=None, help="run id recorded with every record")
+    ap.add_argument("--machine", default="h100", help="table: the records' machine")
     a = ap.parse_args()
+    if a.what == "table":
+        return table(a.machine)
     import warp as wp
 
     quiet_warp()
     wp.init()
     from peers_warp import hashgrid_peer, mesh_peers
 
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    meta = _records.meta(a.run)
     backends = ["jax", "jax-warp", "warp"] if a.what == "all" else [a.what]
     for k in a.sizes:
         scene = make_scene("rough_close", k)
@@ -403,8 +408,7 @@ def main():
             )
             rg = peers["warp_mesh_refit_query_graph"]["steady_s"]
             rec["ratio_to_mesh_refit_query_graph"] = rec["steady_s"] / rg if rg else None
-            with open(out / "gpu.jsonl", "a") as f:
-                f.write(json.dumps(rec) + "\n")
+            _records.append("gpu", rec, meta, out=a.out)
             if rec.get("search_only_s"):
                 print(
                     f"   the Warp search alone {rec['search_only_s'] * 1e3:.3f} ms; JAX parts "
@@ -456,6 +460,53 @@ def main():
                         if "detect" in n or "node_stage" in n
                     )
                 )
+
+
+def table(machine):
+    """The newest record of each back end and size on `machine`, as a markdown table."""
+    recs = _records.newest(_records.load("gpu", machine), "backend", "log2_nodes")
+    recs.sort(key=lambda r: (r["log2_nodes"], r["backend"]))
+
+    def ms(v):
+        return f"{v * 1e3:.2f}" if v else "-"
+
+    rows = []
+    for r in recs:
+        p, e = r["peers"], r["errors"]
+        var = r.get("variants_steady_s", {})
+        rows.append(
+            [
+                f"2^{r['log2_nodes']}",
+                r["backend"],
+                f"{r['run']} ({_records.commit(r)})",
+                f"{r['plan_s']:.2f}",
+                f"{r['first_call_s']:.2f}",
+                ms(r["steady_s"]),
+                ms(r.get("launches_s")),
+                ms(r.get("graph_replay_s")),
+                ms(var.get("no_refit")),
+                ms(r.get("moving_master", {}).get("mean_s")),
+                ms(p["warp_mesh_build_query"]["steady_s"]),
+                ms(p["warp_mesh_refit_query"]["steady_s"]),
+                ms(p.get("warp_mesh_refit_query_graph", {}).get("steady_s")),
+                ms(p["warp_hashgrid_closest_node"]["steady_s"]),
+                f"{r['ratio_to_mesh_build_query']:.2f}",
+                f"{r['ratio_to_mesh_refit_query']:.2f}",
+                f"{e['miss_rate']:.0%}",
+                f"{e['wrong_face_rate']:.0%}",
+                f"{e['max_gap_error_rel']:.1e}",
+            ]
+        )
+    header = [
+        "nodes per surface", "back end", "run (commit)", "plan s", "first call s",
+        "steady ms", "launched one by one ms", "in the caller's graph ms", "refit=False ms",
+        "moving master ms a step", "wp.Mesh build + query ms", "wp.Mesh refit + query ms",
+        "wp.Mesh refit + query as a graph ms", "wp.HashGrid closest node ms",
+        "/ wp.Mesh build + query", "/ wp.Mesh refit + query", "misses", "wrong faces",
+        "max gap error / edge",
+    ]  # fmt: skip
+    print(f"{recs[0]['device']}, float32, exact mode, rough surfaces (`rough_close`):\n")
+    print(_records.markdown(header, rows))
 
 
 if __name__ == "__main__":

@@ -1,39 +1,40 @@
-"""Tables and plots of the issue-7 suites, from the records in results/*.jsonl.
+"""Every table of RESULTS.md and GPU.md, made from the records in results/*.jsonl.
 
-    python benchmarks/report.py --run     # run every suite (about 40 min here), then report
-    python benchmarks/report.py           # report from the records already there
+    python benchmarks/report.py           # rewrite the tables from the records there
+    python benchmarks/report.py --run     # first run the CPU suites (about 40 min here)
+    python benchmarks/report.py --table detect    # print one of this script's tables
 
-Writes results/pareto.png, results/scaling.png and the section between the markers
-<!-- report --> and <!-- /report --> of RESULTS.md (the rest of RESULTS.md is left alone).
+Each block between `<!-- table: ARGS -->` and `<!-- /table -->` in RESULTS.md, GPU.md and the
+README is
+replaced by the output of `python benchmarks/ARGS` (each benchmark prints its own tables from
+its records); the block between `<!-- report -->` and `<!-- /report -->` of RESULTS.md holds
+the CPU suites of run.py and skips.py, with results/pareto.png and results/scaling.png. Text
+outside the blocks is left alone.
 """
 
 from __future__ import annotations
 
-import json
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 
 HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE))
+import _records  # noqa: E402
+
 RES = HERE / "results"
 BEGIN, END = "<!-- report -->", "<!-- /report -->"
+BLOCK = re.compile(r"(<!-- table: (.+?) -->\n)(.*?)(<!-- /table -->)", re.S)
+DOCS = ("RESULTS.md", "GPU.md", "../README.md")
 
 
 def load(name):
-    """The records of a suite, the latest one per configuration (files are appended to)."""
-    f = RES / f"{name}.jsonl"
-    if not f.exists():
-        return []
-    latest = {}
-    for line in open(f):
-        r = json.loads(line)
-        key = tuple(
-            r.get(k)
-            for k in ("scene", "log2_nodes", "backend", "dtype", "mode", "d_max_factor", "skip")
-        )
-        latest.pop(key, None)
-        latest[key] = r
-    return list(latest.values())
+    """The CPU records of a suite, the newest one per configuration."""
+    keys = ("scene", "log2_nodes", "backend", "dtype", "mode", "d_max_factor", "skip")
+    return _records.newest(_records.load(name, "cpu"), *keys)
 
 
 def _err(r):
@@ -250,9 +251,67 @@ SECTIONS = [
 ]
 
 
-def main():
-    import sys
+def detect_table():
+    """The CPU detection of `run.py cpu`: every back end, dtype and mode against cKDTree."""
+    recs = load("detect")
+    rows = []
+    for r in recs:
+        e = r["errors"]
+        rows.append(
+            [
+                f"2^{r['log2_nodes']}",
+                r["backend"],
+                r["dtype"],
+                r["mode"],
+                f"{r['first_call_s']:.2f} s",
+                f"{r['steady_s']:.2f} s",
+                f"{r['ratio_to_peer']:.1f}x",
+                f"{e['miss_rate']:.2g}",
+                f"{e['wrong_face_rate']:.1%}",
+                f"{e['max_gap_error_rel']:.1e}",
+                ", ".join(
+                    f"{k} {v * 1e3:.0f}"
+                    for k, v in r["stages_s"].items()
+                    if k not in ("detect", "total")
+                ),
+            ]
+        )
+    header = [
+        "nodes / surface", "back end", "dtype", "mode", "first call", "steady", "/ cKDTree",
+        "miss", "wrong face", "gap error", "stages (ms)",
+    ]  # fmt: skip
+    peers = {r["log2_nodes"]: r["peer"]["steady_s"] for r in recs}
+    print(_records.markdown(header, rows))
+    print(
+        "\ncKDTree (build + closest-node query), same runs: "
+        + ", ".join(f"{v:.3f} s (2^{k})" for k, v in sorted(peers.items()))
+        + f". Run {recs[0]['run']} ({recs[0]['device']}, {_records.commit(recs[0])})."
+    )
 
+
+TABLES = {"detect": detect_table}
+
+
+def blocks(text):
+    """Every `<!-- table: ARGS -->` block of `text` filled with `python benchmarks/ARGS`."""
+
+    def fill(m):
+        args = m.group(2).split()
+        out = subprocess.run(
+            [sys.executable, str(HERE / args[0]), *args[1:]],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=HERE.parent,
+        ).stdout.strip()
+        return m.group(1) + out + "\n" + m.group(4)
+
+    return BLOCK.sub(fill, text)
+
+
+def main():
+    if "--table" in sys.argv[1:]:
+        return TABLES[sys.argv[sys.argv.index("--table") + 1]]()
     if "--run" in sys.argv[1:]:
         run_all()
     out = []
@@ -260,19 +319,13 @@ def main():
         rec = load(suite)
         if rec:
             out += [f"### {heading}", "", intro, ""] + render(rec) + [""]
-    f = HERE / "RESULTS.md"
-    text = f.read_text()
-    block = BEGIN + "\n" + "\n".join(out) + "\n" + END
-    if BEGIN in text:
-        text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END) :]
-    else:
-        text = (
-            text.rstrip()
-            + "\n\n## Issue 7 suites (regenerated by benchmarks/report.py)\n\n"
-            + block
-            + "\n"
-        )
-    f.write_text(text)
+    for name in DOCS:
+        f = HERE / name
+        text = f.read_text()
+        if name == "RESULTS.md":
+            block = BEGIN + "\n" + "\n".join(out) + "\n" + END
+            text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END) :]
+        f.write_text(blocks(text))
 
 
 if __name__ == "__main__":

@@ -1,24 +1,24 @@
 """The benchmark runner: scenes as data, one record per (scene, size, back end, dtype, mode).
 
-    python benchmarks/run.py cpu            # issue 3: 2^16 and 2^20 nodes per surface, CPU
-    python benchmarks/run.py pareto         # issue 7: time against error, every variant
-    python benchmarks/run.py scaling        # issue 7: 2^12 .. 2^20, time per slave, memory
-    python benchmarks/run.py peers          # issue 7: Open3D, libigl, Warp BVH (CPU), cKDTree
-    python benchmarks/run.py table1         # issue 7: seed 000 Table 1 at 2^20 nodes each
-    python benchmarks/report.py             # RESULTS tables and plots from results/*.jsonl
+    python benchmarks/run.py cpu            # 2^16 and 2^20 nodes per surface on the CPU
+    python benchmarks/run.py pareto         # time against error, every variant
+    python benchmarks/run.py scaling        # 2^12 .. 2^20, time per slave, memory
+    python benchmarks/run.py peers          # Open3D, libigl, Warp BVH (CPU), cKDTree
+    python benchmarks/run.py table1         # seed 000 Table 1 at 2^20 nodes each
+    python benchmarks/report.py             # every table of RESULTS.md and GPU.md
 
 Every record holds the scene, sizes, back end, device, dtype, mode, the first call (compile
 and caches) apart from the steady state (median of repeats), the time per stage where the back
 end reports it, contact counts, and the error against the brute-force reference on a random
 subset of slaves (miss rate, wrong-face rate, largest gap error relative to the longest edge).
 Peers are timed in the same run on the same points: scipy's cKDTree closest-node search.
-Records are appended to benchmarks/results/<suite>.jsonl and summarised on stdout.
+Records are appended to benchmarks/results/<suite>_cpu.jsonl (the `cpu` suite's to
+detect_cpu.jsonl) and summarised on stdout.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import sys
@@ -29,6 +29,9 @@ import numpy as np
 
 import arraycontact as ac
 from arraycontact._backends import quiet_warp
+
+sys.path.insert(0, str(Path(__file__).parent))
+import _records  # noqa: E402
 
 HERE = Path(__file__).parent
 
@@ -230,9 +233,10 @@ def _peak_bytes(fn):
     return peak
 
 
-def run_suite(suite, sizes=None, repeats=2, n_check=512, out=None):
+def run_suite(suite, sizes=None, repeats=2, n_check=512, save=True, run=None):
     cfg = SUITES[suite]
     records = []
+    meta = _records.meta(run)
     device = f"cpu: {platform.processor() or platform.machine()}, {_cores()} cores"
     for scene_name in cfg["scenes"]:
         for log2n in sizes or cfg["sizes"]:
@@ -290,9 +294,9 @@ def run_suite(suite, sizes=None, repeats=2, n_check=512, out=None):
                         rec["peers"] = peer_records(scene, d_max, repeats, n_check)
                     records.append(rec)
                     _print(rec)
-                    if out:
-                        with open(out, "a") as f:
-                            f.write(json.dumps(rec) + "\n")
+                    if save:
+                        bench = "detect" if suite == "cpu" else suite
+                        _records.append(bench, rec, meta)
     return records
 
 
@@ -335,11 +339,9 @@ def main():
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--check", type=int, default=512, help="slaves checked against the reference")
     p.add_argument("--no-save", action="store_true")
+    p.add_argument("--run", default=None, help="run id recorded with every record")
     a = p.parse_args()
-    out = None if a.no_save else HERE / "results" / f"{a.suite}.jsonl"
-    if out:
-        out.parent.mkdir(exist_ok=True)
-    run_suite(a.suite, a.sizes, a.repeats, a.check, out)
+    run_suite(a.suite, a.sizes, a.repeats, a.check, not a.no_save, a.run)
 
 
 if __name__ == "__main__":

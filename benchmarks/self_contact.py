@@ -15,9 +15,9 @@ For each self-contact scene of arraycontact.scenes (quad4, about 2^k nodes) and 
     against reference.closest_points_self (misses, wrong faces, gap error / longest edge).
 --jax: also arraycontact_jax.plan_self / detect_self (search "jax", float32) steady.
 --snail: the spiral strip at 130,000 nodes (seed 000 Fig. 12: 30 s in 2012).
-One JSON record per scene and size to DIR/self_contact.jsonl.
+One JSON record per scene and size to DIR/self_contact_<machine>.jsonl (default DIR: results/).
 
-    python benchmarks/self_contact.py --table benchmarks/results/self_contact_*.jsonl
+    python benchmarks/self_contact.py --table [MACHINE ...]
 
 prints the records as the markdown table of RESULTS.md.
 """
@@ -36,6 +36,7 @@ import arraycontact as ac
 from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
+import _records  # noqa: E402
 from peers_warp import timed  # noqa: E402
 
 SCENES = ("spiral_strip", "folded_sheet", "coil_spring", "crumpled_sheet", "two_bodies")
@@ -150,24 +151,24 @@ def run(name, n, device, repeats, n_check, with_jax):
     return dict(scene=name, **counts, d_max=d, dtype="float32", **rec)
 
 
-def table(files):
+def table(machines):
+    """The newest record of each scene and size on each machine, as a markdown table."""
+    recs = [r for m in machines for r in _records.load("self_contact", m)]
     print(
-        "| file | commit | device | scene | nodes | self ms | two-body ms | self / two-body |"
+        "| run | commit | device | scene | nodes | self ms | two-body ms | self / two-body |"
         " same geometry ms | self / same geometry | checked | miss | wrong face | tied face |"
         " max gap err / edge |"
     )
     print("|" + "---|" * 15)
-    for name in files:
-        for line in open(name):
-            r = json.loads(line)
-            print(
-                f"| {Path(name).name} | {r['commit']} | {r['device']} | {r['scene']} |"
-                f" {r['nodes']} | {r['steady_s'] * 1e3:.2f} | {r['two_body_steady_s'] * 1e3:.2f} |"
-                f" {r['self_over_two_body']:.2f} | {r['same_geometry_steady_s'] * 1e3:.2f} |"
-                f" {r['self_over_same_geometry']:.2f} | {r.get('checked', 0)} |"
-                f" {r.get('misses', '-')} | {r.get('wrong_faces', '-')} |"
-                f" {r.get('other_tied_face', '-')} | {r.get('max_gap_err_rel', 0):.1e} |"
-            )
+    for r in _records.newest(recs, "device", "scene", "nodes"):
+        print(
+            f"| {r['run']} | {_records.commit(r)} | {r['device']} | {r['scene']} |"
+            f" {r['nodes']} | {r['steady_s'] * 1e3:.2f} | {r['two_body_steady_s'] * 1e3:.2f} |"
+            f" {r['self_over_two_body']:.2f} | {r['same_geometry_steady_s'] * 1e3:.2f} |"
+            f" {r['self_over_same_geometry']:.2f} | {r.get('checked', 0)} |"
+            f" {r.get('misses', '-')} | {r.get('wrong_faces', '-')} |"
+            f" {r.get('other_tied_face', '-')} | {r.get('max_gap_err_rel', 0):.1e} |"
+        )
 
 
 def main():
@@ -180,10 +181,13 @@ def main():
     ap.add_argument("--jax", action="store_true")
     ap.add_argument("--snail", action="store_true")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--table", nargs="+", help="print the records of these files as a table")
+    ap.add_argument("--run", default=None, help="run id recorded with every record")
+    ap.add_argument(
+        "--table", nargs="*", help="print the records of these machines (default all) as a table"
+    )
     args = ap.parse_args()
-    if args.table:
-        return table(args.table)
+    if args.table is not None:
+        return table(args.table or ["*"])
     quiet_warp()
     import warp as wp
 
@@ -191,20 +195,12 @@ def main():
     jobs = [(name, 2**k) for k in args.log2 for name in args.only]
     if args.snail:
         jobs.append(("spiral_strip", 130_000))
-    out = Path(args.out) if args.out else None
-    if out:
-        out.mkdir(parents=True, exist_ok=True)
+    meta = _records.meta(args.run)
     for name, n in jobs:
         r = run(name, n, device, args.repeats, args.check, args.jax)
-        r.update(
-            device=device.name,
-            host_cores=os.cpu_count(),
-            commit=os.environ.get("ARRAYCONTACT_COMMIT", ""),
-        )
+        r.update(device=device.name, host_cores=os.cpu_count())
         print(json.dumps(r), flush=True)
-        if out:
-            with open(out / "self_contact.jsonl", "a") as f:
-                f.write(json.dumps(r) + "\n")
+        _records.append("self_contact", r, meta, out=args.out)
 
 
 if __name__ == "__main__":

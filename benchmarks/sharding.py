@@ -1,7 +1,9 @@
-"""Issue 23: detection over several GPUs with the JAX back end's sharded plan.
+"""Detection over several GPUs with the JAX back end's sharded plan.
 
-    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 \
-        --out benchmarks/results/sharding_h200x2.jsonl
+    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 [--run ID] [--out DIR]
+    python benchmarks/sharding.py --table [--machine h200x2] [--run ID]
+
+Records go to DIR/sharding_<machine>.jsonl (default DIR: results/; machine: e.g. h200x2).
 
 Weak scaling: D * 2^weak nodes per surface on D = 1, 2, ... devices (the scene grows with the
 devices: a wider rough square, or the graded family at a fixed ratio); strong scaling: 2^strong
@@ -17,8 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,6 +27,7 @@ import numpy as np
 
 HERE = Path(__file__).parent
 sys.path[:0] = [str(HERE.parent), str(HERE.parent / "backends")]
+import _records  # noqa: E402
 
 
 def _scene(name, n, seed=0):
@@ -154,20 +155,19 @@ def main():
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--only", choices=["weak", "strong"], default=None)
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="folder of the records (default results/)")
+    ap.add_argument("--run", default=None, help="run id recorded (--table: the run shown)")
+    ap.add_argument("--table", action="store_true", help="print a run's records as a table")
+    ap.add_argument("--machine", default="h200x2", help="--table: the records' machine")
     args = ap.parse_args()
+    if args.table:
+        return table(args.machine, args.run)
     import jax
 
     devices = jax.devices()
     n_max = len(devices)
-    commit = (
-        os.environ.get("ARRAYCONTACT_COMMIT")
-        or subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
-        ).stdout.strip()
-    )
+    meta = _records.meta(args.run)
     dtype = np.dtype(args.dtype)
-    out = open(args.out, "a") if args.out else None
     counts = [d for d in (1, 2, 4, 8) if d <= n_max]
     jobs = []
     if args.only in (None, "weak"):
@@ -178,17 +178,42 @@ def main():
         jobs += [("strong", args.scenes[0], 2**args.strong_log2, d) for d in counts if d > 1]
     for kind, name, n, d in jobs:
         rec = run(name, n, d, args.repeats, dtype, baseline=True)
-        rec.update(
-            kind=kind,
-            device=devices[0].device_kind,
-            n_visible=n_max,
-            commit=commit,
-            command=" ".join(sys.argv),
-        )
+        rec.update(kind=kind, device=devices[0].device_kind, n_visible=n_max)
         print(json.dumps(rec), flush=True)
-        if out:
-            out.write(json.dumps(rec) + "\n")
-            out.flush()
+        _records.append("sharding", rec, meta, out=args.out, n_devices=n_max)
+
+
+def table(machine, run=None):
+    """A run's records (default: the newest run) as the markdown table of RESULTS.md."""
+    recs = _records.run_of(_records.load("sharding", machine), run)
+    if not recs:
+        return
+    r0 = recs[0]
+    print(f"Run {r0['run']} ({r0['device']}, commit {_records.commit(r0)}): `{r0['command']}`\n")
+    rows = []
+    for r in recs:
+        b = r["balance"]
+        rows.append(
+            [
+                r["kind"],
+                r["scene"],
+                r["devices"],
+                f"2^{int(np.log2(r['nodes_per_surface']))}",
+                f"{r['one_device_s'] * 1e3:.2f}",
+                f"{r['detect_s'] * 1e3:.2f}",
+                f"{r['exchange_s'] * 1e3:.2f}",
+                " / ".join(str(v) for v in b["slaves"]),
+                f"{r['plan_s']:.1f}",
+                sum(r.get("mismatch", {}).values()),
+                f"{max(r['float_diff'].values()):.1g}",
+            ]
+        )
+    header = [
+        "run", "scene", "GPUs", "nodes per surface", "one device (ms)", "sharded (ms)",
+        "exchange (ms)", "slaves per GPU", "plan (s)", "integer fields differing",
+        "largest float difference",
+    ]  # fmt: skip
+    print(_records.markdown(header, rows))
 
 
 if __name__ == "__main__":

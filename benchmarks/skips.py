@@ -1,7 +1,7 @@
 """ "Skip what a scene doesn't need", measured (issue 7): the time each skip saves, on this CPU,
 NumPy float64, as ratios within one run.
 
-    python benchmarks/skips.py            # -> results/skips.jsonl and stdout
+    python benchmarks/skips.py            # -> results/skips_cpu.jsonl and stdout
 
 1. Boxes that do not meet: `detect` returns before any grid; compared with the same two
    surfaces moved into contact.
@@ -16,12 +16,16 @@ NumPy float64, as ratios within one run.
 
 from __future__ import annotations
 
-import json
+import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+import _records  # noqa: E402
 
 import arraycontact as ac
 from arraycontact import _detect, _projection
@@ -156,18 +160,19 @@ def static_master(n=2**16):
 
 
 def main():
-    out = HERE / "results" / "skips.jsonl"
-    with open(out, "w") as f:
-        for fn in (far_apart, passing_by, linear_closed_form, static_master):
-            r = fn()
-            r["saved_fraction"] = 1 - r["with_skip_s"] / r["without_skip_s"]
-            f.write(json.dumps(r) + "\n")
-            print(
-                f"{r['skip']}: {r['with_skip_s'] * 1e3:.1f} ms with the skip, "
-                f"{r['without_skip_s'] * 1e3:.1f} ms without ({r['saved_fraction'] * 100:.0f} % "
-                f"saved)",
-                flush=True,
-            )
+    meta = _records.meta()
+    device = "cpu: " + (platform.processor() or platform.machine())
+    for fn in (far_apart, passing_by, linear_closed_form, static_master):
+        r = fn()
+        r["saved_fraction"] = 1 - r["with_skip_s"] / r["without_skip_s"]
+        r["device"] = device
+        _records.append("skips", r, meta)
+        print(
+            f"{r['skip']}: {r['with_skip_s'] * 1e3:.1f} ms with the skip, "
+            f"{r['without_skip_s'] * 1e3:.1f} ms without ({r['saved_fraction'] * 100:.0f} % "
+            f"saved)",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
     python benchmarks/suite.py scenes                 # gmsh scenes -> benchmarks/scenes/*.npz
     python benchmarks/suite.py gpu --log2 20          # CUDA machine with Warp: ours vs wp.Mesh
     python benchmarks/suite.py cpu --log2 16          # CPU: ours vs fcpw and libigl
-    python benchmarks/suite.py table [--run ID]       # markdown tables from results/suite_*
+    python benchmarks/suite.py table --machine h100 [--run ID]   # tables from results/suite_*
 
 Scenes (sizes from --log2 k, 2^k nodes per surface where the scene has two surfaces):
 - uniform: two rough surfaces facing each other (the README's scene);
@@ -25,12 +25,8 @@ on a random subset of slaves (miss rate, wrong-face rate, largest gap error / lo
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -42,6 +38,7 @@ from arraycontact._backends import quiet_warp
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))
+import _records  # noqa: E402
 from run import errors, warp_contacts  # noqa: E402
 
 SCENE_DIR = HERE / "scenes"
@@ -129,20 +126,7 @@ def make_scenes(refines=(100, 300, 1000)):
 
 
 def _meta(a):
-    # A copy of the tree on another machine may carry a stale .git: ARRAYCONTACT_COMMIT wins.
-    commit = (
-        os.environ.get("ARRAYCONTACT_COMMIT")
-        or subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
-        ).stdout.strip()
-    )
-    return dict(
-        run=a.run or datetime.datetime.now().strftime("%Y%m%d-%H%M%S"),
-        date=datetime.date.today().isoformat(),
-        commit=commit,
-        command="python benchmarks/suite.py " + " ".join(sys.argv[1:]),
-        host=platform.node(),
-    )
+    return dict(_records.meta(a.run), host=platform.node())
 
 
 def _median_time(fn, repeats, sync=lambda: None):
@@ -259,7 +243,7 @@ def run_cpu(a):
     import igl
 
     quiet_warp()
-    meta = dict(_meta(a), device=platform.processor() or platform.machine())
+    meta = dict(_meta(a), device="cpu: " + (platform.processor() or platform.machine()))
     for label, make, f in suite(a.log2):
         if a.only and not any(label.startswith(o) for o in a.only):
             continue
@@ -333,10 +317,7 @@ def run_cpu(a):
 
 
 def _write(a, rec):
-    out = Path(a.out or HERE / "results")
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / f"suite_{a.mode}.jsonl", "a") as fh:
-        fh.write(json.dumps(rec) + "\n")
+    _records.append("suite", rec, {}, out=a.out)
     keys = [k for k in rec if k.endswith("_s") or k.startswith("vs_")]
     print(
         rec["scene"],
@@ -350,22 +331,17 @@ def _write(a, rec):
 
 
 def table(a):
-    """Markdown tables of the newest run (or --run) of results/suite_gpu.jsonl and
-    suite_cpu.jsonl, one row per scene, times as ratios to the peers of the same run."""
-    for mode in ("gpu", "cpu"):
-        path = Path(a.out or HERE / "results") / f"suite_{mode}.jsonl"
-        if not path.exists():
-            continue
-        recs = [json.loads(line) for line in open(path)]
-        run = a.run or recs[-1]["run"]
-        recs = [r for r in recs if r["run"] == run]
-        if not recs:
-            continue
+    """Markdown tables of run --run (default: the newest) of results/suite_<machine>.jsonl,
+    one row per scene, times as ratios to the peers of the same run."""
+    recs = _records.run_of(_records.load("suite", a.machine), a.run)
+    if recs:
+        mode = "cpu" if a.machine == "cpu" else "gpu"
         r0 = recs[0]
-        print(
-            f"\n{mode.upper()} run {run} ({r0['device']}, {r0['date']}, commit {r0['commit']}): "
-            f"`{r0['command']}`\n"
-        )
+        if not a.brief:
+            print(
+                f"{mode.upper()} run {r0['run']} ({r0['device']}, {r0['date']}, commit "
+                f"{_records.commit(r0)}): `{r0['command']}`\n"
+            )
         if mode == "gpu":
             print(
                 "| scene | faces | slaves | ours (Warp, graph) | wp.Mesh refit + query | "
@@ -402,6 +378,8 @@ def table(a):
                     f"{1e3 * r['fcpw_s']:.1f} ms | {1e3 * r['libigl_s']:.1f} ms | "
                     f"{r['vs_fcpw']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} |"
                 )
+        if a.brief:
+            return
         _setup_table(mode, recs)
         if mode == "gpu" and any("jax_steady_s" in r for r in recs):
             print(
@@ -464,8 +442,10 @@ def main():
     ap.add_argument(
         "--jax", action="store_true", help="gpu: also the JAX back end with search='jax' (no Warp)"
     )
-    ap.add_argument("--run", help="run id recorded with every record")
-    ap.add_argument("--out", help="folder for suite_<mode>.jsonl (default benchmarks/results)")
+    ap.add_argument("--run", help="run id recorded with every record (table: the run shown)")
+    ap.add_argument("--machine", default="h100", help="table: the records' machine (cpu, h100)")
+    ap.add_argument("--brief", action="store_true", help="table: the main table alone")
+    ap.add_argument("--out", help="folder for suite_<machine>.jsonl (default benchmarks/results)")
     a = ap.parse_args()
     {"scenes": lambda a: make_scenes(), "gpu": run_gpu, "cpu": run_cpu, "table": table}[a.mode](a)
 

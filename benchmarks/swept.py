@@ -18,16 +18,15 @@ rolling onto a road. For each:
     candidate's ccd through its Python API; agreement of its per-node toi with ours;
   - the check of a random subset of rows against reference.swept (hits, toi within
     [exact - t_tol, exact], face hit at that time).
-One JSON record per scene and size to DIR/swept.jsonl;
+One JSON record per scene and size to DIR/swept_<machine>.jsonl (default DIR: results/);
 
-    python benchmarks/swept.py --table benchmarks/results/swept_*.jsonl
+    python benchmarks/swept.py --table [MACHINE ...]
 
 prints them as the markdown table of RESULTS.md.
 """
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,7 @@ from arraycontact import scenes
 from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
+import _records  # noqa: E402
 from peers_warp import timed  # noqa: E402
 
 
@@ -193,32 +193,32 @@ def run(name, n, device, repeats, n_check, with_ipctk):
     )
 
 
-def table(files):
+def table(machines):
+    """The newest record of each scene and size on each machine, as a markdown table."""
+    recs = [r for m in machines for r in _records.load("swept", m)]
     print(
-        "| file | commit | device | scene | slaves | faces | swept ms | static ms |"
+        "| run | commit | device | scene | slaves | faces | swept ms | static ms |"
         " swept / static | hits | visits / hit | ipctk build + step ms | ipctk per node s |"
         " swept / ipctk | checked | hit diff | late | early | wrong face |"
     )
     print("|" + "---|" * 19)
-    for name in files:
-        for line in open(name):
-            r = json.loads(line)
-            ip = r.get("ipctk_build_s")
-            if ip is None:
-                peer = "- | - | -"
-            else:
-                peer = (
-                    f"{(ip + r['ipctk_stepsize_s']) * 1e3:.1f} | {r['ipctk_per_node_s']:.2f} |"
-                    f" {r['swept_over_ipctk']:.2f}"
-                )
-            print(
-                f"| {Path(name).name} | {r['commit']} | {r['device']} | {r['scene']} |"
-                f" {r['slaves']} | {r['faces']} | {r['steady_s'] * 1e3:.2f} |"
-                f" {r['static_steady_s'] * 1e3:.2f} | {r['swept_over_static']:.2f} |"
-                f" {r['hits']} | {r['visits_per_hit']:.0f} | {peer} |"
-                f" {r.get('checked', 0)} | {r.get('hit_disagree', '-')} | {r.get('late', '-')} |"
-                f" {r.get('early', '-')} | {r.get('wrong_faces', '-')} |"
+    for r in _records.newest(recs, "device", "scene", "slaves"):
+        ip = r.get("ipctk_build_s")
+        if ip is None:
+            peer = "- | - | -"
+        else:
+            peer = (
+                f"{(ip + r['ipctk_stepsize_s']) * 1e3:.1f} | {r['ipctk_per_node_s']:.2f} |"
+                f" {r['swept_over_ipctk']:.2f}"
             )
+        print(
+            f"| {r['run']} | {_records.commit(r)} | {r['device']} | {r['scene']} |"
+            f" {r['slaves']} | {r['faces']} | {r['steady_s'] * 1e3:.2f} |"
+            f" {r['static_steady_s'] * 1e3:.2f} | {r['swept_over_static']:.2f} |"
+            f" {r['hits']} | {r['visits_per_hit']:.0f} | {peer} |"
+            f" {r.get('checked', 0)} | {r.get('hit_disagree', '-')} | {r.get('late', '-')} |"
+            f" {r.get('early', '-')} | {r.get('wrong_faces', '-')} |"
+        )
 
 
 def main():
@@ -230,29 +230,24 @@ def main():
     ap.add_argument("--check", type=int, default=256)
     ap.add_argument("--ipctk", action="store_true")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--table", nargs="+", help="print the records of these files as a table")
+    ap.add_argument("--run", default=None, help="run id recorded with every record")
+    ap.add_argument(
+        "--table", nargs="*", help="print the records of these machines (default all) as a table"
+    )
     args = ap.parse_args()
-    if args.table:
-        return table(args.table)
+    if args.table is not None:
+        return table(args.table or ["*"])
     quiet_warp()
     import warp as wp
 
     device = wp.get_device(args.device)
-    out = Path(args.out) if args.out else None
-    if out:
-        out.mkdir(parents=True, exist_ok=True)
+    meta = _records.meta(args.run)
     for k in args.log2:
         for name in args.only or list(steps(2**k)):
             r = run(name, 2**k, device, args.repeats, args.check, args.ipctk)
-            r.update(
-                device=device.name if device.is_cpu else wp.get_cuda_device().name,
-                commit=os.environ.get("ARRAYCONTACT_COMMIT", "?"),
-                command=" ".join(sys.argv),
-            )
+            r["device"] = device.name if device.is_cpu else wp.get_cuda_device().name
             print(json.dumps(r), flush=True)
-            if out:
-                with open(out / "swept.jsonl", "a") as f:
-                    f.write(json.dumps(r) + "\n")
+            _records.append("swept", r, meta, out=args.out)
 
 
 if __name__ == "__main__":
