@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -78,68 +79,113 @@ class Static:
         )
 
 
-def master_topology(master: Surface, prep: Prepared):
+class Master(NamedTuple):
+    """The master as the stages read it: connectivity (int32, global ids, fixed for a plan's
+    life) and geometry in the local frame (float, from the coordinates of the call; None in a
+    plan's topology, filled under jit by `master_geometry`). One definition for the NumPy
+    back end (host arrays), the JAX plans (a pytree of device arrays; a sharded plan's leaves
+    are stacked [D, ...]) and the JAX detection. n: master points, F: faces, k: nodes a face,
+    E: edges; N', F': the nodes and faces in the trees."""
+
+    faces: Any  # [F, k] node ids
+    node_ids: Any  # [N'] the node tree's items, in Morton order
+    face_ids: Any  # [F'] the face tree's items, in Morton order
+    face_edges: Any  # [F, edges a face] edge ids
+    edge_faces: Any  # [E, 2] the faces of each edge (-1: a boundary edge)
+    nf_offsets: Any  # [n + 1] node -> faces (CSR offsets into nf_ids)
+    nf_ids: Any  # [sum of node degrees] face ids
+    prev_node: Any  # [n] boundary nodes: the neighbours along the boundary (-1 elsewhere)
+    next_node: Any
+    prev_face: Any  # [n] and the boundary faces between them
+    next_face: Any
+    on_boundary: Any  # [n] bool
+    slave_nodes: Any = None  # JAX plans, self-contact: [slaves] the slaves' node ids
+    node_faces: Any = None  # JAX plans: [n, w] node -> faces padded with -1 (vertex normals)
+    node_live: Any = None  # sharded plans: [N'] false on padding items (empty boxes)
+    face_live: Any = None  # [F']
+    nodes_x: Any = None  # [n, 3] coordinates in the local frame
+    node_normals: Any = None  # [n, 3] pseudo-normals
+    prev_normal: Any = None  # [n, 3] boundary nodes: the normals of prev_face, next_face
+    next_normal: Any = None
+    concave: Any = None  # [n] bool: the boundary turns inwards at the node
+
+
+class Scalars(NamedTuple):
+    """A scene's constants (floats, or 0-d arrays of the detection's dtype under jit)."""
+
+    d_max: Any  # the search distance
+    tie: Any  # equal distances within this are ties (TIE_RTOL * longest edge)
+    slack: Any  # rounding slack of the pruning tests (never of the answer)
+    tol: Any  # KKT tolerance of the projections, natural coordinates
+
+
+class Grids(NamedTuple):
+    """Stage 2's trees (`_grid.Tree`) and, for self-contact, the local mesh sizes."""
+
+    node: Any
+    face: Any = None  # exact mode
+    sizes: Any = None  # self-contact: (per face [F], per node [n]) (mesh_sizes)
+
+
+def master_topology(master: Surface, prep: Prepared) -> Master:
     """Connectivity and topology of the master, int32 arrays keyed by global ids; the nodes and
     faces that take part are prep's."""
     offsets, ids = master.node_faces
     prev_node, next_node, prev_face, next_face, on = _select.boundary_topology(master)
-    out = dict(
-        faces=master.faces,
-        node_ids=prep.node_ids,
-        face_ids=prep.face_ids,
-        face_edges=master.face_edges,
-        edge_faces=master.edge_faces,
-        nf_offsets=offsets,
-        nf_ids=ids,
-        prev_node=prev_node,
-        next_node=next_node,
-        prev_face=prev_face,
-        next_face=next_face,
-    )
-    out = {k: np.asarray(v).astype(np.int32) for k, v in out.items()}
-    out["on_boundary"] = on
-    return out
+    ints = [
+        master.faces,
+        prep.node_ids,
+        prep.face_ids,
+        master.face_edges,
+        master.edge_faces,
+        offsets,
+        ids,
+        prev_node,
+        next_node,
+        prev_face,
+        next_face,
+    ]
+    return Master(*(np.asarray(v).astype(np.int32) for v in ints), on_boundary=on)
 
 
-def master_geometry(xp, element, topo, nodes_x):
-    """What detection needs from the master's coordinates `nodes_x` (local frame): node
-    pseudo-normals, boundary normals. Computed on the host once by the NumPy back end, inside
-    the jitted step from moving coordinates by the JAX plan/detect."""
+def master_geometry(xp, element, topo: Master, nodes_x) -> Master:
+    """`topo` with what detection needs from the master's coordinates `nodes_x` (local frame):
+    node pseudo-normals, boundary normals. Computed on the host once by the NumPy back end,
+    inside the jitted step from moving coordinates by the JAX plan/detect."""
     element = get_element(element)
-    xe = nodes_x[topo["faces"]]
+    xe = nodes_x[topo.faces]
     prev_n, next_n, concave = _select.boundary_geometry(
         xp,
         nodes_x,
-        topo["prev_node"],
-        topo["next_node"],
-        topo["prev_face"],
-        topo["next_face"],
+        topo.prev_node,
+        topo.next_node,
+        topo.prev_face,
+        topo.next_face,
         face_normals(element, xe, xp),
     )
-    return dict(
+    return topo._replace(
         nodes_x=nodes_x,
-        node_normals=node_normals(element, topo["faces"], nodes_x, xp),
+        node_normals=node_normals(element, topo.faces, nodes_x, xp),
         prev_normal=prev_n,
         next_normal=next_n,
         concave=concave,
     )
 
 
-def master_arrays(master: Surface, prep: Prepared, dtype):
+def master_arrays(master: Surface, prep: Prepared, dtype) -> Master:
     """Master topology and geometry in the local frame (float `dtype`), on the host. The node
     normals are the Surface's cached ones (they do not depend on the frame)."""
     topo = master_topology(master, prep)
     prev_n, next_n, concave = _select.boundary_geometry(
         np,
         master.points,
-        topo["prev_node"],
-        topo["next_node"],
-        topo["prev_face"],
-        topo["next_face"],
+        topo.prev_node,
+        topo.next_node,
+        topo.prev_face,
+        topo.next_face,
         master.face_normals,
     )
-    return dict(
-        topo,
+    return topo._replace(
         nodes_x=(master.points - prep.origin).astype(dtype),
         node_normals=master.node_normals.astype(dtype),
         prev_normal=prev_n.astype(dtype),
@@ -148,13 +194,12 @@ def master_arrays(master: Surface, prep: Prepared, dtype):
     )
 
 
-def scalars(prep: Prepared, master: Surface, dtype):
+def scalars(prep: Prepared, master: Surface, dtype) -> Scalars:
     eps = float(np.finfo(dtype).eps)
     tie = TIE_RTOL[np.dtype(dtype)] * master.longest_edge
-    return dict(
+    return Scalars(
         d_max=prep.d_max,
         tie=tie,
-        # Rounding slack of the pruning tests (never of the answer).
         slack=tie + 16 * eps * (prep.extent + prep.d_max + prep.r_max),
         tol=KKT_TOL[np.dtype(dtype)],
     )
@@ -172,26 +217,26 @@ class _Laps:
         self.t = t
 
 
-def build_grids(xp, st: Static, sc: dict, m: dict):
+def build_grids(xp, st: Static, m: Master) -> Grids:
     """Stage 2: the trees of the master nodes (points) and, in exact mode, of the faces (their
     boxes), over node_ids and face_ids in the Morton order `prepare` gave them. Self-contact:
     with the normal boxes of the items (a node's pseudo-normal, a face's normal_boxes) and
     the local mesh sizes (mesh_sizes)."""
     element = get_element(st.element)
-    x = m["nodes_x"][m["node_ids"]]
+    x = m.nodes_x[m.node_ids]
     nodes_n = None
     if st.self_contact:
-        n = m["node_normals"][m["node_ids"]]
+        n = m.node_normals[m.node_ids]
         nodes_n = (n, n)
-    lo, hi = _inert(xp, m.get("node_live"), x, x)
-    grids = {"node": _grid.build(xp, m["node_ids"], lo, hi, x, nodes_n)}
+    lo, hi = _inert(xp, m.node_live, x, x)
+    grids = Grids(_grid.build(xp, m.node_ids, lo, hi, x, nodes_n))
     if st.mode == "exact":
-        xe = m["nodes_x"][m["faces"][m["face_ids"]]]
-        lo, hi = _inert(xp, m.get("face_live"), *face_boxes(element, xe, xp))
+        xe = m.nodes_x[m.faces[m.face_ids]]
+        lo, hi = _inert(xp, m.face_live, *face_boxes(element, xe, xp))
         faces_n = normal_boxes(element, xe, xp) if st.self_contact else None
-        grids["face"] = _grid.build(xp, m["face_ids"], lo, hi, xe[:, 0], faces_n)
+        grids = grids._replace(face=_grid.build(xp, m.face_ids, lo, hi, xe[:, 0], faces_n))
     if st.self_contact:
-        grids["sizes"] = mesh_sizes(element, m["faces"], m["nodes_x"], xp)
+        grids = grids._replace(sizes=mesh_sizes(element, m.faces, m.nodes_x, xp))
     return grids
 
 
@@ -207,9 +252,9 @@ def _inert(xp, live, lo, hi):
 def run_stages(
     xp,
     st: Static,
-    sc: dict,
-    m: dict,
-    grids: dict,
+    sc: Scalars,
+    m: Master,
+    grids: Grids,
     slave_x,
     capacity: dict,
     lap=None,
@@ -226,29 +271,29 @@ def run_stages(
     face_search = search.candidate_faces if search else _projection.candidate_faces
     element = get_element(st.element)
     n = slave_x.shape[0]
-    tie = sc["tie"]
-    node_grid = grids["node"]
+    tie = sc.tie
+    node_grid = grids.node
     own = None
     if st.self_contact:
-        own = (slave_ids, m["node_normals"][slave_ids], m["node_normals"])
+        own = (slave_ids, m.node_normals[slave_ids], m.node_normals)
     # 3. closest node
     node, dn, counts = node_search(
         xp,
         node_grid,
-        m["nodes_x"],
+        m.nodes_x,
         slave_x,
-        d_max=sc["d_max"],
+        d_max=sc.d_max,
         tie=tie,
-        slack=sc["slack"],
+        slack=sc.slack,
         capacity=capacity or None,
         self_contact=own,
     )
     lap("closest_node")
     # 4. candidate faces and projections
     if st.mode == "exact":
-        face_grid = grids["face"]
+        face_grid = grids.face
         if own is None:
-            rho = xp.minimum(dn, sc["d_max"]) + sc["slack"]
+            rho = xp.minimum(dn, sc.d_max) + sc.slack
         else:
             rho = self_reach(xp, st, sc, m, own, slave_x, node)
         slave, face, valid, n_pairs = face_search(
@@ -256,7 +301,7 @@ def run_stages(
             face_grid,
             slave_x,
             rho,
-            slack=sc["slack"],
+            slack=sc.slack,
             capacity=capacity or None,
             normal=None if own is None else own[1],
         )
@@ -265,22 +310,22 @@ def run_stages(
         # Node mode: the faces attached to the closest node (seed 000 section 2.2).
         has_node = node >= 0
         nd = xp.maximum(node, 0)
-        deg = xp.where(has_node, m["nf_offsets"][nd + 1] - m["nf_offsets"][nd], 0)
+        deg = xp.where(has_node, m.nf_offsets[nd + 1] - m.nf_offsets[nd], 0)
         seg, rank, valid, n_att = expand(xp, deg, capacity.get("attached"))
         slave = seg
-        face = m["nf_ids"][xp.where(valid, m["nf_offsets"][nd[seg]] + rank, 0)]
+        face = m.nf_ids[xp.where(valid, m.nf_offsets[nd[seg]] + rank, 0)]
         counts.update(attached=n_att)
     lap("candidates")
     xi, point, diff, feature, local, conv = _projection.project(
         xp,
         element,
         slave_x,
-        m["nodes_x"],
-        m["faces"],
+        m.nodes_x,
+        m.faces,
         slave,
         face,
         iterations=st.iterations,
-        tol=sc["tol"],
+        tol=sc.tol,
     )
     if own is not None:
         valid = valid & _admissible(xp, element, m, own, slave, face, xi, st.mode)
@@ -290,7 +335,7 @@ def run_stages(
     status = xp.zeros(n, dtype=np.int32) + int(Status.OK)
     if st.mode == "exact":
         pick, has = _select.select_closest(xp, n, slave, face, valid, dist, tie)
-        active = has & (dist[pick] <= sc["d_max"])
+        active = has & (dist[pick] <= sc.d_max)
     else:
         onface = valid & (feature == int(Feature.FACE))
         pick_p, has_p = _select.select_closest(xp, n, slave, face, onface, dist, tie)
@@ -302,14 +347,14 @@ def run_stages(
                 xp,
                 slave_x,
                 nd,
-                m["nodes_x"],
-                m["prev_node"],
-                m["next_node"],
-                m["prev_normal"],
-                m["next_normal"],
-                m["concave"],
+                m.nodes_x,
+                m.prev_node,
+                m.next_node,
+                m.prev_normal,
+                m.next_normal,
+                m.concave,
             )
-            passing = blind & m["on_boundary"][nd] & ~inside
+            passing = blind & m.on_boundary[nd] & ~inside
         else:
             passing = blind & False
         active = (has_p | blind) & ~passing
@@ -319,7 +364,7 @@ def run_stages(
             # Seed 000 section 3, item 5: the node with the coarser local mesh is the
             # master; as fine, the element stands where a projection exists, and else the
             # smaller node id is the slave.
-            h_node = grids["sizes"][1]
+            h_node = grids.sizes[1]
             h_i, h_j = h_node[slave_ids], h_node[nd]
             coarser = h_i > h_j * (1 + SIZE_RTOL)
             finer = h_i * (1 + SIZE_RTOL) < h_j
@@ -330,11 +375,11 @@ def run_stages(
     gap, dist_out, normal = _select.classify(
         xp,
         element,
-        m["nodes_x"],
-        m["faces"],
-        m["face_edges"],
-        m["edge_faces"],
-        m["node_normals"],
+        m.nodes_x,
+        m.faces,
+        m.face_edges,
+        m.edge_faces,
+        m.node_normals,
         face_out,
         xi[pick],
         diff[pick],
@@ -347,7 +392,7 @@ def run_stages(
     status = xp.where(kept, status, int(Status.OUT_OF_RANGE))
     lap("select")
     if own is not None:
-        h_face, h_node = grids["sizes"]
+        h_face, h_node = grids.sizes
         out_finer = active & (h_node[slave_ids] <= h_face[face_out] * (1 + SIZE_RTOL))
     out = dict(
         active=active,
@@ -367,7 +412,7 @@ def run_stages(
     return out, counts
 
 
-def self_reach(xp, st: Static, sc: dict, m: dict, own, slave_x, node):
+def self_reach(xp, st: Static, sc: Scalars, m: Master, own, slave_x, node):
     """Self-contact's first reach of the face search. The closest node bounds nothing here (it
     need not lie on a face that counts), but any admissible face does: the faces around the
     closest obtuse node (up to st.bound_faces of them), projected and tested as the search
@@ -377,26 +422,26 @@ def self_reach(xp, st: Static, sc: dict, m: dict, own, slave_x, node):
     n = slave_x.shape[0]
     k = st.bound_faces
     nd = xp.maximum(node, 0)
-    start = m["nf_offsets"][nd]
-    deg = xp.where(node >= 0, m["nf_offsets"][nd + 1] - start, 0)
+    start = m.nf_offsets[nd]
+    deg = xp.where(node >= 0, m.nf_offsets[nd + 1] - start, 0)
     rank = xp.arange(k, dtype=start.dtype)[None, :]
     valid = (rank < deg[:, None]).reshape(-1)
-    face = m["nf_ids"][xp.where(valid, (start[:, None] + rank).reshape(-1), 0)]
+    face = m.nf_ids[xp.where(valid, (start[:, None] + rank).reshape(-1), 0)]
     slave = xp.repeat(xp.arange(n), k)
     xi, _, diff, _, _, _ = _projection.project(
         xp,
         element,
         slave_x,
-        m["nodes_x"],
-        m["faces"],
+        m.nodes_x,
+        m.faces,
         slave,
         face,
         iterations=st.iterations,
-        tol=sc["tol"],
+        tol=sc.tol,
     )
     ok = valid & _admissible(xp, element, m, own, slave, face, xi, "exact")
     d = xp.where(ok, norm(xp, diff), np.inf).reshape(n, k)
-    return xp.minimum(xp.min(d, 1), sc["d_max"]) + sc["slack"]
+    return xp.minimum(xp.min(d, 1), sc.d_max) + sc.slack
 
 
 def _admissible(xp, element, m, own, slave, face, xi, mode):
@@ -405,10 +450,10 @@ def _admissible(xp, element, m, own, slave, face, xi, mode):
     slave's normal (n_i . n_f(xi) < -FACING_TOL; node mode keeps the faces of the obtuse
     closest node as they are, only those holding the slave's node drop)."""
     ids, normal, _ = own
-    fn = m["faces"][face]
+    fn = m.faces[face]
     ok = ~xp.any(fn == ids[slave][:, None], -1)
     if mode == "exact":
-        nf = face_normal(element, m["nodes_x"][fn], xi, xp)
+        nf = face_normal(element, m.nodes_x[fn], xi, xp)
         ok = ok & (_dot(normal[slave], nf) < -FACING_TOL)
     return ok
 
@@ -471,7 +516,7 @@ def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15, slave_ids=None):
     x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
     ids = None if slave_ids is None else slave_ids[prep.slave_rows].astype(np.int32)
     lap = _Laps()
-    grids = build_grids(np, st, sc, m)
+    grids = build_grids(np, st, m)
     lap("grid")
     outs, totals = [], {}
     for i in range(0, len(x), chunk):

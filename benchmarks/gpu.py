@@ -83,7 +83,7 @@ def bench_jax(scene, repeats, mode="exact", search="jax", d_max=None, grad=False
         origin = jnp.asarray(p.origin, jnp.float32)
         extra["search_only_s"] = median_time(lambda s, m: p.search(s - origin, m - origin), s, m)
         el = get_element(p.static.element)
-        faces = p.topology["faces"]
+        faces = p.topology.faces
         out = jax.jit(lambda s, m: p.search(s - origin, m - origin))(s, m)
         tie = dict(p.constants)["tie"]
         extra["jax_parts_s"] = dict(

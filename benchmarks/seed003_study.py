@@ -99,21 +99,19 @@ def _pairs(scene):
     m = master_arrays(master, prep, np.float64)
     sc = scalars(prep, master, np.float64)
     x = scene.slave[prep.slave_rows]
-    grids = build_grids(np, st, sc, m)
+    grids = build_grids(np, st, m)
     _, dn, _ = closest_node(
         np,
-        grids["node"],
-        m["nodes_x"],
+        grids.node,
+        m.nodes_x,
         x,
-        d_max=sc["d_max"],
-        tie=sc["tie"],
-        slack=sc["slack"],
+        d_max=sc.d_max,
+        tie=sc.tie,
+        slack=sc.slack,
         capacity=None,
     )
-    rho = np.minimum(dn, sc["d_max"]) + sc["slack"]
-    slave, face, ok, _ = candidate_faces(
-        np, grids["face"], x, rho, slack=sc["slack"], capacity=None
-    )
+    rho = np.minimum(dn, sc.d_max) + sc.slack
+    slave, face, ok, _ = candidate_faces(np, grids.face, x, rho, slack=sc.slack, capacity=None)
     return x[slave], master.points[master.faces[face]], len(x)
 
 

@@ -36,6 +36,8 @@ import numpy as np
 
 from arraycontact._contacts import Contacts, Counts, Feature, Status, SweptContacts
 from arraycontact._detect import (
+    Master,
+    Scalars,
     Static,
     build_grids,
     check_options,
@@ -65,7 +67,7 @@ MIN_CANDIDATES = 8
 
 @partial(jax.jit, static_argnames=("st", "capacity"))
 def _kernel(sc, m, slave_x, ids=None, *, st, capacity):
-    grids = build_grids(jnp, st, sc, m)
+    grids = build_grids(jnp, st, m)
     out, counts = run_stages(
         jnp, st, sc, m, grids, slave_x, dict(capacity), search=_grid, slave_ids=ids
     )
@@ -88,39 +90,37 @@ def _per_slave(sc, m, slave_x, ids=None, *, st, slots=0):
     faces (exact mode), or the faces attached to its closest node (node mode).
     slots > 0 (exact mode, at least the most candidates of a slave): also, per face, the number
     of slaves it is a candidate of."""
-    grids = build_grids(jnp, st, sc, m)
-    own = None if ids is None else (ids, m["node_normals"][ids], m["node_normals"])
+    grids = build_grids(jnp, st, m)
+    own = None if ids is None else (ids, m.node_normals[ids], m.node_normals)
     node, dn, _ = _grid.closest_node(
         jnp,
-        grids["node"],
-        m["nodes_x"],
+        grids.node,
+        m.nodes_x,
         slave_x,
-        d_max=sc["d_max"],
-        tie=sc["tie"],
-        slack=sc["slack"],
+        d_max=sc.d_max,
+        tie=sc.tie,
+        slack=sc.slack,
         self_contact=own,
     )
     if st.mode == "exact":
-        rho = jnp.minimum(dn, sc["d_max"]) + sc["slack"]
+        rho = jnp.minimum(dn, sc.d_max) + sc.slack
         if own is not None:  # as run_stages
             rho = self_reach(jnp, st, sc, m, own, slave_x, node)
         normal = None if own is None else own[1]
         if not slots:
-            return _grid.candidate_counts(
-                grids["face"], slave_x, rho, slack=sc["slack"], normal=normal
-            )
+            return _grid.candidate_counts(grids.face, slave_x, rho, slack=sc.slack, normal=normal)
         _, face, valid, _ = _grid.candidate_faces(
             jnp,
-            grids["face"],
+            grids.face,
             slave_x,
             rho,
-            slack=sc["slack"],
+            slack=sc.slack,
             capacity={"face_candidates": slots},
             normal=normal,
         )
-        return jnp.zeros(m["faces"].shape[0], jnp.int32).at[face].add(valid.astype(jnp.int32))
+        return jnp.zeros(m.faces.shape[0], jnp.int32).at[face].add(valid.astype(jnp.int32))
     nd = jnp.maximum(node, 0)
-    deg = m["nf_offsets"][nd + 1] - m["nf_offsets"][nd]
+    deg = m.nf_offsets[nd + 1] - m.nf_offsets[nd]
     return jnp.where(node >= 0, deg, 0)
 
 
@@ -147,8 +147,8 @@ def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
         m = master_arrays(master, prep, dtype)
         sc = scalars(prep, master, dtype)
         x = (slave_x[prep.slave_rows] - prep.origin).astype(dtype)
-        m_dev = {k: jnp.asarray(v) for k, v in m.items()}
-        sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
+        m_dev = jax.tree.map(jnp.asarray, m)
+        sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
         x_dev = jnp.asarray(x)
         ids = None
         if slave_ids is not None:
@@ -179,11 +179,11 @@ class Plan:
 
     Build it with `plan`; pass it to `detect`. Everything but `topology` is static."""
 
-    topology: dict
+    topology: Master  # int32 leaves (the geometry fields are None: computed in detect)
     master: Surface = field(repr=False)  # connectivity, element, plan-time coordinates
     static: Static = None
     capacity: tuple = ()  # sorted (name, capacity) items
-    constants: tuple = ()  # sorted (name, value) items: d_max, cell sizes, tolerances
+    constants: Scalars = None  # d_max, tie band, slack, tolerance (floats)
     origin: tuple = (0.0, 0.0, 0.0)  # local frame of the computation
     dtype: str = "float32"
     n_slaves: int = 0
@@ -192,7 +192,7 @@ class Plan:
 
     @property
     def d_max(self) -> float:
-        return dict(self.constants)["d_max"]
+        return self.constants.d_max
 
 
 jax.tree_util.register_pytree_node(
@@ -313,7 +313,7 @@ def plan(
             master,
             st,
             (),
-            tuple(sorted(sc.items())),
+            sc,
             tuple(float(v) for v in origin),
             np.dtype(dtype).name,
             len(slave_x),
@@ -321,7 +321,7 @@ def plan(
             engine,
         )
     m = master_arrays(master, prep, dtype)
-    sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
+    sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
     cap = _grown(
         _count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), ids, st=st),
@@ -334,7 +334,7 @@ def plan(
         master,
         st,
         tuple(sorted(cap.items())),
-        tuple(sorted(sc.items())),
+        sc,
         tuple(float(v) for v in origin),
         np.dtype(dtype).name,
         len(slave_x),
@@ -385,7 +385,7 @@ def detect_self(p: Plan, points) -> Contacts:
         return _detect_sharded(p, None, points)
     if not (isinstance(p, Plan) and p.static.self_contact):
         raise ValueError("detect_self needs a plan from plan_self")
-    return detect(p, points[p.topology["slave_nodes"]], points)
+    return detect(p, points[p.topology.slave_nodes], points)
 
 
 @jax.jit
@@ -402,7 +402,7 @@ def _shard_detect(p, slave_points, master_points):
 
 
 def _topology(master, prep, self_contact=False):
-    return {k: jnp.asarray(v) for k, v in _topology_arrays(master, prep, self_contact).items()}
+    return jax.tree.map(jnp.asarray, _topology_arrays(master, prep, self_contact))
 
 
 def _topology_arrays(master, prep, self_contact=False, whole=None):
@@ -410,13 +410,11 @@ def _topology_arrays(master, prep, self_contact=False, whole=None):
     plan): the node-face table is kept when the whole master's is."""
     topo = master_topology(master, prep)
     if self_contact and whole is None:
-        topo["slave_nodes"] = master.nodes.astype(np.int32)
+        topo = topo._replace(slave_nodes=master.nodes.astype(np.int32))
     table = padded_node_faces(master)  # the smooth outputs' vertex normals
     if whole is not None and padded_node_faces(whole) is None:
         table = None
-    if table is not None:
-        topo["node_faces"] = table
-    return topo
+    return topo._replace(node_faces=table)
 
 
 def _check(p: Plan, slave_points, master_points):
@@ -447,7 +445,7 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
         return _shard_detect(p, slave_points, master_points)
     _check(p, slave_points, master_points)
     fields, counts = local_detect(p, p.topology, slave_points, master_points)
-    ids = p.topology.get("slave_nodes")
+    ids = p.topology.slave_nodes
     n = slave_points.shape[0]
     ids = jnp.arange(n, dtype=jnp.int32) if ids is None else ids
     return contacts_of(fields, ids, p, counts, dict(p.capacity))
@@ -481,14 +479,14 @@ def local_detect(p: Plan, topo, slave_points, master_points):
         return (x - jnp.asarray(p.origin, x.dtype)[None, :]).astype(dtype)
 
     s, xm = local(slave_points), local(master_points)
-    st, sc = p.static, dict(p.constants)
-    ids = topo.get("slave_nodes")
+    st, sc = p.static, p.constants
+    ids = topo.slave_nodes
     if p.search is not None:
         out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
         counts = {}
     else:
-        m = {**topo, **master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))}
-        grids = build_grids(jnp, st, sc, m)
+        m = master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))
+        grids = build_grids(jnp, st, m)
         out, counts = run_stages(
             jnp,
             st,
@@ -513,7 +511,7 @@ def local_detect(p: Plan, topo, slave_points, master_points):
         out["local"],
         out["xi"],
         out["gap"],
-        sc["tie"],
+        sc.tie,
     )
     nan = jnp.asarray(jnp.nan, dtype)
 

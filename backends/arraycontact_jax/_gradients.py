@@ -155,17 +155,17 @@ def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_su
     feature = jnp.where(ok, feature, FACE)
     xi = jnp.where(ok[:, None], xi, jnp.asarray(element.centre, slave_x.dtype))
     sign = jax.lax.stop_gradient(jnp.where(ok & (gap < 0), -1.0, 1.0)).astype(slave_x.dtype)
-    faces = topo["faces"]
-    if "node_faces" in topo:
-        vertex = partial(vertex_normals, element, nodes_x, faces, topo["node_faces"])
+    faces = topo.faces
+    if topo.node_faces is not None:
+        vertex = partial(vertex_normals, element, nodes_x, faces, topo.node_faces)
     else:
         vertex = node_normals(element, faces, nodes_x, jnp)
     n_pseudo = pseudo_normal(
         element,
         nodes_x,
         faces,
-        topo["face_edges"],
-        topo["edge_faces"],
+        topo.face_edges,
+        topo.edge_faces,
         vertex,
         face,
         feature,

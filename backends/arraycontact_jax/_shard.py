@@ -37,7 +37,14 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from arraycontact._contacts import Contacts
-from arraycontact._detect import Static, build_grids, check_options, master_geometry, scalars
+from arraycontact._detect import (
+    Scalars,
+    Static,
+    build_grids,
+    check_options,
+    master_geometry,
+    scalars,
+)
 from arraycontact._grid import W, level_sizes, morton_order
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
@@ -155,7 +162,7 @@ def plan(
     st_global = Static.of(master, mode, prep, self_contact)
 
     # 1. Work per slave (its candidate faces) on one device, then the RCB.
-    sc_dev = {k: jnp.asarray(v, dtype=dtype) for k, v in sc.items()}
+    sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
     x_dev = jnp.asarray((all_x - origin).astype(dtype))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
     # The one-device plan's trees: the nodes and faces in the Morton order of the scene's cube.
@@ -164,7 +171,7 @@ def plan(
         node_ids=master.nodes[morton_order(master.points[master.nodes], lo, extent)],
         face_ids=morton_order(centres, lo, extent),
     )
-    m = {k: jnp.asarray(v) for k, v in master_arrays(master, prep, dtype).items()}
+    m = jax.tree.map(jnp.asarray, master_arrays(master, prep, dtype))
     per = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global))
     # The work the JAX search does per item: every slave is a lane of the same scans and the
     # same candidate slots, whatever its candidates (weighting slaves by 1 + candidates
@@ -225,13 +232,14 @@ def plan(
         )
 
     topo = [_topology_arrays(surf, pq, self_contact, master) for surf, pq in locals_]
-    if self_contact:
-        for t, q in zip(topo, parts):
+    for e, q in enumerate(parts):
+        slave_nodes = None
+        if self_contact:
             own = np.searchsorted(q.nodes, master.nodes[q.slaves]).astype(np.int32)
-            t["slave_nodes"] = np.full(s_cap, len(q.nodes), np.int32)  # a padding node
-            t["slave_nodes"][: len(own)] = own
-    for t, (n_live, f_live) in zip(topo, lives):
-        t["node_live"], t["face_live"] = n_live, f_live
+            slave_nodes = np.full(s_cap, len(q.nodes), np.int32)  # a padding node
+            slave_nodes[: len(own)] = own
+        n_live, f_live = lives[e]
+        topo[e] = topo[e]._replace(slave_nodes=slave_nodes, node_live=n_live, face_live=f_live)
     topo = _stack(topo)
     st = replace(st_global, node_levels=level_sizes(t_n), face_levels=level_sizes(t_f))
 
@@ -272,11 +280,11 @@ def plan(
         mine = parts[e].slaves
         xs = np.repeat(nowhere[None], s_cap, 0)
         xs[: len(mine)] = all_x[mine]
-        t_e = {k2: v[e] for k2, v in topo.items()}
-        m_e = {**t_e, **master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))}
-        own = jnp.asarray(t_e["slave_nodes"]) if self_contact else None
+        t_e = jax.tree.map(lambda v, e=e: v[e], topo)
+        m_e = master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))
+        own = jnp.asarray(t_e.slave_nodes) if self_contact else None
         xs = jnp.asarray((xs - origin).astype(dtype))
-        m_e = {k2: jnp.asarray(v) for k2, v in m_e.items()}
+        m_e = jax.tree.map(jnp.asarray, m_e)
         cand.append(np.asarray(_per_slave(sc_dev, m_e, xs, own, st=st))[: len(mine)])
     if mode == "exact":
         counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
@@ -307,7 +315,7 @@ def plan(
         master,
         st,
         tuple(sorted(cap.items())),
-        tuple(sorted(sc.items())),
+        sc,
         tuple(float(v) for v in origin),
         np.dtype(dtype).name,
         s_cap,
@@ -334,7 +342,7 @@ def _reach(sc, m, x, margin, st):
     min(dn + margin, d_max) + margin, tighter than d_max + margin where the mesh is finer
     than d_max (graded meshes). Self-contact's reach is bounded by faces, not nodes: d_max +
     margin."""
-    d_max, slack = float(sc["d_max"]), float(sc["slack"])
+    d_max, slack = float(sc.d_max), float(sc.slack)
     if st.self_contact:
         return np.full(x.shape[0], d_max + margin + slack)
     dn = np.asarray(_closest_distance(sc, m, x, st=st), np.float64)
@@ -343,15 +351,15 @@ def _reach(sc, m, x, margin, st):
 
 @partial(jax.jit, static_argnames=("st",))
 def _closest_distance(sc, m, x, *, st):
-    grids = build_grids(jnp, st, sc, m)
+    grids = build_grids(jnp, st, m)
     return _grid.closest_node(
         jnp,
-        grids["node"],
-        m["nodes_x"],
+        grids.node,
+        m.nodes_x,
         x,
-        d_max=sc["d_max"],
-        tie=sc["tie"],
-        slack=sc["slack"],
+        d_max=sc.d_max,
+        tie=sc.tie,
+        slack=sc.slack,
     )[1]
 
 
@@ -363,13 +371,13 @@ def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
     # (Node mode too: a face incident to a node within reach has its box within reach.)
     grid = _face_tree(sc, m, st=replace(st, mode="exact"))
     rho = jnp.asarray(reach, x.dtype)
-    count = _counts_within(grid, x, rho, sc["slack"])
+    count = _counts_within(grid, x, rho, sc.slack)
     rows, faces = [], []
     start, n = 0, x.shape[0]
     while start < n:
         k = max(int(jnp.max(count[start : start + chunk])), 1)
         stop = min(n, start + max(slots // k, 1), start + chunk)
-        slave, face, valid, _ = _candidates(grid, x[start:stop], rho[start:stop], sc["slack"], k)
+        slave, face, valid, _ = _candidates(grid, x[start:stop], rho[start:stop], sc.slack, k)
         valid = np.asarray(valid)
         rows.append(np.asarray(slave)[valid] + start)
         faces.append(np.asarray(face)[valid])
@@ -379,7 +387,7 @@ def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
 
 @partial(jax.jit, static_argnames=("st",))
 def _face_tree(sc, m, *, st):
-    return build_grids(jnp, st, sc, m)["face"]
+    return build_grids(jnp, st, m).face
 
 
 @jax.jit
@@ -482,17 +490,18 @@ def _gather(blk, ex, prefix, axis):
 
 
 def _stack(tables):
-    """Per-part topology dicts -> one dict of [D, ...] arrays (rows padded with -1 where the
-    parts' sizes differ: edges, the node-face table's width)."""
-    out = {}
-    for key in tables[0]:
-        arrs = [np.asarray(t[key]) for t in tables]
+    """Per-part topologies -> one of [D, ...] arrays (rows padded with -1 where the parts'
+    sizes differ: edges, the node-face table's width)."""
+
+    def stack(*arrs):
+        arrs = [np.asarray(a) for a in arrs]
         shape = np.max([a.shape for a in arrs], 0)
         full = np.full((len(arrs), *shape), -1 if arrs[0].dtype.kind == "i" else 0, arrs[0].dtype)
         for i, a in enumerate(arrs):
             full[(i, *[slice(0, s) for s in a.shape])] = a
-        out[key] = full
-    return out
+        return full
+
+    return jax.tree.map(stack, *tables)
 
 
 def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Contacts:
@@ -527,7 +536,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         x_m = _gather(m_blk, ex, "m_", axis)
         x_m = jnp.where(ex["m_ok"][:, None], x_m, ex["m_pad"].astype(x_m.dtype))
         if self_contact:
-            s = x_m[topo["slave_nodes"]]
+            s = x_m[topo.slave_nodes]
         else:
             s = _gather(s_blk, ex, "s_", axis)
             s = jnp.where(ex["s_ok"][:, None], s, ex["nowhere"].astype(s.dtype))
