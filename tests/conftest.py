@@ -1,4 +1,6 @@
+import gc
 import hashlib
+import os
 
 import jax
 import numpy as np
@@ -13,6 +15,39 @@ BACKENDS = ["numpy", "jax"]
 # float32 -> float64) in a kernel is a test failure, not a slowdown a user finds.
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+# XLA's cheaper CPU optimisation: the suite's time is mostly XLA compiling programs that then
+# run for milliseconds (a quarter off it; the GPU tests and the benchmarks compile with the
+# defaults). Read when the first backend starts, so after `import jax` is early enough; the
+# child processes of the suite inherit it.
+os.environ["XLA_FLAGS"] = " ".join(
+    [
+        os.environ.get("XLA_FLAGS", ""),
+        "--xla_backend_optimization_level=0",
+        "--xla_llvm_disable_expensive_passes=true",
+    ]
+).strip()
+
+
+def _maps():
+    with open("/proc/self/maps") as f:
+        return sum(1 for _ in f)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_xla_programs():
+    """Each compiled XLA CPU program holds memory maps until its cache entry goes; a process
+    past the kernel's vm.max_map_count (65530 by default) crashes in the next compilation (a
+    segfault, not an error: README, "Many compilations in one process"). One worker runs half
+    the suite, so the programs of a test file are released when it ends, and the count is
+    checked to stay far from the limit."""
+    yield
+    jax.clear_caches()
+    gc.collect()
+    if os.path.exists("/proc/self/maps"):
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+        assert _maps() < limit // 4, f"{_maps()} memory maps after the module (limit {limit})"
 
 
 def pytest_sessionstart(session):

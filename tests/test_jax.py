@@ -156,32 +156,3 @@ def test_vmap_over_scenes_equals_one_by_one(search="jax"):
         for k in ("face", "feature", "status"):
             assert np.array_equal(getattr(cb, k)[i], getattr(ci, k))
         assert np.allclose(cb.gap[i], ci.gap, equal_nan=True, atol=1e-14)
-
-
-def test_warp_search_in_its_own_process():
-    """plan(search="warp") runs Warp kernels inside XLA through Warp's FFI. In one process with
-    the rest of this suite on the CPU, a later XLA compilation crashed (a segfault in
-    backend_compile, twice, in test_stress); so its tests (warp_search_checks.py: the same
-    contacts and gradients as the JAX search, no recompilation over 20 steps, vmap) run in a
-    child process of their own."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    here = Path(__file__).parent
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pytest",
-            "-q",
-            "-p",
-            "no:cacheprovider",
-            str(here / "warp_search_checks.py"),
-        ],
-        cwd=here.parent,
-        capture_output=True,
-        text=True,
-    )
-    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
-    assert "5 passed" in r.stdout

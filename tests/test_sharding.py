@@ -104,11 +104,10 @@ def test_warp_plans_per_part_give_one_plans_contacts():
 
 def test_jax_sharded_detection_on_four_cpu_devices():
     here = Path(__file__).parent
-    # Four host devices; XLA's cheaper CPU optimisation (a third off the compile time of the
-    # checks, which compile a program per device count; both sides of every comparison are
-    # compiled alike).
-    flags = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4 " + flags)
+    # Four host devices (XLA fixes the count when it starts); conftest's cheaper optimisation
+    # flags are in os.environ already.
+    flags = os.environ.get("XLA_FLAGS", "")
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count=4 {flags}")
     r = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0"]
         + [str(here / "sharding_checks.py")],

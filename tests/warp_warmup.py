@@ -1,8 +1,6 @@
 """Compile every Warp CPU kernel the tests use, once, in a process of its own (conftest runs it
 before the suite): the two pytest-xdist workers then load compiled kernels instead of both
-compiling them. (It does not prevent the late XLA crash that one process running the whole
-suite met in test_stress, segfault or abort in backend_compile; the two workers, each
-compiling half the suite's XLA programs, avoid that one. Its cause is not found.)"""
+compiling them."""
 
 import arraycontact as ac
 from arraycontact import scenes

@@ -1,5 +1,4 @@
-"""The JAX back end's search="warp" (Warp kernels inside XLA through Warp's FFI), run by
-test_jax.test_warp_search_in_its_own_process in a process of its own."""
+"""The JAX back end's search="warp": Warp kernels inside XLA through Warp's FFI."""
 
 import arraycontact_jax as acj
 import jax
