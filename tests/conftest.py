@@ -17,9 +17,9 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 # XLA's cheaper CPU optimisation: the suite's time is mostly XLA compiling programs that then
-# run for milliseconds (a quarter off it; the GPU tests and the benchmarks compile with the
-# defaults). Read when the first backend starts, so after `import jax` is early enough; the
-# child processes of the suite inherit it.
+# run for milliseconds (a quarter off it; the benchmarks and users compile with the defaults,
+# and the answers checked do not depend on it). Read when the first backend starts, so after
+# `import jax` is early enough; the child processes of the suite inherit it.
 os.environ["XLA_FLAGS"] = " ".join(
     [
         os.environ.get("XLA_FLAGS", ""),
