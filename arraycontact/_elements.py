@@ -21,25 +21,24 @@ from ._xp import lead
 FACE, EDGE, VERTEX = 0, 1, 2
 
 
-def _pow(x, p):
-    # Explicit products: x**0 would give NaN gradients at x = 0 under JAX autodiff.
-    if p == 0:
-        return x * 0 + 1
-    if p == 1:
-        return x
-    return x * x
+def _powers(x):
+    """x**p for p = 0, 1, 2 and their first and second derivatives, constants as Python
+    numbers. (x**0 would give NaN gradients at 0 under JAX autodiff.)"""
+    return (1, x, x * x), (0, 1, 2 * x), (0, 0, 2)
 
 
-def _dpow(x, p):
-    if p == 0:
-        return x * 0
-    if p == 1:
-        return x * 0 + 1
-    return 2 * x
-
-
-def _ddpow(x, p):
-    return x * 0 + (2 if p == 2 else 0)
+def _product(a, b, zero, one):
+    """a * b with products by the constants 0 and 1 left out (zero and one: arrays shared by
+    every column): the monomials of a quad9 point are then 9 products, not 27 small
+    expressions, which were most of a JAX program's size on curved faces and of its compile
+    time."""
+    if isinstance(b, int):
+        a, b = b, a
+    if not isinstance(a, int):  # both arrays
+        return a * b
+    if isinstance(b, int):  # both constant
+        return zero if a * b == 0 else one if a * b == 1 else a * b * one
+    return zero if a == 0 else b if a == 1 else a * b
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,22 +171,15 @@ def get_element(name) -> Element:
 
 def _monomials(element, xi, xp, order):
     x, y = xi[..., 0], xi[..., 1]
-    if order == 0:
-        cols = [_pow(x, p) * _pow(y, q) for p, q in element.monomials]
-        return xp.stack(cols, -1)
-    if order == 1:
-        cols = [
-            xp.stack([_dpow(x, p) * _pow(y, q), _pow(x, p) * _dpow(y, q)], -1)
-            for p, q in element.monomials
-        ]
-        return xp.stack(cols, -2)  # [..., m, 2]
+    px, py = _powers(x), _powers(y)
+    zero, one = xp.zeros_like(x), xp.ones_like(x)
+    # (order in xi, order in eta) of each column: N; d/dxi, d/deta; d2/dxi2, d2/dxi deta, d2/deta2.
+    orders = {0: [(0, 0)], 1: [(1, 0), (0, 1)], 2: [(2, 0), (1, 1), (0, 2)]}[order]
     cols = [
-        xp.stack(
-            [_ddpow(x, p) * _pow(y, q), _dpow(x, p) * _dpow(y, q), _pow(x, p) * _ddpow(y, q)], -1
-        )
-        for p, q in element.monomials
+        xp.stack([_product(px[a][p], py[b][q], zero, one) for p, q in element.monomials], -1)
+        for a, b in orders
     ]
-    return xp.stack(cols, -2)  # [..., m, 3]: d/dxi2, d/dxi deta, d/deta2
+    return cols[0] if order == 0 else xp.stack(cols, -1)  # [..., m] or [..., m, 2 or 3]
 
 
 def _fused(xp, a, b, a_axes, b_axes, axis):

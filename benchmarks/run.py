@@ -115,7 +115,7 @@ def warp_contacts(p):
         **{k: o[k] for k in names},
         status=o["status"],
         slave_ids=np.arange(p.n_slaves),
-        d_max=p.constants["d_max"],
+        d_max=p.constants.d_max,
     )
 
 

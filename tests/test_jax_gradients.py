@@ -232,7 +232,7 @@ def test_hessian_of_a_penalty_energy():
 
     q = jnp.zeros(3)
     grad = jax.jit(jax.grad(energy))  # one compilation for the six differences
-    hess = jax.hessian(energy)(q)  # jacfwd of jacrev
+    hess = jax.jit(jax.hessian(energy))(q)  # jacfwd of jacrev
     h = 1e-6
     fd = np.stack([(grad(q + h * e) - grad(q - h * e)) / (2 * h) for e in np.eye(3)], 1)
     assert np.isfinite(hess).all() and np.abs(hess).max() > 0

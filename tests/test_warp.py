@@ -186,7 +186,7 @@ def test_warp_node_mode_equals_numpy(name):
         s.master,
         dtype=np.float32,
         mode="node",
-        d_max=p.constants["d_max"],
+        d_max=p.constants.d_max,
         backend="numpy",
     )
     assert np.array_equal(o["status"], r.status)
@@ -271,7 +271,7 @@ def test_a_master_deformed_far_from_the_plan_stays_exact():
     r = ac.detect(
         s.slave,
         s.master.with_points(stretched),
-        d_max=p.constants["d_max"],
+        d_max=p.constants.d_max,
         dtype=np.float32,
         backend="numpy",
     )
@@ -362,7 +362,7 @@ def test_grid_refit_and_rebuild():
         run()
         assert int(p.rebuild.numpy()[0]) == int(stale)
         got = {k: v.numpy() for k, v in p.out.items()}
-        r = ac.detect(slave, master, d_max=p.constants["d_max"], dtype=np.float32, backend="numpy")
+        r = ac.detect(slave, master, d_max=p.constants.d_max, dtype=np.float32, backend="numpy")
         _same_as_numpy(got, r, L)
         built = {k: v.numpy() for k, v in acw.detect(q, xs, xm).items()}
         for k in got:  # a grid built in every call: the same bits

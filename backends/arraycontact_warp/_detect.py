@@ -25,7 +25,7 @@ serves both) in a local frame at the plan's box corner.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
@@ -310,6 +310,28 @@ OUTPUTS = (
 )
 
 
+class Constants(NamedTuple):
+    """A plan's scalars, host floats handed to the kernels in the plan's precision."""
+
+    d_max: float  # the search distance
+    tie: float  # equal distances within this are ties
+    slack: float  # rounding slack of the pruning tests (never of the answer)
+    tol: float  # KKT tolerance of the projections, natural coordinates
+    iterations: int  # the projections' Newton budget (0 on tri3: closed form)
+    lebesgue: float  # the element's Lebesgue constant (face boxes from node boxes)
+    quantum: float  # the Morton order's cell: a 1024th of the scene's box
+
+
+class SweptConstants(NamedTuple):
+    """A swept plan's scalars (arraycontact._sweep's tolerances in the plan's precision)."""
+
+    pad: float  # rounding pad of the swept boxes
+    t_tol: float  # time resolution, relative to the step
+    space_rtol: float  # a box within space_rtol * scale of 0 is a contact
+    feature_tol: float  # natural coordinates this close to a constraint: edge or vertex
+    lebesgue: float  # the element's Lebesgue constant
+
+
 @dataclass(eq=False)
 class Plan:
     """Every buffer of a Warp detection (see `plan`)."""
@@ -326,7 +348,7 @@ class Plan:
     slave_world: wp.array
     shared: int
     origin: np.ndarray
-    constants: dict
+    constants: Constants
     slave_in: wp.array
     master_in: wp.array
     rebuild: wp.array  # int32 [1]: the last refit found the trees' order stale and rebuilt
@@ -474,7 +496,7 @@ def plan(
     origin = x_lo - d_max
     eps = float(np.finfo(NP_REAL).eps)
     tie = TIE_RTOL[NP_REAL] * master.longest_edge
-    consts = dict(
+    consts = Constants(
         d_max=float(d_max),
         tie=tie,
         slack=tie + 16 * eps * (extent + d_max + r_max),
@@ -581,7 +603,7 @@ def plan(
         _grid.spatial_order(
             p.slave_in,
             vec3(0.0, 0.0, 0.0),
-            real(consts["quantum"]),
+            real(consts.quantum),
             wp.zeros(2 * len(x), dtype=int, device=device),
             p.order,
             len(x),
@@ -649,7 +671,7 @@ def _build(p: Plan):
             p.face_grid,
             m.points,
             m.faces,
-            c["lebesgue"],
+            c.lebesgue,
             m.face_world,
             dev,
             p.master.element.name == "tri3",
@@ -697,7 +719,7 @@ def _master_stages(p: Plan, xm, m_origin):
                 p.face_grid,
                 m.points,
                 m.faces,
-                c["lebesgue"],
+                c.lebesgue,
                 m.face_world,
                 dev,
                 p.master.element.name == "tri3",
@@ -737,9 +759,7 @@ def _launch(p: Plan, xs, s_origin, master):
         if p.self_contact:
             wp.launch(_gather_rows, p.n_slaves, inputs=[master[0], p.own_nodes, xs], device=dev)
     if p.order_keys is not None:
-        _grid.spatial_order(
-            xs, s_origin, real(c["quantum"]), p.order_keys, p.order, p.n_slaves, dev
-        )
+        _grid.spatial_order(xs, s_origin, real(c.quantum), p.order_keys, p.order, p.n_slaves, dev)
     o = p.out
     n = p.n_slaves
     wp.launch(
@@ -752,8 +772,8 @@ def _launch(p: Plan, xs, s_origin, master):
             p.slave_world,
             p.shared,
             s_origin,
-            real(c["d_max"]),
-            real(c["tie"]),
+            real(c.d_max),
+            real(c.tie),
             _self_kind(p),
             p.own_nodes,
             p.normals,
@@ -774,11 +794,11 @@ def _launch(p: Plan, xs, s_origin, master):
                 p.slave_world,
                 p.shared,
                 s_origin,
-                real(c["d_max"]),
-                real(c["tie"]),
-                real(c["slack"]),
-                c["iterations"],
-                real(c["tol"]),
+                real(c.d_max),
+                real(c.tie),
+                real(c.slack),
+                c.iterations,
+                real(c.tol),
                 _self_kind(p),
                 p.own_nodes,
                 p.normals,
@@ -795,10 +815,10 @@ def _launch(p: Plan, xs, s_origin, master):
             p.face_grid,
             xs,
             s_origin,
-            real(c["d_max"]),
-            real(c["tie"]),
-            c["iterations"],
-            real(c["tol"]),
+            real(c.d_max),
+            real(c.tie),
+            c.iterations,
+            real(c.tol),
             p.mode,
             p.passing_by,
             p.self_contact,
@@ -976,7 +996,7 @@ class SweptPlan:
     grid: _grid.Grid
     world_bits: int
     origin: np.ndarray
-    constants: dict
+    constants: SweptConstants
     staging: list  # slave x0, x1, master x0, x1 in the local frame
     out: dict
     dtype: np.dtype
@@ -1028,7 +1048,7 @@ def plan_swept(
     dt = np.dtype(NP_REAL)
     eps = float(np.finfo(dt).eps)
     scale = 2 * extent  # the pairs' coordinates, from a face node, at plan time
-    consts = dict(
+    consts = SweptConstants(
         pad=4 * (SWEPT_SPACE_RTOL[dt] + 4 * SWEPT_ROUND * eps) * scale,
         t_tol=SWEPT_T_TOL[dt],
         space_rtol=SWEPT_SPACE_RTOL[dt],
@@ -1072,14 +1092,14 @@ def _swept_launch(p: SweptPlan, xs):
     wp.launch(
         _sweep.capture_keys,
         nf,
-        inputs=[m0, m1, p.faces, real(c["lebesgue"]), p.face_world, g],
+        inputs=[m0, m1, p.faces, real(c.lebesgue), p.face_world, g],
         device=dev,
     )
     _grid._sort(g, nf, p.world_bits)
     wp.launch(
         _sweep.capture_gather,
         nf,
-        inputs=[m0, m1, p.faces, real(c["lebesgue"]), p.face_world, real(c["pad"]), g],
+        inputs=[m0, m1, p.faces, real(c.lebesgue), p.face_world, real(c.pad), g],
         device=dev,
     )
     _grid.fill(g, nf, dev)
@@ -1097,10 +1117,10 @@ def _swept_launch(p: SweptPlan, xs):
             s1,
             p.slave_world,
             p.shared,
-            real(c["pad"]),
-            real(c["t_tol"]),
-            real(c["space_rtol"]),
-            real(c["feature_tol"]),
+            real(c.pad),
+            real(c.t_tol),
+            real(c.space_rtol),
+            real(c.feature_tol),
         ],
         outputs=[o[k] for k, _ in SWEPT_OUTPUTS],
         device=dev,
