@@ -1,6 +1,7 @@
 """Detection over several GPUs with the JAX back end's sharded plan.
 
-    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 [--run ID] [--out DIR]
+    python benchmarks/sharding.py --weak-log2 20 --strong-log2 23 [--search jax|warp]
+        [--run ID] [--out DIR]
     python benchmarks/sharding.py --table [--machine h200x2] [--run ID]
 
 Records go to DIR/sharding_<machine>.jsonl (default DIR: results/; machine: e.g. h200x2).
@@ -103,7 +104,7 @@ def _diff(c, r):
 _BASELINE = {}
 
 
-def run(scene_name, n, n_dev, repeats, dtype, baseline):
+def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax"):
     import arraycontact_jax as acj
     import jax
     from jax.sharding import Mesh, NamedSharding
@@ -113,13 +114,14 @@ def run(scene_name, n, n_dev, repeats, dtype, baseline):
     slave = jax.device_put(s.slave.astype(dtype))
     pts = jax.device_put(s.master.points.astype(dtype))
     rec = dict(scene=scene_name, nodes_per_surface=n, devices=n_dev, dtype=np.dtype(dtype).name)
+    rec["search"] = search
     rec["faces"], rec["slaves"] = s.master.n_faces, len(s.slave)
-    if baseline and (scene_name, n) in _BASELINE:  # measured in this run already
-        r, one_rec = _BASELINE[scene_name, n]
+    if baseline and (scene_name, n, search) in _BASELINE:  # measured in this run already
+        r, one_rec = _BASELINE[scene_name, n, search]
         rec.update(one_rec)
     elif baseline:
         t = time.perf_counter()
-        one = acj.plan(s.master, s.slave, dtype=dtype)
+        one = acj.plan(s.master, s.slave, dtype=dtype, search=search)
         one_rec = {"one_device_plan_s": time.perf_counter() - t}
         r, one_rec["one_device_first_s"], one_rec["one_device_s"] = _timed(
             lambda: acj.detect(one, slave, pts), repeats
@@ -127,11 +129,11 @@ def run(scene_name, n, n_dev, repeats, dtype, baseline):
         r = jax.tree.map(np.asarray, r)
         one_rec["active"] = int(r.active.sum())
         rec.update(one_rec)
-        _BASELINE[scene_name, n] = r, one_rec
+        _BASELINE[scene_name, n, search] = r, one_rec
         del one
     mesh = Mesh(np.array(jax.devices()[:n_dev]), ("space",))
     t = time.perf_counter()
-    p = acj.plan(s.master, s.slave, dtype=dtype, mesh=mesh)
+    p = acj.plan(s.master, s.slave, dtype=dtype, mesh=mesh, search=search)
     rec["plan_s"] = time.perf_counter() - t
     if len(s.slave) % n_dev == 0 and len(s.master.points) % n_dev == 0:
         # As a simulator on several devices holds them: rows split over the devices.
@@ -154,6 +156,7 @@ def main():
     ap.add_argument("--scenes", nargs="+", default=["rough", "graded"])
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--dtype", default="float32")
+    ap.add_argument("--search", nargs="+", default=["jax"], choices=["jax", "warp"])
     ap.add_argument("--only", choices=["weak", "strong"], default=None)
     ap.add_argument("--out", default=None, help="folder of the records (default results/)")
     ap.add_argument("--run", default=None, help="run id recorded (--table: the run shown)")
@@ -176,11 +179,12 @@ def main():
     if args.only in (None, "strong"):
         # One device's time is the baseline's (the same scene, unsharded).
         jobs += [("strong", args.scenes[0], 2**args.strong_log2, d) for d in counts if d > 1]
-    for kind, name, n, d in jobs:
-        rec = run(name, n, d, args.repeats, dtype, baseline=True)
-        rec.update(kind=kind, device=devices[0].device_kind, n_visible=n_max)
-        print(json.dumps(rec), flush=True)
-        _records.append("sharding", rec, meta, out=args.out, n_devices=n_max)
+    for search in args.search:
+        for kind, name, n, d in jobs:
+            rec = run(name, n, d, args.repeats, dtype, baseline=True, search=search)
+            rec.update(kind=kind, device=devices[0].device_kind, n_visible=n_max)
+            print(json.dumps(rec), flush=True)
+            _records.append("sharding", rec, meta, out=args.out, n_devices=n_max)
 
 
 def table(machine, run=None):
@@ -196,6 +200,7 @@ def table(machine, run=None):
         rows.append(
             [
                 r["kind"],
+                r.get("search", "jax"),
                 r["scene"],
                 r["devices"],
                 f"2^{int(np.log2(r['nodes_per_surface']))}",
@@ -209,7 +214,7 @@ def table(machine, run=None):
             ]
         )
     header = [
-        "run", "scene", "GPUs", "nodes per surface", "one device (ms)", "sharded (ms)",
+        "run", "search", "scene", "GPUs", "nodes per surface", "one device (ms)", "sharded (ms)",
         "exchange (ms)", "slaves per GPU", "plan (s)", "integer fields differing",
         "largest float difference",
     ]  # fmt: skip

@@ -121,6 +121,48 @@ def test_node_mode_and_curved_faces(make, mode, n):
     _same(c, r)
 
 
+def test_warp_search_on_each_device():
+    """search="warp": each device runs its part's Warp plan (on the CPU, the four JAX devices
+    are one Warp device: the part's index picks the plan). The one-device Warp search's
+    contacts and gradients on 2, 3 and 4 devices; motion beyond the margin is overflow and
+    update_plan keeps the Warp search."""
+    s = SCENES["graded"]()
+    one = acj.plan(s.master, s.slave, dtype=np.float64, search="warp")
+
+    def value_and_grads(p):
+        def f(slave, pts):
+            c = acj.detect(p, slave, pts)
+            return _loss(c), c
+
+        (_, c), g = jax.jit(jax.value_and_grad(f, argnums=(0, 1), has_aux=True))(
+            jnp.asarray(s.slave), jnp.asarray(s.master.points)
+        )
+        return c, g
+
+    r, g_r = value_and_grads(one)
+    assert int(np.asarray(r.active).sum()) > 0.5 * len(r.active)
+    for n in (2, 3, 4):
+        p = acj.plan(s.master, s.slave, dtype=np.float64, search="warp", mesh=_mesh(n))
+        assert len(p.local.search.plans) == n
+        if n == 3:  # the gradients on the uneven split
+            c, g = value_and_grads(p)
+            for a, b in zip(g, g_r):
+                scale = float(np.abs(np.asarray(b)).max())
+                assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-10 * scale)
+        else:
+            c = acj.detect(p, s.slave, s.master.points)
+        assert not bool(c.overflow), n
+        _same(c, r)
+    shift = s.slave + np.array([1.5 * p.partition.margin, 0, 0])
+    c = acj.detect(p, shift, s.master.points)
+    assert bool(c.overflow)
+    q = acj.update_plan(p, c, shift, s.master.points)
+    assert q.local.search is not None and q.mesh is p.mesh
+    c = acj.detect(q, shift, s.master.points)
+    assert not bool(c.overflow)
+    _same(c, acj.detect(acj.plan(s.master, shift, dtype=np.float64), shift, s.master.points))
+
+
 def test_all_contact_in_one_corner_still_balances():
     """The slaves over most of the master are beyond d_max; those over one corner are close.
     Each device's work in the JAX search (a lane per slave, a tree entry per local face: the
@@ -195,7 +237,7 @@ def test_bad_input_is_named():
     with pytest.raises(ValueError, match="axis"):
         acj.plan(s.master, s.slave, mesh=Mesh(np.array(jax.devices()[:2]), ("x",)))
     with pytest.raises(ValueError, match="search"):
-        acj.plan(s.master, s.slave, mesh=_mesh(2), search="warp")
+        acj.plan_self(s.master, mesh=_mesh(2), search="warp")
     p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=_mesh(2))
     with pytest.raises(ValueError, match="rows"):
         acj.detect(p, s.slave[:-1], s.master.points)

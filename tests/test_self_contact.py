@@ -236,7 +236,8 @@ def test_jax_plan_detect_grad_vmap():
             c = acj.detect_self(p, y)
             return jnp.sum(jnp.where(c.active, (d - jnp.where(c.active, c.gap, 0.0)) ** 2, 0.0))
 
-        e, g = jax.value_and_grad(energy)(x)
+        e, g = jax.jit(jax.value_and_grad(energy))(x)
+        energy = jax.jit(energy)
         assert np.isfinite(np.asarray(g)).all() and float(jnp.abs(g).max()) > 0
         rng = np.random.default_rng(1)
         for _ in range(3):

@@ -306,7 +306,11 @@ def plan(
     sc = scalars(prep, master, dtype)
     if search == "warp":
         # No pair counts to size: only the topology that the smooth outputs read.
-        engine = _WarpSearch(master, slave_x, d_max, dtype, growth, origin, self_contact)
+        engine = _WarpSearch(
+            [warp_plan(master, slave_x, d_max, dtype, growth, origin, self_contact=self_contact)],
+            dtype,
+            self_contact,
+        )
         topo = _topology(master, prep, self_contact)
         return Plan(
             topo,
@@ -534,27 +538,49 @@ def local_detect(p: Plan, topo, slave_points, master_points):
     return fields, counts
 
 
+def warp_plan(
+    master, slave_x, d_max, dtype, growth, origin, *, self_contact=False, device=None, tie=None
+):
+    """The Warp back end's plan of a search="warp" plan, taking coordinates in the JAX plan's
+    frame `origin`. tie: a part of a sharded plan takes the whole master's tie band (and the
+    slack that goes with it), so that its ties resolve as on one device."""
+    import arraycontact_warp as acw
+    import warp as wp
+
+    if device is None:
+        device = wp.device_from_jax(jax.devices()[0])
+    p = acw.plan(
+        master,
+        slave_x,
+        d_max=d_max,
+        device=device,
+        dtype=dtype,
+        growth=growth,
+        self_contact=self_contact,
+    )
+    # The inputs come in the JAX plan's frame: the kernels subtract the difference.
+    p.origin = p.origin - np.asarray(origin)
+    if tie is not None:
+        c = p.constants
+        p.constants = c._replace(tie=tie, slack=c.slack + max(tie - c.tie, 0.0))
+    return p
+
+
 class _WarpSearch:
     """The Warp back end's detection as a JAX primitive (wp.jax_callable): called in `detect`
     with the slave and master coordinates in the plan's frame, returns the search's answer
-    (active, face, feature, local, xi, gap, master_node, status) as JAX arrays."""
+    (active, face, feature, local, xi, gap, master_node, status) as JAX arrays.
 
-    def __init__(self, master, slave_x, d_max, dtype, growth, origin, self_contact=False):
+    plans: one Warp plan (`warp_plan`), or one per part of a sharded plan, called inside
+    shard_map over `axis`: each device runs its part's plan (a GPU's by its device; on the
+    CPU, whose JAX devices are one Warp device, by the part's index)."""
+
+    def __init__(self, plans, dtype, self_contact=False, axis=None):
         import arraycontact_warp as acw
         import warp as wp
 
-        device = wp.device_from_jax(jax.devices()[0])
-        self.plan = acw.plan(
-            master,
-            slave_x,
-            d_max=d_max,
-            device=device,
-            dtype=dtype,
-            growth=growth,
-            self_contact=self_contact,
-        )
-        # The inputs come in the JAX plan's frame: the kernels subtract the difference.
-        self.plan.origin = self.plan.origin - np.asarray(origin)
+        self.plans, self.axis = list(plans), axis
+        by_ordinal = {q.device.ordinal: q for q in self.plans if q.device.is_cuda}
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
         self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
@@ -571,9 +597,15 @@ class _WarpSearch:
             status=int,
             finer=wp.int32,
         )
-        plan = self.plan
+        plans = self.plans
 
-        def search(slaves, master_points, *outs):
+        def search(part, slaves, master_points, *outs):
+            if len(plans) == 1:
+                plan = plans[0]
+            elif slaves.device.is_cuda:
+                plan = by_ordinal[slaves.device.ordinal]
+            else:
+                plan = plans[int(part.numpy()[0])]
             if self_contact:  # the slaves are the master's nodes: gathered by the kernels
                 o = acw.detect_self(plan, master_points)
             else:
@@ -583,12 +615,13 @@ class _WarpSearch:
 
         # jax_callable reads the Warp types from the annotations.
         search.__annotations__ = {
+            "part": wp.array(dtype=wp.int32),
             "slaves": wp.array(dtype=vec3),
             "master_points": wp.array(dtype=vec3),
             **{f"o_{k}": wp.array(dtype=kinds[k]) for k in self.names},
         }
         search.__signature__ = _signature(
-            ["slaves", "master_points", *[f"o_{k}" for k in self.names]]
+            ["part", "slaves", "master_points", *[f"o_{k}" for k in self.names]]
         )
         # On a GPU, Warp captures the search in a CUDA graph of its own, replayed on staging
         # buffers with the copies in and out outside it (JAX cannot take the radix sort's
@@ -597,16 +630,26 @@ class _WarpSearch:
         # one scene's buffers).
         mode = (
             wp.JaxCallableGraphMode.WARP_STAGED_EX
-            if device.is_cuda
+            if self.plans[0].device.is_cuda
             else wp.JaxCallableGraphMode.NONE
         )
         self.call = wp.jax_callable(
-            search, num_outputs=len(self.names), graph_mode=mode, vmap_method="sequential"
+            search,
+            num_outputs=len(self.names),
+            graph_mode=mode,
+            vmap_method="sequential",
+            # Several parts: every device's kernels loaded now, not while a graph captures.
+            module_preload_mode=wp.JaxModulePreloadMode.ALL_DEVICES
+            if len(self.plans) > 1
+            else wp.JaxModulePreloadMode.CURRENT_DEVICE,
         )
 
     def __call__(self, s, xm):
         n = s.shape[0]
-        outs = self.call(s, xm, output_dims={f"o_{k}": n for k in self.names})
+        part = jnp.zeros(1, jnp.int32)
+        if self.axis is not None:  # inside shard_map
+            part = part + jax.lax.axis_index(self.axis)
+        outs = self.call(part, s, xm, output_dims={f"o_{k}": n for k in self.names})
         out = dict(zip(self.names, outs))
         out["active"] = out["active"].astype(bool)
         if "finer" in out:
@@ -647,6 +690,7 @@ def update_plan(p: Plan, contacts: Contacts, slave_points, master_points) -> Pla
             dtype=lp.dtype,
             growth=lp.growth,
             minimum=count,
+            search="jax" if lp.search is None else "warp",
             self_contact=lp.static.self_contact,
             mesh=p.mesh,
             axis=p.axis,

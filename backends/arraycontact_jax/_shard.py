@@ -56,9 +56,11 @@ from ._detect import (
     _grown,
     _per_slave,
     _topology_arrays,
+    _WarpSearch,
     contacts_of,
     local_detect,
     master_arrays,
+    warp_plan,
 )
 
 _FLOATS = (("xi", 2), ("point", 3), ("gap", 1), ("distance", 1), ("normal", 3))
@@ -130,8 +132,10 @@ def plan(
     margin=None,
 ):
     """The sharded plan (see arraycontact_jax.plan: `mesh`, `axis`, `margin`)."""
-    if search != "jax":
-        raise ValueError("a sharded plan runs search='jax' (search='warp' on one device)")
+    if search == "warp" and self_contact:
+        raise ValueError(
+            "a sharded self-contact plan runs search='jax' (search='warp' on one device)"
+        )
     if axis not in mesh.shape:
         raise ValueError(f"mesh has no axis {axis!r} (its axes: {tuple(mesh.shape)})")
     n_dev = mesh.shape[axis]
@@ -278,8 +282,7 @@ def plan(
     cand = []
     for e, (surf, _) in enumerate(locals_):
         mine = parts[e].slaves
-        xs = np.repeat(nowhere[None], s_cap, 0)
-        xs[: len(mine)] = all_x[mine]
+        xs = _part_slaves(all_x, mine, s_cap, nowhere)
         t_e = jax.tree.map(lambda v, e=e: v[e], topo)
         m_e = master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))
         own = jnp.asarray(t_e.slave_nodes) if self_contact else None
@@ -291,6 +294,26 @@ def plan(
     else:
         counts = {"attached": max(int(c.sum()) for c in cand)}
     cap = _grown(counts, growth, s_cap, minimum)
+    engine = None
+    if search == "warp":  # each part's Warp plan on its device, sized by its own counts
+        engine = _WarpSearch(
+            [
+                warp_plan(
+                    surf,
+                    _part_slaves(all_x, parts[e].slaves, s_cap, nowhere),
+                    d_max,
+                    dtype,
+                    growth,
+                    origin,
+                    device=_warp_device(mesh.devices.flat[e]),
+                    tie=float(sc.tie),
+                )
+                for e, (surf, _) in enumerate(locals_)
+            ],
+            dtype,
+            axis=axis,
+        )
+        cap = {}
     balance = dict(
         slaves=[len(q.slaves) for q in parts],
         halo_faces=[len(h) for h in part.halo],
@@ -320,6 +343,7 @@ def plan(
         np.dtype(dtype).name,
         s_cap,
         growth,
+        engine,
     )
     return ShardedPlan(
         local,
@@ -332,6 +356,20 @@ def plan(
         float(element.lebesgue),
         tuple(sorted(balance.items())),
     )
+
+
+def _part_slaves(all_x, mine, s_cap, nowhere):
+    """A part's slave coordinates [s_cap, 3] as detect gathers them: its own rows, then padding
+    rows beyond reach of every face."""
+    xs = np.repeat(nowhere[None], s_cap, 0)
+    xs[: len(mine)] = all_x[mine]
+    return xs
+
+
+def _warp_device(device):
+    import warp as wp
+
+    return wp.device_from_jax(device)
 
 
 def _reach(sc, m, x, margin, st):
