@@ -413,7 +413,9 @@ def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
     rows, faces = [], []
     start, n = 0, x.shape[0]
     while start < n:
-        k = max(int(jnp.max(count[start : start + chunk])), 1)
+        # A power of two: a few compilations of _candidates serve every chunk (a graded
+        # mesh's chunks had as many distinct counts, each a compilation: most of its plan).
+        k = 1 << (max(int(jnp.max(count[start : start + chunk])), 1) - 1).bit_length()
         stop = min(n, start + max(slots // k, 1), start + chunk)
         slave, face, valid, _ = _candidates(grid, x[start:stop], rho[start:stop], sc.slack, k)
         valid = np.asarray(valid)
