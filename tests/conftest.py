@@ -69,8 +69,12 @@ def _release_xla_programs():
 
 def pytest_sessionstart(session):
     """Warp's CPU kernels compiled in a child process first (tests/warp_warmup.py), once: by
-    pytest-xdist's controller, not by each worker."""
-    if hasattr(session.config, "workerinput"):
+    pytest-xdist's controller, not by each worker. Not with `-n 0`: one process compiles what
+    it uses anyway (on a GPU machine the warm-up would compile every module for the GPU
+    first)."""
+    if hasattr(session.config, "workerinput") or not getattr(
+        session.config.option, "numprocesses", None
+    ):
         return
     import subprocess
     import sys
