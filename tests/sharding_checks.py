@@ -163,6 +163,30 @@ def test_warp_search_on_each_device():
     _same(c, acj.detect(acj.plan(s.master, shift, dtype=np.float64), shift, s.master.points))
 
 
+def test_warp_self_contact_on_each_device():
+    """search="warp" in self-contact: each part's Warp plan answers for every node of its
+    surface, and the part's own slaves are taken from those rows; the one-device answer and
+    gradients on 2 and 3 devices."""
+    s = SCENES["spiral"]()
+
+    def value_and_grad(p):
+        def f(pts):
+            c = acj.detect_self(p, pts)
+            return _loss(c), c
+
+        (_, c), g = jax.jit(jax.value_and_grad(f, has_aux=True))(jnp.asarray(s.master.points))
+        return c, np.asarray(g)
+
+    r, g_r = value_and_grad(acj.plan_self(s.master, dtype=np.float64, search="warp"))
+    assert int(np.asarray(r.active).sum()) > 0
+    for n in (2, 3):
+        p = acj.plan_self(s.master, dtype=np.float64, search="warp", mesh=_mesh(n))
+        c, g = value_and_grad(p)
+        assert not bool(c.overflow), n
+        _same(c, r)
+        assert np.allclose(g, g_r, rtol=1e-10, atol=1e-10 * np.abs(g_r).max()), n
+
+
 def test_all_contact_in_one_corner_still_balances():
     """The slaves over most of the master are beyond d_max; those over one corner are close.
     Each device's work in the JAX search (a lane per slave, a tree entry per local face: the
@@ -236,8 +260,6 @@ def test_bad_input_is_named():
     s = scenes.rough_surfaces(2**8, seed=1)
     with pytest.raises(ValueError, match="axis"):
         acj.plan(s.master, s.slave, mesh=Mesh(np.array(jax.devices()[:2]), ("x",)))
-    with pytest.raises(ValueError, match="search"):
-        acj.plan_self(s.master, mesh=_mesh(2), search="warp")
     p = acj.plan(s.master, s.slave, dtype=np.float64, mesh=_mesh(2))
     with pytest.raises(ValueError, match="rows"):
         acj.detect(p, s.slave[:-1], s.master.points)

@@ -117,4 +117,4 @@ def test_jax_sharded_detection_on_four_cpu_devices():
         env=env,
     )
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
-    assert "11 passed" in r.stdout
+    assert "12 passed" in r.stdout

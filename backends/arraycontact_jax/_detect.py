@@ -486,7 +486,7 @@ def local_detect(p: Plan, topo, slave_points, master_points):
     st, sc = p.static, p.constants
     ids = topo.slave_nodes
     if p.search is not None:
-        out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm))
+        out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm), ids)
         counts = {}
     else:
         m = master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))
@@ -573,13 +573,16 @@ class _WarpSearch:
 
     plans: one Warp plan (`warp_plan`), or one per part of a sharded plan, called inside
     shard_map over `axis`: each device runs its part's plan (a GPU's by its device; on the
-    CPU, whose JAX devices are one Warp device, by the part's index)."""
+    CPU, whose JAX devices are one Warp device, by the part's index). A part's self-contact
+    plan answers for every node of its surface (its points, all used but the last unused
+    ones), and the part's own slaves are taken from those rows."""
 
     def __init__(self, plans, dtype, self_contact=False, axis=None):
         import arraycontact_warp as acw
         import warp as wp
 
         self.plans, self.axis = list(plans), axis
+        self.by_point = self_contact and axis is not None
         by_ordinal = {q.device.ordinal: q for q in self.plans if q.device.is_cuda}
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
@@ -611,7 +614,7 @@ class _WarpSearch:
             else:
                 o = acw.detect(plan, slaves, master_points)
             for name, a in zip(self.names, outs):
-                wp.copy(a, o[name])
+                wp.copy(a, o[name], count=len(o[name]))
 
         # jax_callable reads the Warp types from the annotations.
         search.__annotations__ = {
@@ -644,13 +647,15 @@ class _WarpSearch:
             else wp.JaxModulePreloadMode.CURRENT_DEVICE,
         )
 
-    def __call__(self, s, xm):
-        n = s.shape[0]
+    def __call__(self, s, xm, slave_nodes=None):
+        n = xm.shape[0] if self.by_point else s.shape[0]
         part = jnp.zeros(1, jnp.int32)
         if self.axis is not None:  # inside shard_map
             part = part + jax.lax.axis_index(self.axis)
         outs = self.call(part, s, xm, output_dims={f"o_{k}": n for k in self.names})
         out = dict(zip(self.names, outs))
+        if self.by_point:  # the part's slaves: rows of their local point ids
+            out = {k: v[slave_nodes] for k, v in out.items()}
         out["active"] = out["active"].astype(bool)
         if "finer" in out:
             out["finer"] = out["finer"].astype(bool)

@@ -132,10 +132,6 @@ def plan(
     margin=None,
 ):
     """The sharded plan (see arraycontact_jax.plan: `mesh`, `axis`, `margin`)."""
-    if search == "warp" and self_contact:
-        raise ValueError(
-            "a sharded self-contact plan runs search='jax' (search='warp' on one device)"
-        )
     if axis not in mesh.shape:
         raise ValueError(f"mesh has no axis {axis!r} (its axes: {tuple(mesh.shape)})")
     n_dev = mesh.shape[axis]
@@ -296,23 +292,28 @@ def plan(
     cap = _grown(counts, growth, s_cap, minimum)
     engine = None
     if search == "warp":  # each part's Warp plan on its device, sized by its own counts
-        engine = _WarpSearch(
-            [
+        plans = []
+        for e, (surf, _) in enumerate(locals_):
+            if self_contact:  # every node of the part's surface, answered by its point id
+                if not np.array_equal(surf.nodes, np.arange(len(surf.nodes))):
+                    raise AssertionError("a part's used points must come first")
+                xs = surf.points[surf.nodes]
+            else:
+                xs = _part_slaves(all_x, parts[e].slaves, s_cap, nowhere)
+            plans.append(
                 warp_plan(
                     surf,
-                    _part_slaves(all_x, parts[e].slaves, s_cap, nowhere),
+                    xs,
                     d_max,
                     dtype,
                     growth,
                     origin,
+                    self_contact=self_contact,
                     device=_warp_device(mesh.devices.flat[e]),
                     tie=float(sc.tie),
                 )
-                for e, (surf, _) in enumerate(locals_)
-            ],
-            dtype,
-            axis=axis,
-        )
+            )
+        engine = _WarpSearch(plans, dtype, self_contact, axis=axis)
         cap = {}
     balance = dict(
         slaves=[len(q.slaves) for q in parts],
