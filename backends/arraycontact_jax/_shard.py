@@ -15,7 +15,8 @@ device d holds rows [d B, (d + 1) B). Inside shard_map each device
    receives the rest of its own (one all_to_all for the master's nodes, one for the slaves):
    only rows another part needs cross devices;
 2. runs the one-device detection (arraycontact_jax._detect.local_detect) on its part, with the
-   scene's constants (d_max, tolerances, frame), so every row is the one-device answer;
+   scene's constants (d_max, tolerances, frame), so every row is the one-device answer (the
+   search in JAX, or with search="warp" the part's own Warp plan on the device);
 3. sends each answer back to the device holding the slave's row (one all_to_all for the float
    fields, one for the integer ones) and reduces the counts (pmax).
 
