@@ -38,6 +38,13 @@ def closest_point_triangle(p, a, b, c, xp=np):
     cp = p - c
     d5, d6 = _dot(ab, cp, xp), _dot(ac, cp, xp)
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    # Each of va, vb, vc is a difference of two products, zero where p projects onto an edge:
+    # within its rounding (a fused multiply-add, as XLA and the Warp kernels may compute it,
+    # rounds it otherwise) it counts as zero, so every back end puts such a point on the edge.
+    r = 4 * xp.finfo(d1.dtype).eps
+    ta = r * (abs(d3 * d6) + abs(d5 * d4))
+    tb = r * (abs(d5 * d2) + abs(d1 * d6))
+    tc = r * (abs(d1 * d4) + abs(d3 * d2))
     zero = 0 * d1
     one = zero + 1
     den = va + vb + vc
@@ -45,15 +52,15 @@ def closest_point_triangle(p, a, b, c, xp=np):
     regions = [
         (den > 0, _safe_div(vb, den, xp), _safe_div(vc, den, xp), FACE, -1),
         (
-            (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+            (va <= ta) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
             1 - _safe_div(d4 - d3, (d4 - d3) + (d5 - d6), xp),
             _safe_div(d4 - d3, (d4 - d3) + (d5 - d6), xp),
             EDGE,
             1,
         ),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), zero, _safe_div(d2, d2 - d6, xp), EDGE, 2),
+        ((vb <= tb) & (d2 >= 0) & (d6 <= 0), zero, _safe_div(d2, d2 - d6, xp), EDGE, 2),
         ((d6 >= 0) & (d5 <= d6), zero, one, VERTEX, 2),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), _safe_div(d1, d1 - d3, xp), zero, EDGE, 0),
+        ((vc <= tc) & (d1 >= 0) & (d3 <= 0), _safe_div(d1, d1 - d3, xp), zero, EDGE, 0),
         ((d3 >= 0) & (d4 <= d3), one, zero, VERTEX, 1),
         ((d1 <= 0) & (d2 <= 0), zero, zero, VERTEX, 0),
     ]

@@ -355,3 +355,18 @@ def test_jax_self_overflow_reported_and_update_plan():
         want = ac.detect_self(s.with_points(closer), backend="numpy", d_max=d)
         np.testing.assert_array_equal(np.asarray(c.face), want.face)
         np.testing.assert_allclose(np.asarray(c.gap), want.gap, atol=1e-12)
+
+
+def test_every_back_end_puts_edge_projections_on_the_edge():
+    """On the spiral many nodes project exactly onto an edge of the facing layer: every back
+    end reports the reference's feature (XLA's fused multiply-adds once put 122 of them inside
+    a face by 1e-19 in natural coordinates: the same face and gap, another feature)."""
+    s = scenes.spiral_strip(700, element="tri3")
+    d = s.params["d_max"]
+    r = self_reference(s.master, d)
+    for backend in ("numpy", "jax", "warp"):
+        c = ac.detect_self(s.master, backend=backend, d_max=d)
+        a = c.active  # (the active set itself: test_elements_numpy and test_backends_*)
+        assert (r.feature[a] == ac.Feature.EDGE).sum() > 50
+        np.testing.assert_array_equal(c.face[a], r.face[a], err_msg=backend)
+        np.testing.assert_array_equal(c.feature[a], r.feature[a], err_msg=backend)

@@ -177,6 +177,9 @@ def _sdiv(a: real, b: real):
     return real(0.0)
 
 
+ROUND = wp.constant(real(4.0) * EPS)
+
+
 @wp.func
 def closest_point_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
     """Closest point on triangle (a, b, c) to p by Voronoi regions: xi = (v, w) with
@@ -193,8 +196,9 @@ def closest_point_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
     d4 = wp.dot(ac, bp)
     if d3 >= 0.0 and d4 <= d3:
         return vec2(1.0, 0.0), VERTEX, 1
+    # Within its rounding a difference of two products counts as zero (the NumPy twin says why).
     vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+    if vc <= ROUND * (wp.abs(d1 * d4) + wp.abs(d3 * d2)) and d1 >= 0.0 and d3 <= 0.0:
         return vec2(_sdiv(d1, d1 - d3), real(0.0)), EDGE, 0
     cp = p - c
     d5 = wp.dot(ab, cp)
@@ -202,10 +206,10 @@ def closest_point_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
     if d6 >= 0.0 and d5 <= d6:
         return vec2(0.0, 1.0), VERTEX, 2
     vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+    if vb <= ROUND * (wp.abs(d5 * d2) + wp.abs(d1 * d6)) and d2 >= 0.0 and d6 <= 0.0:
         return vec2(real(0.0), _sdiv(d2, d2 - d6)), EDGE, 2
     va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+    if va <= ROUND * (wp.abs(d3 * d6) + wp.abs(d5 * d4)) and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         w = _sdiv(d4 - d3, (d4 - d3) + (d5 - d6))
         return vec2(real(1.0) - w, w), EDGE, 1
     den = va + vb + vc
