@@ -572,10 +572,10 @@ class _WarpSearch:
     (active, face, feature, local, xi, gap, master_node, status) as JAX arrays.
 
     plans: one Warp plan (`warp_plan`), or one per part of a sharded plan, called inside
-    shard_map over `axis`: each device runs its part's plan (a GPU's by its device; on the
-    CPU, whose JAX devices are one Warp device, by the part's index). A part's self-contact
-    plan answers for every node of its surface (its points, all used but the last unused
-    ones), and the part's own slaves are taken from those rows."""
+    shard_map over `axis`: each device runs its part's plan, picked by the part's index
+    (CPU devices, which are one Warp device; several GPUs are refused, see _shard.plan). A
+    part's self-contact plan answers for every node of its surface (its points, all used but
+    the last unused ones), and the part's own slaves are taken from those rows."""
 
     def __init__(self, plans, dtype, self_contact=False, axis=None):
         import arraycontact_warp as acw
@@ -583,7 +583,6 @@ class _WarpSearch:
 
         self.plans, self.axis = list(plans), axis
         self.by_point = self_contact and axis is not None
-        by_ordinal = {q.device.ordinal: q for q in self.plans if q.device.is_cuda}
         g = acw.geometry(dtype)
         real, vec2, vec3 = g.real, g.vec2, g.vec3
         self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
@@ -603,12 +602,8 @@ class _WarpSearch:
         plans = self.plans
 
         def search(part, slaves, master_points, *outs):
-            if len(plans) == 1:
-                plan = plans[0]
-            elif slaves.device.is_cuda:
-                plan = by_ordinal[slaves.device.ordinal]
-            else:
-                plan = plans[int(part.numpy()[0])]
+            # One plan, or the parts of CPU devices (one Warp device): the part's index.
+            plan = plans[0] if len(plans) == 1 else plans[int(part.numpy()[0])]
             if self_contact:  # the slaves are the master's nodes: gathered by the kernels
                 o = acw.detect_self(plan, master_points)
             else:
@@ -641,10 +636,6 @@ class _WarpSearch:
             num_outputs=len(self.names),
             graph_mode=mode,
             vmap_method="sequential",
-            # Several parts: every device's kernels loaded now, not while a graph captures.
-            module_preload_mode=wp.JaxModulePreloadMode.ALL_DEVICES
-            if len(self.plans) > 1
-            else wp.JaxModulePreloadMode.CURRENT_DEVICE,
         )
 
     def __call__(self, s, xm, slave_nodes=None):
