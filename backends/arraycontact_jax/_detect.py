@@ -542,18 +542,17 @@ def warp_plan(
     master, slave_x, d_max, dtype, growth, origin, *, self_contact=False, device=None, tie=None
 ):
     """The Warp back end's plan of a search="warp" plan, taking coordinates in the JAX plan's
-    frame `origin`. tie: a part of a sharded plan takes the whole master's tie band (and the
-    slack that goes with it), so that its ties resolve as on one device."""
+    frame `origin`, on the JAX device `device` (default: the first). tie: a part of a sharded
+    plan takes the whole master's tie band (and the slack that goes with it), so that its ties
+    resolve as on one device."""
     import arraycontact_warp as acw
     import warp as wp
 
-    if device is None:
-        device = wp.device_from_jax(jax.devices()[0])
     p = acw.plan(
         master,
         slave_x,
         d_max=d_max,
-        device=device,
+        device=wp.device_from_jax(jax.devices()[0] if device is None else device),
         dtype=dtype,
         growth=growth,
         self_contact=self_contact,
@@ -632,10 +631,7 @@ class _WarpSearch:
             else wp.JaxCallableGraphMode.NONE
         )
         self.call = wp.jax_callable(
-            search,
-            num_outputs=len(self.names),
-            graph_mode=mode,
-            vmap_method="sequential",
+            search, num_outputs=len(self.names), graph_mode=mode, vmap_method="sequential"
         )
 
     def __call__(self, s, xm, slave_nodes=None):

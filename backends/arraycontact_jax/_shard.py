@@ -282,24 +282,7 @@ def plan(
         node_ids=node_ids,
         nowhere=np.broadcast_to(nowhere, (n_dev, 3)),
     )
-    # The capacities: each part's own counts, the largest, times growth.
-    # Padded like detect's inputs: one compilation serves every part.
-    cand = []
-    for e, (surf, _) in enumerate(locals_):
-        mine = parts[e].slaves
-        xs = _part_slaves(all_x, mine, s_cap, nowhere)
-        t_e = jax.tree.map(lambda v, e=e: v[e], topo)
-        m_e = master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))
-        own = jnp.asarray(t_e.slave_nodes) if self_contact else None
-        xs = jnp.asarray((xs - origin).astype(dtype))
-        m_e = jax.tree.map(jnp.asarray, m_e)
-        cand.append(np.asarray(_per_slave(sc_dev, m_e, xs, own, st=st))[: len(mine)])
-    if mode == "exact":
-        counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
-    else:
-        counts = {"attached": max(int(c.sum()) for c in cand)}
-    cap = _grown(counts, growth, s_cap, minimum)
-    engine = None
+    engine, cand, cap = None, [], {}
     if search == "warp":  # each part's Warp plan on its device, sized by its own counts
         plans = []
         for e, (surf, _) in enumerate(locals_):
@@ -318,17 +301,33 @@ def plan(
                     growth,
                     origin,
                     self_contact=self_contact,
-                    device=_warp_device(mesh.devices.flat[e]),
+                    device=mesh.devices.flat[e],
                     tie=float(sc.tie),
                 )
             )
         engine = _WarpSearch(plans, dtype, self_contact, axis=axis)
-        cap = {}
+    else:
+        # The capacities: each part's own counts, the largest, times growth.
+        # Padded like detect's inputs: one compilation serves every part.
+        for e, (surf, _) in enumerate(locals_):
+            mine = parts[e].slaves
+            xs = _part_slaves(all_x, mine, s_cap, nowhere)
+            t_e = jax.tree.map(lambda v, e=e: v[e], topo)
+            m_e = master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))
+            own = jnp.asarray(t_e.slave_nodes) if self_contact else None
+            xs = jnp.asarray((xs - origin).astype(dtype))
+            m_e = jax.tree.map(jnp.asarray, m_e)
+            cand.append(np.asarray(_per_slave(sc_dev, m_e, xs, own, st=st))[: len(mine)])
+        if mode == "exact":
+            counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
+        else:
+            counts = {"attached": max(int(c.sum()) for c in cand)}
+        cap = _grown(counts, growth, s_cap, minimum)
     balance = dict(
         slaves=[len(q.slaves) for q in parts],
         halo_faces=[len(h) for h in part.halo],
         local_faces=[len(q.faces) for q in parts],
-        candidates=[int(c.sum()) for c in cand],
+        candidates=[int(c.sum()) for c in cand],  # the JAX search's (none with Warp's)
         work=[float(w) for w in part.work],
         # Rows that cross devices in each exchange (slaves: none in self-contact), the rows
         # each device keeps, and the widest route to another device (slaves, master).
@@ -374,12 +373,6 @@ def _part_slaves(all_x, mine, s_cap, nowhere):
     xs = np.repeat(nowhere[None], s_cap, 0)
     xs[: len(mine)] = all_x[mine]
     return xs
-
-
-def _warp_device(device):
-    import warp as wp
-
-    return wp.device_from_jax(device)
 
 
 def _reach(sc, m, x, margin, st):
