@@ -489,3 +489,61 @@ def test_jax_arrays_in_and_out():
     assert type(o["gap"]).__module__.startswith("jax")
     r = ac.detect(s.slave, s.master, dtype=np.float32, backend="numpy")
     assert np.array_equal(np.asarray(o["face"]), r.face)
+
+
+def _topology_surfaces():
+    """Open and closed, linear and quadratic, a non-manifold edge, a pinched vertex and points
+    no face uses."""
+    u = np.linspace(0.0, 1.0, 7)
+    x, y = np.meshgrid(u, u[:5], indexing="ij")
+    z = 0.1 * np.sin(3 * x) * np.cos(2 * y)
+    out = {
+        el: scenes.grid_surface(x, y, z, el) for el in ("tri3", "quad4", "tri6", "quad8", "quad9")
+    }
+    out["closed quad4"] = scenes.block_surface(lambda a, b, c: (a, 2 * b, c), (4, 3, 5))
+    out["closed tri6"] = scenes.block_surface(lambda a, b, c: (a, b, c), (5, 3, 3), "tri6")
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [5, 5, 5.0]])
+    # Edge 0-1 has three faces; node 0 is shared by two otherwise separate fans (a pinch);
+    # point 5 is used by no face.
+    pinch = np.array([[-1, 0.5, 0.2], [-1, -0.5, 0.2]])
+    out["non-manifold, pinched"] = ac.Surface(
+        np.vstack([pts, pinch]), [[0, 1, 2], [1, 0, 3], [0, 1, 4], [0, 6, 7]], "tri3"
+    )
+    return out
+
+
+@pytest.mark.parametrize("name", list(_topology_surfaces()))
+def test_device_topology_equals_the_surfaces(name):
+    """The plan's topology, made by Warp kernels, against the Surface's NumPy tables (a
+    separate implementation): every table row for row, the scalars to rounding."""
+    from arraycontact_warp._surface import topology
+
+    from arraycontact._select import boundary_topology
+
+    m = _topology_surfaces()[name]
+    t = topology(m, DEVICE)
+    assert topology(m, DEVICE) is t  # made once per Surface and device
+    np.testing.assert_array_equal(t.face_edges.numpy(), m.face_edges)
+    np.testing.assert_array_equal(t.edge_faces.numpy()[: len(m.edges)], m.edge_faces)
+    offsets, ids = m.node_faces
+    np.testing.assert_array_equal(t.nf_offsets.numpy(), offsets)
+    np.testing.assert_array_equal(t.nf_ids.numpy(), ids)
+    want = boundary_topology(m)[:4]
+    got = (t.prev_node, t.next_node, t.prev_face, t.next_face)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g.numpy(), w)
+    assert t.n_nodes == len(m.nodes)
+    np.testing.assert_array_equal(t.nodes.numpy()[: t.n_nodes], m.nodes)
+    assert t.closed == m.closed
+    assert t.longest_edge == pytest.approx(m.longest_edge, rel=1e-15)
+    radii = m.face_bounds[1]
+    assert t.r_max == pytest.approx(radii.max(), rel=1e-15)
+    assert t.r_small == pytest.approx(np.quantile(radii, 0.1), rel=1e-6)
+    np.testing.assert_array_equal(t.node_box[0], m.node_box[0])
+    np.testing.assert_array_equal(t.node_box[1], m.node_box[1])
+    if name.startswith("closed"):
+        assert t.closed
+    if name.startswith("non-manifold"):
+        assert not t.closed and (m.edge_counts == 3).any()
+        # The pinch: several boundary edges start and end at node 0 (the last one wins).
+        assert (m.boundary_edges[:, 0] == 0).sum() == 2 and (m.boundary_edges[:, 1] == 0).sum() == 3

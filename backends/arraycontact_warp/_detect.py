@@ -31,12 +31,12 @@ import numpy as np
 import warp as wp
 
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, SIZE_RTOL, TIE_RTOL
-from arraycontact._select import boundary_topology
 from arraycontact._surface import Surface, bounds, validate_points
 from arraycontact._sweep import FEATURE_TOL as SWEPT_FEATURE_TOL
 from arraycontact._sweep import ROUND as SWEPT_ROUND
 from arraycontact._sweep import SPACE_RTOL as SWEPT_SPACE_RTOL
 from arraycontact._sweep import T_TOL as SWEPT_T_TOL
+from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
 from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
@@ -344,7 +344,8 @@ class Plan:
     m: Master
     node_grid: _grid.Grid
     face_grid: _grid.Grid
-    node_ids: wp.array
+    node_ids: wp.array  # the master's used nodes
+    n_nodes: int
     slave_world: wp.array
     shared: int
     origin: np.ndarray
@@ -459,14 +460,6 @@ def plan(
     x = validate_points(slave_points, "slave_points")
     if len(x) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
-    if self_contact and len(x) != len(master.nodes):
-        raise ValueError(
-            f"self-contact: slave_points must be the master's {len(master.nodes)} used nodes"
-        )
-    if d_max is None:
-        d_max = master.longest_edge
-    if not (np.isscalar(d_max) and np.isfinite(d_max) and d_max > 0):
-        raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
     sort_slaves = {True: "detect", None: False}.get(sort_slaves, sort_slaves)
@@ -475,27 +468,35 @@ def plan(
     device = wp.get_device(device)
     sw = _worlds(slave_world, len(x), "slave_world")
     shared = master_world is None
-    nw = _worlds(master_world, len(master.points), "master_world")
-    fw = nw[master.faces[:, 0]]
     if not shared:
+        nw = _worlds(master_world, len(master.points), "master_world")
+        fw = nw[master.faces[:, 0]]
         bad = (nw[master.faces] != fw[:, None]).any(1)
         if bad.any():
             r = int(np.argmax(bad))
             raise ValueError(
                 f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}"
             )
+    topo = _surface.topology(master, device)
+    if self_contact and len(x) != topo.n_nodes:
+        raise ValueError(
+            f"self-contact: slave_points must be the master's {topo.n_nodes} used nodes"
+        )
+    if d_max is None:
+        d_max = topo.longest_edge
+    if not (np.isscalar(d_max) and np.isfinite(d_max) and d_max > 0):
+        raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     e = master.element
-    _, radii = master.face_bounds
-    r_max = float(radii.max())
+    r_max = topo.r_max
     x_lo, x_hi = bounds(x)
-    lo = np.minimum(x_lo, master.node_box[0]) - d_max
-    hi = np.maximum(x_hi, master.node_box[1]) + d_max
+    lo = np.minimum(x_lo, topo.node_box[0]) - d_max
+    hi = np.maximum(x_hi, topo.node_box[1]) + d_max
     extent = 2 * float((hi - lo).max())
     # The local frame at the slaves' box (less d_max): float32 keeps its precision where the
     # contacts are, however large the master is around them (a fine patch in a coarse plate).
     origin = x_lo - d_max
     eps = float(np.finfo(NP_REAL).eps)
-    tie = TIE_RTOL[NP_REAL] * master.longest_edge
+    tie = TIE_RTOL[NP_REAL] * topo.longest_edge
     consts = Constants(
         d_max=float(d_max),
         tie=tie,
@@ -511,30 +512,23 @@ def plan(
 
     m = Master()
     m.points = wp.zeros(len(master.points), dtype=vec3, device=device)
-    m.faces = arr(master.faces.astype(np.int32), int)
-    m.face_world, m.node_world = arr(fw, int), arr(nw if not shared else 0 * nw, int)
+    m.faces = topo.faces
     if shared:
-        m.face_world = arr(0 * fw, int)
-    offsets, ids = master.node_faces
-    m.nf_offsets, m.nf_ids = arr(offsets.astype(np.int32), int), arr(ids.astype(np.int32), int)
-    m.face_edges = arr(master.face_edges.astype(np.int32), int)
-    prev_node, next_node, prev_face, next_face, _ = boundary_topology(master)
-    m.prev_node, m.next_node = (
-        arr(prev_node.astype(np.int32), int),
-        arr(next_node.astype(np.int32), int),
-    )
-    m.prev_face, m.next_face = (
-        arr(prev_face.astype(np.int32), int),
-        arr(next_face.astype(np.int32), int),
-    )
-    m.edge_faces = arr(master.edge_faces.astype(np.int32), int)
+        m.face_world = wp.zeros(master.n_faces, dtype=int, device=device)
+        m.node_world = wp.zeros(len(master.points), dtype=int, device=device)
+    else:
+        m.face_world, m.node_world = arr(fw, int), arr(nw, int)
+    m.nf_offsets, m.nf_ids = topo.nf_offsets, topo.nf_ids
+    m.face_edges, m.edge_faces = topo.face_edges, topo.edge_faces
+    m.prev_node, m.next_node = topo.prev_node, topo.next_node
+    m.prev_face, m.next_face = topo.prev_face, topo.next_face
     out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
     element = element_data(e.name, device)
     # Morton keys over the plan's box in the local frame; worlds above them in the key.
-    margin = (growth - 1) * float(np.quantile(radii, 0.1))
+    margin = (growth - 1) * topo.r_small
     n_worlds = 1 if shared else int(nw.max()) + 1
     node_grid, world_bits = _grid.new_grid(
-        len(master.nodes),
+        topo.n_nodes,
         lo - origin,
         float((hi - lo).max()),
         device,
@@ -562,7 +556,8 @@ def plan(
         node_grid=node_grid,
         face_grid=face_grid,
         world_bits=world_bits,
-        node_ids=arr(master.nodes.astype(np.int32), int),
+        node_ids=topo.nodes,
+        n_nodes=topo.n_nodes,
         slave_world=arr(sw, int),
         shared=int(shared),
         origin=origin,
@@ -581,7 +576,7 @@ def plan(
         dist=wp.zeros(len(x), dtype=real, device=device),
         item=wp.zeros(len(x), dtype=int, device=device),
         mode=MODES.index(mode),
-        passing_by=int(mode == "node" and not master.closed),
+        passing_by=int(mode == "node" and not topo.closed),
         graphs=bool(graphs),
         refit=bool(refit),
     )
@@ -589,7 +584,7 @@ def plan(
     n_pts = len(master.points) if self_contact else 1
     n_faces = master.n_faces if self_contact else 1
     p.self_contact = int(bool(self_contact))
-    p.own_nodes = arr(master.nodes.astype(np.int32), int) if self_contact else wp.zeros(1, int)
+    p.own_nodes = topo.nodes if self_contact else wp.zeros(1, int)
     p.normals = wp.zeros(n_pts, dtype=vec3, device=device)
     p.h_node = wp.zeros(n_pts, dtype=real, device=device)
     p.face_nlo = wp.zeros(n_faces, dtype=vec3, device=device)
@@ -660,7 +655,7 @@ def _build(p: Plan):
         m.points,
         p.node_ids,
         m.node_world,
-        len(p.master.nodes),
+        p.n_nodes,
         dev,
         p.rebuild,
         p.world_bits,
@@ -702,7 +697,7 @@ def _master_stages(p: Plan, xm, m_origin):
         )
         wp.launch(
             self_node_geometry,
-            len(p.master.nodes),
+            p.n_nodes,
             inputs=[p.kernel_element, m, p.own_nodes, p.h_face],
             outputs=[p.normals, p.h_node],
             device=dev,
@@ -711,7 +706,7 @@ def _master_stages(p: Plan, xm, m_origin):
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
     if p.refit and (dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())):
-        n_nodes = len(p.master.nodes)
+        n_nodes = p.n_nodes
         p.rebuild.zero_()
         _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild, node_n)
         if p.mode == 0:

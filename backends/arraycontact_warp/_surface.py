@@ -1,0 +1,388 @@
+"""Set-up in Warp: the master's topology on the plan's device, built like the detection by
+sorts, scans and a thread per item, so that a plan does not wait for the host's NumPy topology
+(arraycontact._surface: about 1.9 s at 2^20 nodes a surface on the 2-core machine, 3-4 s on the
+H100 machine's host).
+
+The tables equal the Surface's, row for row (tests/test_warp.py checks them):
+- face_edges [F, k], edge_faces [E, 2]: one stable radix sort of the keys min(a, b) n + max(a, b)
+  of every (face, local edge); an edge's faces come in face order, and its id is the rank of
+  its key, the Surface's order. Allocated for F k edges (the count is not known before the
+  sort): rows past the last edge are never read.
+- node_faces (offsets [n + 1], ids): one stable radix sort of the faces' node ids.
+- prev/next node and face of each node (arraycontact._select.boundary_topology): the edges of
+  one face, oriented as in that face, split at their mid node. Where several boundary edges
+  leave one node (a pinch), the last in face order wins, as NumPy's assignment does, so the
+  answer does not depend on the order the threads run in.
+- nodes: the used node ids, ascending (a scan of the use counts).
+Scalars, read back once: the used node count, whether every edge has two faces (closed), the
+longest edge (seed 000 eq. 2), the face radii's largest and tenth percentile (the plan's
+rounding slack and refit margin) and the box of the used nodes, in float64 whatever the plan's
+dtype (the percentile, a margin, from float32 radii). A Surface's topology on a device is made
+once and kept while the Surface lives.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from arraycontact._surface import Surface
+
+wp.set_module_options({"enable_backward": False})
+
+#: Items a thread reduces before its one atomic update (a float atomic on one address from
+#: every thread serialises).
+CHUNK = 64
+
+
+@wp.kernel
+def _edge_keys(
+    faces: wp.array2d(dtype=int),
+    ends: wp.array2d(dtype=int),
+    n: wp.int64,
+    keys: wp.array(dtype=wp.int64),
+    vals: wp.array(dtype=int),
+):
+    t = wp.tid()
+    k = ends.shape[0]
+    f = t // k
+    a = faces[f, ends[t - f * k, 0]]
+    b = faces[f, ends[t - f * k, 1]]
+    keys[t] = wp.int64(wp.min(a, b)) * n + wp.int64(wp.max(a, b))
+    vals[t] = t
+
+
+@wp.kernel
+def _heads(keys: wp.array(dtype=wp.int64), heads: wp.array(dtype=int)):
+    t = wp.tid()
+    h = int(1)
+    if t > 0:
+        if keys[t] == keys[t - 1]:
+            h = 0
+    heads[t] = h
+
+
+@wp.kernel
+def _edge_tables(
+    faces: wp.array2d(dtype=int),
+    ends: wp.array2d(dtype=int),
+    keys: wp.array(dtype=wp.int64),
+    vals: wp.array(dtype=int),
+    ranks: wp.array(dtype=int),
+    count: int,
+    face_edges: wp.array2d(dtype=int),
+    edge_faces: wp.array2d(dtype=int),
+    odd: wp.array(dtype=int),
+    win_next: wp.array(dtype=int),
+    win_prev: wp.array(dtype=int),
+):
+    """Sorted entry t: its face's edge id; at an edge's first entry, the edge's (up to two)
+    faces, whether it has other than two (odd[0]) and, for an edge of one face, its claim on
+    its nodes' boundary neighbours (the largest face-order index wins)."""
+    t = wp.tid()
+    k = ends.shape[0]
+    v = vals[t]
+    f = v // k
+    e = ranks[t] - 1
+    face_edges[f, v - f * k] = e
+    head = t == 0
+    if t > 0:
+        head = keys[t] != keys[t - 1]
+    if head:
+        two = False
+        if t + 1 < count:
+            two = keys[t + 1] == keys[t]
+        three = False
+        if t + 2 < count:
+            three = keys[t + 2] == keys[t]
+        edge_faces[e, 0] = f
+        edge_faces[e, 1] = -1
+        if two:
+            edge_faces[e, 1] = vals[t + 1] // k
+        if three or not two:
+            wp.atomic_add(odd, 0, 1)
+        if not two:
+            le = v - f * k
+            a = faces[f, ends[le, 0]]
+            b = faces[f, ends[le, 1]]
+            wp.atomic_max(win_next, a, v)
+            wp.atomic_max(win_prev, b, v)
+            if ends.shape[1] == 3:  # the mid node: after a, before b
+                mid = faces[f, ends[le, 2]]
+                wp.atomic_max(win_next, mid, v)
+                wp.atomic_max(win_prev, mid, v)
+
+
+@wp.kernel
+def _boundary(
+    faces: wp.array2d(dtype=int),
+    ends: wp.array2d(dtype=int),
+    win_next: wp.array(dtype=int),
+    win_prev: wp.array(dtype=int),
+    next_node: wp.array(dtype=int),
+    next_face: wp.array(dtype=int),
+    prev_node: wp.array(dtype=int),
+    prev_face: wp.array(dtype=int),
+):
+    """Each node's boundary neighbours from the edges that won its claims (itself and -1 off
+    the boundary). A quadratic edge a - mid - b: a's next is mid, mid's are a and b."""
+    i = wp.tid()
+    k = ends.shape[0]
+    quadratic = ends.shape[1] == 3
+    next_node[i] = i
+    next_face[i] = -1
+    prev_node[i] = i
+    prev_face[i] = -1
+    v = win_next[i]
+    if v >= 0:
+        f = v // k
+        le = v - f * k
+        nxt = faces[f, ends[le, 1]]
+        if quadratic and i == faces[f, ends[le, 0]]:
+            nxt = faces[f, ends[le, 2]]
+        next_node[i] = nxt
+        next_face[i] = f
+    v = win_prev[i]
+    if v >= 0:
+        f = v // k
+        le = v - f * k
+        prv = faces[f, ends[le, 0]]
+        if quadratic and i == faces[f, ends[le, 1]]:
+            prv = faces[f, ends[le, 2]]
+        prev_node[i] = prv
+        prev_face[i] = f
+
+
+@wp.kernel
+def _node_keys(
+    faces: wp.array2d(dtype=int),
+    keys: wp.array(dtype=int),
+    vals: wp.array(dtype=int),
+    uses: wp.array(dtype=int),
+):
+    t = wp.tid()
+    nn = faces.shape[1]
+    i = faces[t // nn, t - (t // nn) * nn]
+    keys[t] = i
+    vals[t] = t
+    wp.atomic_add(uses, i, 1)
+
+
+@wp.kernel
+def _node_face_ids(vals: wp.array(dtype=int), nn: int, ids: wp.array(dtype=int)):
+    t = wp.tid()
+    ids[t] = vals[t] // nn
+
+
+@wp.kernel
+def _used(uses: wp.array(dtype=int), flags: wp.array(dtype=int)):
+    i = wp.tid()
+    flags[i] = wp.where(uses[i] > 0, 1, 0)
+
+
+@wp.kernel
+def _compact(uses: wp.array(dtype=int), ranks: wp.array(dtype=int), nodes: wp.array(dtype=int)):
+    i = wp.tid()
+    if uses[i] > 0:
+        nodes[ranks[i] - 1] = i
+
+
+@wp.kernel
+def _face_scalars(
+    points: wp.array(dtype=wp.vec3d),
+    faces: wp.array2d(dtype=int),
+    lebesgue: wp.float64,
+    radii: wp.array(dtype=wp.float32),
+    ids: wp.array(dtype=int),
+    out: wp.array(dtype=wp.float64),
+):
+    """Faces t, t + T, ... (T threads): each face's radius (arraycontact._surface.face_bounds),
+    then one atomic update of the largest squared node distance within a face (out[0]) and
+    the largest radius (out[1])."""
+    t = wp.tid()
+    n_threads = (faces.shape[0] + CHUNK - 1) // CHUNK
+    nn = faces.shape[1]
+    l2 = wp.float64(0.0)
+    r_max = wp.float64(0.0)
+    for j in range(CHUNK):
+        f = t + j * n_threads
+        if f < faces.shape[0]:
+            c = wp.vec3d()
+            for a in range(nn):
+                c += points[faces[f, a]]
+            c = c / wp.float64(nn)
+            r2 = wp.float64(0.0)
+            for a in range(nn):
+                x = points[faces[f, a]]
+                r2 = wp.max(r2, wp.length_sq(x - c))
+                for b in range(a + 1, nn):
+                    l2 = wp.max(l2, wp.length_sq(x - points[faces[f, b]]))
+            r = lebesgue * wp.sqrt(r2)
+            radii[f] = wp.float32(r)  # to sort: a tenth percentile needs no more
+            ids[f] = f
+            r_max = wp.max(r_max, r)
+    wp.atomic_max(out, 0, l2)
+    wp.atomic_max(out, 1, r_max)
+
+
+@wp.kernel
+def _node_box(
+    points: wp.array(dtype=wp.vec3d), uses: wp.array(dtype=int), out: wp.array(dtype=wp.float64)
+):
+    """Nodes t, t + T, ...: the box of the used ones, into out[2:5] (lo) and out[5:8] (hi)."""
+    t = wp.tid()
+    n_threads = (points.shape[0] + CHUNK - 1) // CHUNK
+    lo = wp.vec3d(wp.float64(1.0e300))
+    hi = wp.vec3d(wp.float64(-1.0e300))
+    for j in range(CHUNK):
+        i = t + j * n_threads
+        if i < points.shape[0]:
+            if uses[i] > 0:
+                lo = wp.min(lo, points[i])
+                hi = wp.max(hi, points[i])
+    for a in range(3):
+        wp.atomic_min(out, 2 + a, lo[a])
+        wp.atomic_max(out, 5 + a, hi[a])
+
+
+@dataclass(eq=False)
+class Topology:
+    """A master's tables on one device (int32 arrays) and its scalars (host)."""
+
+    faces: wp.array  # [F, nodes per face]
+    face_edges: wp.array  # [F, k]
+    edge_faces: wp.array  # [F k, 2]: rows past the number of edges unused
+    nf_offsets: wp.array  # [n + 1]
+    nf_ids: wp.array  # [F nodes per face]
+    prev_node: wp.array
+    next_node: wp.array
+    prev_face: wp.array
+    next_face: wp.array
+    nodes: wp.array  # the used node ids, ascending
+    n_nodes: int
+    closed: bool
+    longest_edge: float
+    r_max: float
+    r_small: float  # the tenth percentile of the face radii (np.quantile's, in float32)
+    node_box: tuple  # (lo, hi) of the used nodes
+
+
+#: Surface -> {device: Topology}: a Surface is immutable, so its tables on a device are made
+#: once (as the Surface caches its own), for every plan of it there.
+_CACHE = weakref.WeakKeyDictionary()
+
+
+def topology(master: Surface, device) -> Topology:
+    """The master's topology on `device`, made on first use (launches, then one read of the
+    scalars)."""
+    device = wp.get_device(device)
+    per_device = _CACHE.setdefault(master, {})
+    if device.alias not in per_device:
+        per_device[device.alias] = _topology(master, device)
+    return per_device[device.alias]
+
+
+def _topology(master: Surface, device) -> Topology:
+    e = master.element
+    n = len(master.points)
+    nf, nn = master.faces.shape
+    k = e.n_corners
+    zeros = lambda *shape: wp.zeros(shape, dtype=int, device=device)  # noqa: E731
+    faces = wp.array(master.faces.astype(np.int32), dtype=int, device=device)
+    ends = wp.array(e.edge_nodes, dtype=int, device=device)
+
+    # Edges: the sorted (face, local edge) keys and the ranks of the distinct ones.
+    m = nf * k
+    keys = wp.zeros(2 * m, dtype=wp.int64, device=device)
+    vals = zeros(2 * m)
+    wp.launch(
+        _edge_keys,
+        m,
+        inputs=[faces, ends, wp.int64(max(n, 1))],
+        outputs=[keys, vals],
+        device=device,
+    )
+    wp.utils.radix_sort_pairs(keys, vals, m, end_bit=max(2 * (n - 1).bit_length(), 1))
+    ranks = zeros(m)
+    wp.launch(_heads, m, inputs=[keys], outputs=[ranks], device=device)
+    wp.utils.array_scan(ranks, ranks, inclusive=True)
+    face_edges, edge_faces = zeros(nf, k), zeros(m, 2)
+    odd = zeros(1)
+    win_next = wp.full(n, -1, dtype=int, device=device)
+    win_prev = wp.full(n, -1, dtype=int, device=device)
+    wp.launch(
+        _edge_tables,
+        m,
+        inputs=[faces, ends, keys, vals, ranks, m],
+        outputs=[face_edges, edge_faces, odd, win_next, win_prev],
+        device=device,
+    )
+    prev_node, next_node, prev_face, next_face = zeros(n), zeros(n), zeros(n), zeros(n)
+    wp.launch(
+        _boundary,
+        n,
+        inputs=[faces, ends, win_next, win_prev],
+        outputs=[next_node, next_face, prev_node, prev_face],
+        device=device,
+    )
+
+    # Node -> faces, and the used nodes.
+    m = nf * nn
+    node_keys, vals = zeros(2 * m), zeros(2 * m)
+    uses = zeros(n + 1)
+    wp.launch(_node_keys, m, inputs=[faces], outputs=[node_keys, vals, uses], device=device)
+    wp.utils.radix_sort_pairs(node_keys, vals, m, end_bit=max((n - 1).bit_length(), 1))
+    nf_ids = zeros(m)
+    wp.launch(_node_face_ids, m, inputs=[vals, nn], outputs=[nf_ids], device=device)
+    flags = zeros(n)
+    wp.launch(_used, n, inputs=[uses], outputs=[flags], device=device)
+    wp.utils.array_scan(flags, flags, inclusive=True)
+    nodes = zeros(n)
+    wp.launch(_compact, n, inputs=[uses, flags], outputs=[nodes], device=device)
+    nf_offsets = zeros(n + 1)
+    wp.utils.array_scan(uses, nf_offsets, inclusive=False)
+
+    # Scalars in float64.
+    points = wp.array(master.points, dtype=wp.vec3d, device=device)
+    out = wp.array([0.0, 0.0, *[1e300] * 3, *[-1e300] * 3], dtype=wp.float64, device=device)
+    radii = wp.zeros(2 * nf, dtype=wp.float32, device=device)
+    rows = zeros(2 * nf)
+    wp.launch(
+        _face_scalars,
+        -(-nf // CHUNK),
+        inputs=[points, faces, wp.float64(e.lebesgue)],
+        outputs=[radii, rows, out],
+        device=device,
+    )
+    wp.launch(_node_box, -(-n // CHUNK), inputs=[points, uses], outputs=[out], device=device)
+    wp.utils.radix_sort_pairs(radii, rows, nf)
+    q = 0.1 * (nf - 1)  # np.quantile's linear interpolation
+    i0 = int(np.floor(q))
+    r01 = radii[i0 : min(i0 + 2, nf)].numpy()
+    s = out.numpy()
+    n_nodes = int(flags[n - 1 : n].numpy()[0]) if n else 0
+    r_small = float(r01[0] + (q - i0) * (r01[-1] - r01[0]))
+    return Topology(
+        faces=faces,
+        face_edges=face_edges,
+        edge_faces=edge_faces,
+        nf_offsets=nf_offsets,
+        nf_ids=nf_ids,
+        prev_node=prev_node,
+        next_node=next_node,
+        prev_face=prev_face,
+        next_face=next_face,
+        nodes=nodes,
+        n_nodes=n_nodes,
+        closed=int(odd.numpy()[0]) == 0,
+        longest_edge=float(np.sqrt(s[0])),
+        r_max=float(s[1]),
+        r_small=r_small,
+        node_box=(s[2:5].copy(), s[5:8].copy()),
+    )
+
+
+__all__ = ["Topology", "topology"]
