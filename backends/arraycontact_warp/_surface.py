@@ -290,14 +290,16 @@ def _topology(master: Surface, device) -> Topology:
     n = len(master.points)
     nf, nn = master.faces.shape
     k = e.n_corners
-    zeros = lambda *shape: wp.zeros(shape, dtype=int, device=device)  # noqa: E731
+    # Scratch and tables that the kernels write whole (or read only where written) are left
+    # uninitialised; counters start at zero.
+    empty = lambda *shape: wp.empty(shape, dtype=int, device=device)  # noqa: E731
     faces = wp.array(master.faces.astype(np.int32), dtype=int, device=device)
     ends = wp.array(e.edge_nodes, dtype=int, device=device)
 
     # Edges: the sorted (face, local edge) keys and the ranks of the distinct ones.
     m = nf * k
-    keys = wp.zeros(2 * m, dtype=wp.int64, device=device)
-    vals = zeros(2 * m)
+    keys = wp.empty(2 * m, dtype=wp.int64, device=device)
+    vals = empty(2 * m)
     wp.launch(
         _edge_keys,
         m,
@@ -306,11 +308,11 @@ def _topology(master: Surface, device) -> Topology:
         device=device,
     )
     wp.utils.radix_sort_pairs(keys, vals, m, end_bit=max(2 * (n - 1).bit_length(), 1))
-    ranks = zeros(m)
+    ranks = empty(m)
     wp.launch(_heads, m, inputs=[keys], outputs=[ranks], device=device)
     wp.utils.array_scan(ranks, ranks, inclusive=True)
-    face_edges, edge_faces = zeros(nf, k), zeros(m, 2)
-    odd = zeros(1)
+    face_edges, edge_faces = empty(nf, k), empty(m, 2)
+    odd = wp.zeros(1, dtype=int, device=device)
     win_next = wp.full(n, -1, dtype=int, device=device)
     win_prev = wp.full(n, -1, dtype=int, device=device)
     wp.launch(
@@ -320,7 +322,7 @@ def _topology(master: Surface, device) -> Topology:
         outputs=[face_edges, edge_faces, odd, win_next, win_prev],
         device=device,
     )
-    prev_node, next_node, prev_face, next_face = zeros(n), zeros(n), zeros(n), zeros(n)
+    prev_node, next_node, prev_face, next_face = empty(n), empty(n), empty(n), empty(n)
     wp.launch(
         _boundary,
         n,
@@ -331,25 +333,25 @@ def _topology(master: Surface, device) -> Topology:
 
     # Node -> faces, and the used nodes.
     m = nf * nn
-    node_keys, vals = zeros(2 * m), zeros(2 * m)
-    uses = zeros(n + 1)
+    node_keys, vals = empty(2 * m), empty(2 * m)
+    uses = wp.zeros(n + 1, dtype=int, device=device)
     wp.launch(_node_keys, m, inputs=[faces], outputs=[node_keys, vals, uses], device=device)
     wp.utils.radix_sort_pairs(node_keys, vals, m, end_bit=max((n - 1).bit_length(), 1))
-    nf_ids = zeros(m)
+    nf_ids = empty(m)
     wp.launch(_node_face_ids, m, inputs=[vals, nn], outputs=[nf_ids], device=device)
-    flags = zeros(n)
+    flags = empty(n)
     wp.launch(_used, n, inputs=[uses], outputs=[flags], device=device)
     wp.utils.array_scan(flags, flags, inclusive=True)
-    nodes = zeros(n)
+    nodes = empty(n)
     wp.launch(_compact, n, inputs=[uses, flags], outputs=[nodes], device=device)
-    nf_offsets = zeros(n + 1)
+    nf_offsets = empty(n + 1)
     wp.utils.array_scan(uses, nf_offsets, inclusive=False)
 
     # Scalars in float64.
     points = wp.array(master.points, dtype=wp.vec3d, device=device)
     out = wp.array([0.0, 0.0, *[1e300] * 3, *[-1e300] * 3], dtype=wp.float64, device=device)
-    radii = wp.zeros(2 * nf, dtype=wp.float32, device=device)
-    rows = zeros(2 * nf)
+    radii = wp.empty(2 * nf, dtype=wp.float32, device=device)
+    rows = empty(2 * nf)
     wp.launch(
         _face_scalars,
         -(-nf // CHUNK),
