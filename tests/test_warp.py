@@ -255,6 +255,17 @@ def test_bad_worlds_and_inputs():
         acw.detect(p, np.full_like(s.slave, np.nan), s.master.points)
     with pytest.raises(ValueError, match="float32 or float64"):
         acw.plan(s.master, s.slave, dtype=np.float16)
+    # The plan checks its slaves on the device; the message names the host row.
+    bad = s.slave.copy()
+    bad[7, 1] = np.inf
+    with pytest.raises(ValueError, match=r"slave_points row 7 is not finite"):
+        acw.plan(s.master, bad, device=DEVICE)
+    with pytest.raises(ValueError, match=r"slave_points must have shape \[n, 3\]"):
+        acw.plan(s.master, s.slave[:, :2], device=DEVICE)
+    with pytest.raises(ValueError, match="slave_points must be a real numeric array"):
+        acw.plan(s.master, s.slave.astype(str), device=DEVICE)
+    with pytest.raises(ValueError, match="empty"):
+        acw.plan(s.master, np.zeros((0, 3)), device=DEVICE)
     p64 = acw.plan(s.master, s.slave, device=DEVICE, dtype="float64")
     with pytest.raises(ValueError, match="vec3d"):
         acw.detect(p64, wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE))

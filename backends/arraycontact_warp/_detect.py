@@ -457,8 +457,7 @@ def plan(
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if master.n_faces == 0:
         raise ValueError("master has no faces")
-    x = validate_points(slave_points, "slave_points")
-    if len(x) == 0:
+    if len(np.asarray(slave_points)) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
@@ -466,7 +465,13 @@ def plan(
     if sort_slaves not in ("plan", "detect", False):
         raise ValueError(f"sort_slaves must be 'plan', 'detect' or False, got {sort_slaves!r}")
     device = wp.get_device(device)
-    sw = _worlds(slave_world, len(x), "slave_world")
+    # The slaves on the device in float64, checked and bounded there.
+    xd, x_lo, x_hi = _surface.device_points(slave_points, "slave_points", device)
+    n = xd.shape[0]
+    if slave_world is None:
+        slave_world = wp.zeros(n, dtype=int, device=device)
+    else:
+        slave_world = wp.array(_worlds(slave_world, n, "slave_world"), dtype=int, device=device)
     shared = master_world is None
     if not shared:
         nw = _worlds(master_world, len(master.points), "master_world")
@@ -478,7 +483,7 @@ def plan(
                 f"master face {r} has nodes of different worlds: {nw[master.faces[r]]}"
             )
     topo = _surface.topology(master, device)
-    if self_contact and len(x) != topo.n_nodes:
+    if self_contact and n != topo.n_nodes:
         raise ValueError(
             f"self-contact: slave_points must be the master's {topo.n_nodes} used nodes"
         )
@@ -488,7 +493,6 @@ def plan(
         raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     e = master.element
     r_max = topo.r_max
-    x_lo, x_hi = bounds(x)
     lo = np.minimum(x_lo, topo.node_box[0]) - d_max
     hi = np.maximum(x_hi, topo.node_box[1]) + d_max
     extent = 2 * float((hi - lo).max())
@@ -522,7 +526,7 @@ def plan(
     m.face_edges, m.edge_faces = topo.face_edges, topo.edge_faces
     m.prev_node, m.next_node = topo.prev_node, topo.next_node
     m.prev_face, m.next_face = topo.prev_face, topo.next_face
-    out = {k: wp.zeros(len(x), dtype=t, device=device) for k, t in OUTPUTS}
+    out = {k: wp.zeros(n, dtype=t, device=device) for k, t in OUTPUTS}
     element = element_data(e.name, device)
     # Morton keys over the plan's box in the local frame; worlds above them in the key.
     margin = (growth - 1) * topo.r_small
@@ -549,7 +553,7 @@ def plan(
     p = Plan(
         device=device,
         master=master,
-        n_slaves=len(x),
+        n_slaves=n,
         element=element,
         kernel_element=triangle_data(device) if e.name == "tri3" else element,
         m=m,
@@ -558,29 +562,25 @@ def plan(
         world_bits=world_bits,
         node_ids=topo.nodes,
         n_nodes=topo.n_nodes,
-        slave_world=arr(sw, int),
+        slave_world=slave_world,
         shared=int(shared),
         origin=origin,
         constants=consts,
-        slave_in=wp.zeros(len(x), dtype=vec3, device=device),
+        slave_in=wp.zeros(n, dtype=vec3, device=device),
         master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
         rebuild=wp.zeros(1, dtype=wp.int32, device=device),
         out=out,
         dtype=NP_REAL,
-        order=arr(
-            np.concatenate([np.arange(len(x), dtype=np.int32), np.zeros(len(x), np.int32)]), int
-        ),
-        order_keys=wp.zeros(2 * len(x), dtype=int, device=device)
-        if sort_slaves == "detect"
-        else None,
-        dist=wp.zeros(len(x), dtype=real, device=device),
-        item=wp.zeros(len(x), dtype=int, device=device),
+        order=_surface.iota(n, 2 * n, device),  # [n:]: the radix sort's scratch
+        order_keys=wp.zeros(2 * n, dtype=int, device=device) if sort_slaves == "detect" else None,
+        dist=wp.zeros(n, dtype=real, device=device),
+        item=wp.zeros(n, dtype=int, device=device),
         mode=MODES.index(mode),
         passing_by=int(mode == "node" and not topo.closed),
         graphs=bool(graphs),
         refit=bool(refit),
     )
-    n_self = len(x) if self_contact else 1
+    n_self = n if self_contact else 1
     n_pts = len(master.points) if self_contact else 1
     n_faces = master.n_faces if self_contact else 1
     p.self_contact = int(bool(self_contact))
@@ -594,14 +594,15 @@ def plan(
     if self_contact:
         out["finer"] = p.finer
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
-        p.slave_in.assign((x - origin).astype(NP_REAL))
+        o64 = wp.vec3d(*[float(v) for v in origin])
+        wp.launch(_prepare.localise64, n, inputs=[xd, o64], outputs=[p.slave_in], device=device)
         _grid.spatial_order(
             p.slave_in,
             vec3(0.0, 0.0, 0.0),
             real(consts.quantum),
-            wp.zeros(2 * len(x), dtype=int, device=device),
+            wp.empty(2 * n, dtype=int, device=device),
             p.order,
-            len(x),
+            n,
             device,
         )
     return p

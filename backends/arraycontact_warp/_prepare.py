@@ -21,6 +21,15 @@ def localise(x: wp.array(dtype=vec3), origin: vec3, out: wp.array(dtype=vec3)):
     out[i] = x[i] - origin
 
 
+@wp.kernel
+def localise64(x: wp.array(dtype=wp.vec3d), origin: wp.vec3d, out: wp.array(dtype=vec3)):
+    """x - origin from float64 points: subtracted before the cast, so that float32 keeps its
+    precision near the local frame's origin."""
+    i = wp.tid()
+    d = x[i] - origin
+    out[i] = vec3(real(d[0]), real(d[1]), real(d[2]))
+
+
 @wp.func
 def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, lebesgue: real):
     """Face f's ball (c, r), which places it in the face grid, and its box [lo, hi], which a
@@ -47,4 +56,4 @@ def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: i
     return c, r, wp.max(m - w, c - vec3(r)), wp.min(m + w, c + vec3(r))
 
 
-__all__ = ["localise", "face_bounds"]
+__all__ = ["localise", "localise64", "face_bounds"]

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from arraycontact._surface import Surface
+from arraycontact._surface import Surface, validate_points
 
 wp.set_module_options({"enable_backward": False})
 
@@ -229,23 +229,70 @@ def _face_scalars(
 
 
 @wp.kernel
-def _node_box(
-    points: wp.array(dtype=wp.vec3d), uses: wp.array(dtype=int), out: wp.array(dtype=wp.float64)
+def _box(
+    points: wp.array(dtype=wp.vec3d),
+    uses: wp.array(dtype=int),
+    masked: int,
+    out: wp.array(dtype=wp.float64),
+    bad: wp.array(dtype=int),
 ):
-    """Nodes t, t + T, ...: the box of the used ones, into out[2:5] (lo) and out[5:8] (hi)."""
+    """Points t, t + T, ...: the box of the finite ones (masked = 1: of those with uses > 0),
+    into out[2:5] (lo) and out[5:8] (hi), and the count of rows not finite into bad[0]."""
     t = wp.tid()
     n_threads = (points.shape[0] + CHUNK - 1) // CHUNK
     lo = wp.vec3d(wp.float64(1.0e300))
     hi = wp.vec3d(wp.float64(-1.0e300))
+    not_finite = int(0)
     for j in range(CHUNK):
         i = t + j * n_threads
         if i < points.shape[0]:
-            if uses[i] > 0:
-                lo = wp.min(lo, points[i])
-                hi = wp.max(hi, points[i])
+            x = points[i]
+            if not (wp.isfinite(x[0]) and wp.isfinite(x[1]) and wp.isfinite(x[2])):
+                not_finite += 1
+            elif masked == 0 or uses[i] > 0:
+                lo = wp.min(lo, x)
+                hi = wp.max(hi, x)
     for a in range(3):
         wp.atomic_min(out, 2 + a, lo[a])
         wp.atomic_max(out, 5 + a, hi[a])
+    if not_finite > 0:
+        wp.atomic_add(bad, 0, not_finite)
+
+
+@wp.kernel
+def _iota(out: wp.array(dtype=int)):
+    i = wp.tid()
+    out[i] = i
+
+
+def iota(n: int, size: int, device):
+    """An int array of `size` whose first n entries are 0 .. n - 1 (the rest uninitialised)."""
+    out = wp.empty(size, dtype=int, device=device)
+    wp.launch(_iota, n, outputs=[out], device=device)
+    return out
+
+
+def _scalars(device):
+    """out[0:2] (maxima, from 0), out[2:5] and out[5:8] (a box, from empty), bad[0] (a count)."""
+    out = wp.array([0.0, 0.0, *[1e300] * 3, *[-1e300] * 3], dtype=wp.float64, device=device)
+    return out, wp.zeros(1, dtype=int, device=device)
+
+
+def device_points(a, what: str, device):
+    """Points [n, 3] on `device` in float64 and their box (lo, hi), checked there: a
+    ValueError as validate_points's when a row is not finite (or the array is not [n, 3] of
+    real numbers). The host only checks the shape and copies."""
+    x = np.asarray(a)
+    if x.dtype == object or x.dtype.kind not in "iuf" or x.ndim != 2 or x.shape[1] != 3:
+        validate_points(x, what)  # raises, naming what is wrong
+    xd = wp.array(np.ascontiguousarray(x, np.float64), dtype=wp.vec3d, device=device)
+    out, bad = _scalars(device)
+    n = len(x)
+    wp.launch(_box, -(-n // CHUNK), inputs=[xd, bad, 0], outputs=[out, bad], device=device)
+    if int(bad.numpy()[0]):
+        validate_points(x, what)  # raises, naming the first row that is not finite
+    s = out.numpy()
+    return xd, s[2:5].copy(), s[5:8].copy()
 
 
 @dataclass(eq=False)
@@ -349,7 +396,7 @@ def _topology(master: Surface, device) -> Topology:
 
     # Scalars in float64.
     points = wp.array(master.points, dtype=wp.vec3d, device=device)
-    out = wp.array([0.0, 0.0, *[1e300] * 3, *[-1e300] * 3], dtype=wp.float64, device=device)
+    out, bad = _scalars(device)
     radii = wp.empty(2 * nf, dtype=wp.float32, device=device)
     rows = empty(2 * nf)
     wp.launch(
@@ -359,7 +406,7 @@ def _topology(master: Surface, device) -> Topology:
         outputs=[radii, rows, out],
         device=device,
     )
-    wp.launch(_node_box, -(-n // CHUNK), inputs=[points, uses], outputs=[out], device=device)
+    wp.launch(_box, -(-n // CHUNK), inputs=[points, uses, 1], outputs=[out, bad], device=device)
     wp.utils.radix_sort_pairs(radii, rows, nf)
     q = 0.1 * (nf - 1)  # np.quantile's linear interpolation
     i0 = int(np.floor(q))
@@ -387,4 +434,4 @@ def _topology(master: Surface, device) -> Topology:
     )
 
 
-__all__ = ["Topology", "topology"]
+__all__ = ["Topology", "device_points", "iota", "topology"]
