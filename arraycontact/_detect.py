@@ -609,7 +609,8 @@ def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> 
         raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {backend!r}")
     backend = resolve(backend)
     n = len(slave_x)
-    prep = prepare(slave_x, master, float(d_max), dtype)
+    # The Warp back end sorts its own trees on the device: no Morton order here.
+    prep = prepare(slave_x, master, float(d_max), dtype, order=backend != "warp")
     t1 = time.perf_counter()
     answered = dict(backend=backend, dtype=dtype.name)
     if self_ids is not None:

@@ -44,8 +44,9 @@ class Prepared:
     extent: float  # largest local coordinate, for rounding slack
 
 
-def prepare(slave_x, master, d_max, dtype=np.float64) -> Prepared | None:
-    """Boxes and selections, or None when the slave and master boxes do not meet."""
+def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | None:
+    """Boxes and selections, or None when the slave and master boxes do not meet. order=False:
+    node_ids and face_ids in id order (for a back end that builds its own trees)."""
     if len(slave_x) == 0 or master.n_faces == 0:
         return None
     centres, radii = master.face_bounds
@@ -72,8 +73,9 @@ def prepare(slave_x, master, d_max, dtype=np.float64) -> Prepared | None:
     r_max = float(radii[face_ids].max()) if len(face_ids) else 0.0
     origin = lo if np.dtype(dtype) == np.float32 else np.zeros(3)
     extent = float((hi - lo).max())
-    node_ids = node_ids[morton_order(master.points[node_ids], lo, extent)]
-    face_ids = face_ids[morton_order(centres[face_ids], lo, extent)]
+    if order:
+        node_ids = node_ids[morton_order(master.points[node_ids], lo, extent)]
+        face_ids = face_ids[morton_order(centres[face_ids], lo, extent)]
     return Prepared(
         slave_rows=slave_rows,
         node_ids=node_ids,

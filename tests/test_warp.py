@@ -5,6 +5,7 @@ import arraycontact_warp as acw
 import numpy as np
 import pytest
 import warp as wp
+from arraycontact_warp import _grid as warp_grid
 from conftest import assert_matches_reference
 
 import arraycontact as ac
@@ -558,3 +559,55 @@ def test_device_topology_equals_the_surfaces(name):
         assert not t.closed and (m.edge_counts == 3).any()
         # The pinch: several boundary edges start and end at node 0 (the last one wins).
         assert (m.boundary_edges[:, 0] == 0).sum() == 2 and (m.boundary_edges[:, 1] == 0).sum() == 3
+
+
+@pytest.mark.parametrize("mode", ["exact", "node"])
+def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
+    """On the CPU the per-slave kernels run in parts, one thread each: every output equals the
+    one-launch answer bit for bit (3 uneven parts, two bodies and self-contact)."""
+    import arraycontact_warp._detect as wd
+
+    s = scenes.graded_surfaces(2**10, ratio=20)
+    spiral = scenes.spiral_strip(2**10)
+
+    def outputs(parts):
+        monkeypatch.setattr(wd, "CPU_PARTS", parts)
+        p = acw.plan(s.master, s.slave, device="cpu", mode=mode)
+        a = {k: v.copy() for k, v in acw.detect(p, s.slave, s.master.points).items()}
+        q = acw.plan_self(spiral.master, device="cpu", mode=mode)
+        b = {k: v.copy() for k, v in acw.detect_self(q, spiral.master.points).items()}
+        return a, b
+
+    outputs(1)  # the kernels' overloads loaded, so the next calls run in threads
+    whole = outputs(1)
+    parts = outputs(3)
+    assert len(wd._loaded) > 0 and wd._pool is not None  # the threads ran
+    for one, three in zip(whole, parts):
+        for k in one:
+            np.testing.assert_array_equal(one[k], three[k], err_msg=k)
+
+
+@wp.kernel
+def _morton_keys(x: wp.array(dtype=wp.vec3), w: wp.array(dtype=int), q: float, bits: int,
+                 out: wp.array(dtype=wp.int64)):  # fmt: skip
+    i = wp.tid()
+    out[i] = warp_grid.morton_key(x[i], w[i], q, bits)
+
+
+@pytest.mark.parametrize("bits, n_worlds", [(21, 1), (19, 60), (12, 2**20)])
+def test_morton_keys_interleave_every_bit(bits, n_worlds):
+    """The trees' keys (bits spread by masks) against a bit-by-bit interleave in NumPy: bit b
+    of axis a at 3 b + a, the world id above, cells clamped to the box."""
+    rng = np.random.default_rng(bits)
+    n, q = 4096, np.float32(0.37)
+    x = rng.uniform(-10.0, 0.37 * 2**bits * 1.1, (n, 3)).astype(np.float32)
+    w = rng.integers(0, n_worlds, n).astype(np.int32)
+    out = wp.zeros(n, dtype=wp.int64, device="cpu")
+    xs, ws = wp.array(x, dtype=wp.vec3, device="cpu"), wp.array(w, dtype=int, device="cpu")
+    wp.launch(_morton_keys, n, inputs=[xs, ws, float(q), bits], outputs=[out], device="cpu")
+    cells = np.clip(np.floor(x / q).astype(np.int64), 0, 2**bits - 1)
+    want = w.astype(np.int64) << (3 * bits)
+    for b in range(bits):
+        for a in range(3):
+            want |= ((cells[:, a] >> b) & 1) << (3 * b + a)
+    np.testing.assert_array_equal(out.numpy(), want)

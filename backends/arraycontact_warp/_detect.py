@@ -24,6 +24,8 @@ serves both) in a local frame at the plan's box corner.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -188,6 +190,7 @@ def _finish_kernel(
     h_face: wp.array(dtype=real),
     dist: wp.array(dtype=real),
     item: wp.array(dtype=int),
+    first: int,
     finer_out: wp.array(dtype=wp.int32),
     active_out: wp.array(dtype=wp.int32),
     face_out: wp.array(dtype=int),
@@ -205,8 +208,8 @@ def _finish_kernel(
     the closest node, then stage 5 and every output. Slaves in their own order, so that the
     outputs are written in whole cache lines. Self-contact (selfc = 1): the
     faces of the slave's node drop out of node mode, whose pair goes to the finer side
-    (MASTER_SIDE), and `finer_out` is written."""
-    i = wp.tid()
+    (MASTER_SIDE), and `finer_out` is written. Thread t takes slave first + t."""
+    i = first + wp.tid()
     s = slaves[i] - origin
     node = node_out[i]
     own = int(-1)
@@ -706,7 +709,11 @@ def _master_stages(p: Plan, xm, m_origin):
     node_n, face_n = _normal_boxes(p)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
-    if p.refit and (dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())):
+    # (On the CPU a first call builds: its trees hold nothing to refit yet.)
+    if p.refit and (
+        (dev.is_cpu and p.master_ready)
+        or (dev.is_capturing and wp.is_conditional_graph_supported())
+    ):
         n_nodes = p.n_nodes
         p.rebuild.zero_()
         _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild, node_n)
@@ -745,6 +752,43 @@ def _self_kind(p: Plan):
     return _grid.Own() if p.self_contact else _grid.Plain()
 
 
+#: Warp runs a CPU launch on one core, releasing the GIL: on the CPU the per-slave kernels run
+#: in this many parts at once, one thread each (slaves are independent; a part is a run of
+#: the slaves' order, so its threads' neighbours stay neighbours). 2 cores: 1.8x on a kernel.
+CPU_PARTS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+_pool = None
+#: (kernel, argument types) launched once whole in the calling thread: its overload is
+#: compiled and loaded, so threads may launch it.
+_loaded = set()
+
+
+def _slave_launch(kernel, n, inputs, outputs, dev, order=None, first=None):
+    """Launch a kernel over the n slaves. inputs[order]: the slaves' order (the part takes its
+    slice), or inputs[first]: the first slave of the part (its threads take first + t)."""
+    global _pool
+    key = (kernel, tuple(type(v) for v in inputs))
+    if dev.is_cuda or CPU_PARTS < 2 or n < 2 * CPU_PARTS or key not in _loaded:
+        wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
+        _loaded.add(key)
+        return
+    kernel.module.load(dev)  # another kernel's new overload may have made the module stale
+    if _pool is None:
+        _pool = ThreadPoolExecutor(CPU_PARTS, thread_name_prefix="arraycontact-warp")
+    cuts = np.linspace(0, n, CPU_PARTS + 1).astype(int)
+    jobs = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        part = list(inputs)
+        if order is not None:
+            part[order] = inputs[order][a:b]
+        else:
+            part[first] = int(a)
+        jobs.append(
+            _pool.submit(wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev)
+        )
+    for j in jobs:
+        j.result()
+
+
 def _launch(p: Plan, xs, s_origin, master):
     """Every launch of one detection (master: its points and origin, or None). Self-contact:
     the slaves (xs, the plan's staging buffer) are gathered from the master's points."""
@@ -758,10 +802,10 @@ def _launch(p: Plan, xs, s_origin, master):
         _grid.spatial_order(xs, s_origin, real(c.quantum), p.order_keys, p.order, p.n_slaves, dev)
     o = p.out
     n = p.n_slaves
-    wp.launch(
+    _slave_launch(
         _node_kernel,
         n,
-        inputs=[
+        [
             p.node_grid,
             xs,
             p.order,
@@ -774,14 +818,15 @@ def _launch(p: Plan, xs, s_origin, master):
             p.own_nodes,
             p.normals,
         ],
-        outputs=[o["master_node"], p.dist],
-        device=dev,
+        [o["master_node"], p.dist],
+        dev,
+        order=2,
     )
     if p.mode == 0:
-        wp.launch(
+        _slave_launch(
             _face_kernel,
             n,
-            inputs=[
+            [
                 p.kernel_element,
                 p.m,
                 p.face_grid,
@@ -799,13 +844,14 @@ def _launch(p: Plan, xs, s_origin, master):
                 p.own_nodes,
                 p.normals,
             ],
-            outputs=[p.dist, o["face"], p.item],
-            device=dev,
+            [p.dist, o["face"], p.item],
+            dev,
+            order=4,
         )
-    wp.launch(
+    _slave_launch(
         _finish_kernel,
         n,
-        inputs=[
+        [
             p.kernel_element,
             p.m,
             p.face_grid,
@@ -823,9 +869,11 @@ def _launch(p: Plan, xs, s_origin, master):
             p.h_face,
             p.dist,
             p.item,
+            0,
         ],
-        outputs=[p.finer] + [o[k] for k, _ in OUTPUTS],
-        device=dev,
+        [p.finer] + [o[k] for k, _ in OUTPUTS],
+        dev,
+        first=17,
     )
 
 
