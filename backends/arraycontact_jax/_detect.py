@@ -571,8 +571,8 @@ class _WarpSearch:
     (active, face, feature, local, xi, gap, master_node, status) as JAX arrays.
 
     plans: one Warp plan (`warp_plan`), or one per part of a sharded plan, called inside
-    shard_map over `axis`: each device runs its part's plan, picked by the part's index
-    (CPU devices, which are one Warp device; several GPUs are refused, see _shard.plan). A
+    shard_map over `axis`: each device runs its part's plan, picked by the device of the call
+    (GPUs) or by the part's index (CPU devices, which are one Warp device). A
     part's self-contact plan answers for every node of its surface (its points, all used but
     the last unused ones), and the part's own slaves are taken from those rows."""
 
@@ -599,10 +599,25 @@ class _WarpSearch:
             finer=wp.int32,
         )
         plans = self.plans
+        # Parts on several GPUs: XLA calls each device's search from a thread of its own, at
+        # once. The plan is the one on the device of the call's arrays (no host read), its
+        # launches on the stream XLA gives (wp.ScopedStream, set by jax_callable), and no CUDA
+        # graph: a stream capture on one device while another thread synchronises breaks
+        # (global capture mode), and jax_callable's staged graph is kept per call site, not
+        # per device. (Before this, two H200s deadlocked, or gave wrong rows.)
+        on_device = {str(q.device): q for q in plans}
+        several_gpus = len(on_device) > 1
+        if several_gpus:
+            for q in plans:
+                q.graphs = False
 
         def search(part, slaves, master_points, *outs):
-            # One plan, or the parts of CPU devices (one Warp device): the part's index.
-            plan = plans[0] if len(plans) == 1 else plans[int(part.numpy()[0])]
+            if len(plans) == 1:
+                plan = plans[0]
+            elif several_gpus:
+                plan = on_device[str(master_points.device)]
+            else:  # the parts of CPU devices, one Warp device: the part's index
+                plan = plans[int(part.numpy()[0])]
             if self_contact:  # the slaves are the master's nodes: gathered by the kernels
                 o = acw.detect_self(plan, master_points)
             else:
@@ -627,7 +642,7 @@ class _WarpSearch:
         # one scene's buffers).
         mode = (
             wp.JaxCallableGraphMode.WARP_STAGED_EX
-            if self.plans[0].device.is_cuda
+            if self.plans[0].device.is_cuda and not several_gpus
             else wp.JaxCallableGraphMode.NONE
         )
         self.call = wp.jax_callable(

@@ -135,14 +135,6 @@ def plan(
     """The sharded plan (see arraycontact_jax.plan: `mesh`, `axis`, `margin`)."""
     if axis not in mesh.shape:
         raise ValueError(f"mesh has no axis {axis!r} (its axes: {tuple(mesh.shape)})")
-    if search == "warp" and mesh.shape[axis] > 1 and mesh.devices.flat[0].platform != "cpu":
-        # On two H200s the Warp search inside shard_map deadlocked in the all_to_all's
-        # rendezvous (Warp's CUDA graph) or, without the graph, gave wrong rows: not yet
-        # understood, so refused rather than wrong. One GPU, or CPU devices, are exact.
-        raise ValueError(
-            "search='warp' over several GPUs is not supported yet: use search='jax' with a "
-            "mesh of several GPUs (or search='warp' on one)"
-        )
     n_dev = mesh.shape[axis]
     if len(mesh.shape) != 1:
         raise ValueError("the mesh must have the one axis the parts are split over")
