@@ -539,12 +539,22 @@ def local_detect(p: Plan, topo, slave_points, master_points):
 
 
 def warp_plan(
-    master, slave_x, d_max, dtype, growth, origin, *, self_contact=False, device=None, tie=None
+    master,
+    slave_x,
+    d_max,
+    dtype,
+    growth,
+    origin,
+    *,
+    self_contact=False,
+    device=None,
+    tie=None,
+    frame=None,
 ):
     """The Warp back end's plan of a search="warp" plan, taking coordinates in the JAX plan's
     frame `origin`, on the JAX device `device` (default: the first). tie: a part of a sharded
-    plan takes the whole master's tie band (and the slack that goes with it), so that its ties
-    resolve as on one device."""
+    plan takes the whole master's tie band (and the slack that goes with it), and frame the
+    whole scene's Warp frame, so that its ties and roundings resolve as on one device."""
     import arraycontact_warp as acw
     import warp as wp
 
@@ -556,6 +566,7 @@ def warp_plan(
         dtype=dtype,
         growth=growth,
         self_contact=self_contact,
+        frame=frame,
     )
     # The inputs come in the JAX plan's frame: the kernels subtract the difference.
     p.origin = p.origin - np.asarray(origin)

@@ -276,6 +276,9 @@ def plan(
     )
     engine, cand, cap = None, [], {}
     if search == "warp":  # each part's Warp plan on its device, sized by its own counts
+        # In the frame one device's Warp plan takes (a part's padding slaves, far off, would
+        # move its own frame and change float32's roundings).
+        frame = bounds(all_x)[0] - d_max
         plans = []
         for e, (surf, _) in enumerate(locals_):
             if self_contact:  # every node of the part's surface, answered by its point id
@@ -295,6 +298,7 @@ def plan(
                     self_contact=self_contact,
                     device=mesh.devices.flat[e],
                     tie=float(sc.tie),
+                    frame=frame,
                 )
             )
         engine = _WarpSearch(plans, dtype, self_contact, axis=axis)

@@ -411,6 +411,7 @@ def plan(
     graphs=True,
     refit=True,
     self_contact=False,
+    frame=None,
 ) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
@@ -436,7 +437,10 @@ def plan(
     `rebuild[0]` says which the last call did. The results are the same either way; a refit
     skips the keys and the sorts. False: sorts in every call.
     self_contact: the slaves are the master's own nodes, slave_points = the master's points
-    at master.nodes (use `plan_self` / `detect_self`)."""
+    at master.nodes (use `plan_self` / `detect_self`).
+    frame: the origin of the local frame the kernels compute in (default: the corner of the
+    slaves' box less d_max). Plans of the parts of one scene take the whole scene's, so that
+    float32 rounds alike in every part and the parts answer as one plan would."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(
@@ -453,6 +457,7 @@ def plan(
             graphs=graphs,
             refit=refit,
             self_contact=self_contact,
+            frame=frame,
         )
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
@@ -502,6 +507,10 @@ def plan(
     # The local frame at the slaves' box (less d_max): float32 keeps its precision where the
     # contacts are, however large the master is around them (a fine patch in a coarse plate).
     origin = x_lo - d_max
+    if frame is not None:
+        origin = np.asarray(frame, np.float64)
+        if origin.shape != (3,) or not np.isfinite(origin).all():
+            raise ValueError(f"frame must be a finite point [3], got {frame!r}")
     eps = float(np.finfo(NP_REAL).eps)
     tie = TIE_RTOL[NP_REAL] * topo.longest_edge
     consts = Constants(
