@@ -611,16 +611,14 @@ class _WarpSearch:
         )
         plans = self.plans
         # Parts on several GPUs: XLA calls each device's search from a thread of its own, at
-        # once. The plan is the one on the device of the call's arrays (no host read), its
-        # launches on the stream XLA gives (wp.ScopedStream, set by jax_callable), and no CUDA
-        # graph: a stream capture on one device while another thread synchronises breaks
-        # (global capture mode), and jax_callable's staged graph is kept per call site, not
-        # per device. (Before this, two H200s deadlocked, or gave wrong rows.)
+        # once. The plan is the one on the device of the call's arrays (no host read of the
+        # part's index, which a graph capture forbids), launched on the stream XLA gives
+        # (jax_callable's wp.ScopedStream) and replayed as the plan's own CUDA graph (Warp
+        # captures thread-locally). Not jax_callable's staged graph: it keeps one graph and
+        # its staging buffers per call site, not per device, so a second GPU replayed the
+        # first's (on two H200s: a deadlock in the next all_to_all).
         on_device = {str(q.device): q for q in plans}
         several_gpus = len(on_device) > 1
-        if several_gpus:
-            for q in plans:
-                q.graphs = False
 
         def search(part, slaves, master_points, *outs):
             if len(plans) == 1:
