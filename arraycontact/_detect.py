@@ -194,9 +194,10 @@ def master_arrays(master: Surface, prep: Prepared, dtype) -> Master:
     )
 
 
-def scalars(prep: Prepared, master: Surface, dtype) -> Scalars:
+def scalars(prep: Prepared, master: Surface, dtype, longest_edge=None) -> Scalars:
     eps = float(np.finfo(dtype).eps)
-    tie = TIE_RTOL[np.dtype(dtype)] * master.longest_edge
+    longest = master.longest_edge if longest_edge is None else longest_edge
+    tie = TIE_RTOL[np.dtype(dtype)] * longest
     return Scalars(
         d_max=prep.d_max,
         tie=tie,
@@ -529,8 +530,9 @@ def _run_numpy(slave_x, master, prep, st, dtype, chunk=1 << 15, slave_ids=None):
     return out, totals, {k: None for k in totals}, lap.times
 
 
-def check_options(master, mode, d_max, displacement, dtype):
-    """Validated (d_max, dtype) of a detection, or a ValueError naming the bad option."""
+def check_options(master, mode, d_max, displacement, dtype, longest_edge=None):
+    """Validated (d_max, dtype) of a detection, or a ValueError naming the bad option.
+    longest_edge: the master's, when the caller has it (made on a device)."""
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if mode not in MODES:
@@ -539,7 +541,7 @@ def check_options(master, mode, d_max, displacement, dtype):
     if dtype not in TIE_RTOL:
         raise ValueError(f"dtype must be float32 or float64, got {dtype}")
     if d_max is None:
-        return default_d_max(master, displacement), dtype
+        return default_d_max(master, displacement, longest_edge), dtype
     if not (np.isscalar(d_max) and np.isfinite(d_max) and d_max > 0):
         raise ValueError(f"d_max must be a positive finite number, got {d_max}")
     return float(d_max), dtype

@@ -19,9 +19,10 @@ from ._grid import level_sizes, morton_order
 from ._surface import bounds, in_box
 
 
-def default_d_max(master, displacement=None) -> float:
-    """Seed 000: the longest master edge (eq. 2), raised to 2 max|dx| with displacements (eq. 3)."""
-    d = master.longest_edge
+def default_d_max(master, displacement=None, longest_edge=None) -> float:
+    """Seed 000: the longest master edge (eq. 2), raised to 2 max|dx| with displacements (eq. 3).
+    longest_edge: the master's, when the caller has it (made on a device)."""
+    d = master.longest_edge if longest_edge is None else longest_edge
     if displacement is not None:
         u = np.asarray(displacement, float)
         if u.ndim != 2 or u.shape[1] != 3 or not np.isfinite(u).all():

@@ -307,7 +307,6 @@ class Surface:
         k = self.element.n_corners
         en = self.element.edge_nodes
         a, b = self.faces[:, en[:, 0]].ravel(), self.faces[:, en[:, 1]].ravel()
-        pairs = np.stack([a, b], -1)  # [n_faces * k, 2], face orientation
         # One int64 key per edge (sorted corner pair): a 1-D unique is much faster than rows.
         lo, hi = np.minimum(a, b), np.maximum(a, b)
         n = max(len(self.points), 1)
@@ -327,7 +326,7 @@ class Surface:
         edge_faces[:, 0] = order[first] // k
         two = counts >= 2
         edge_faces[two, 1] = order[first[two] + 1] // k
-        return edges, face_edges, edge_faces, counts, pairs
+        return edges, face_edges, edge_faces, counts
 
     @property
     def edges(self) -> np.ndarray:

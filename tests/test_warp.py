@@ -528,8 +528,9 @@ def _topology_surfaces():
 def test_device_topology_equals_the_surfaces(name):
     """The plan's topology, made by Warp kernels, against the Surface's NumPy tables (a
     separate implementation): every table row for row, the scalars to rounding."""
-    from arraycontact_warp._surface import topology
+    from arraycontact_warp._surface import fill_surface, iota, morton_order, topology
 
+    from arraycontact._grid import morton_order as host_morton
     from arraycontact._select import boundary_topology
 
     m = _topology_surfaces()[name]
@@ -553,6 +554,25 @@ def test_device_topology_equals_the_surfaces(name):
     assert t.r_small == pytest.approx(np.quantile(radii, 0.1), rel=1e-6)
     np.testing.assert_array_equal(t.node_box[0], m.node_box[0])
     np.testing.assert_array_equal(t.node_box[1], m.node_box[1])
+    np.testing.assert_array_equal(t.centres.numpy(), m.face_bounds[0])
+    np.testing.assert_allclose(t.radii.numpy(), radii, rtol=1e-15)
+    np.testing.assert_array_equal(t.edges.numpy()[: t.n_edges], m.edges)
+    # The exact tables copied into a new Surface's cache equal its NumPy properties.
+    fresh = ac.Surface(m.points, m.faces, m.element.name)
+    fill_surface(fresh, DEVICE)
+    assert {"_edge_table", "node_faces", "nodes", "closed", "node_box"} <= set(vars(fresh))
+    for key in ("edges", "face_edges", "edge_faces", "edge_counts", "boundary_edges", "nodes"):
+        np.testing.assert_array_equal(getattr(fresh, key), getattr(m, key), err_msg=key)
+    for a, b in zip(fresh.node_faces + fresh.node_box, m.node_faces + m.node_box):
+        np.testing.assert_array_equal(a, b)
+    assert fresh.closed == m.closed
+    # Morton orders on the device equal arraycontact._grid.morton_order's.
+    lo, extent = m.node_box[0] - 0.3, 1.7 * float((m.node_box[1] - m.node_box[0]).max())
+    got = morton_order(t.points, t.nodes, t.n_nodes, lo, extent, DEVICE)
+    np.testing.assert_array_equal(got, host_morton(m.points[m.nodes], lo, extent))
+    ids = iota(m.n_faces, m.n_faces, DEVICE)
+    got = morton_order(t.centres, ids, m.n_faces, lo, extent, DEVICE)
+    np.testing.assert_array_equal(got, host_morton(m.face_bounds[0], lo, extent))
     if name.startswith("closed"):
         assert t.closed
     if name.startswith("non-manifold"):

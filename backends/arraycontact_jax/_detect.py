@@ -251,7 +251,11 @@ def plan(
     (count `halo_motion`; default (growth - 1)(d_max + largest face radius))."""
     if dtype is None:
         dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
-    d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
+    dev_topo = None
+    if mesh is None and isinstance(master, Surface) and master.n_faces:
+        dev_topo = _device_topology(master)
+    longest = None if dev_topo is None else dev_topo[0].longest_edge
+    d_max, dtype = check_options(master, mode, d_max, displacement, dtype, longest)
     if dtype == np.float64 and not jax.config.jax_enable_x64:
         raise ValueError(
             "dtype float64 needs jax_enable_x64 (jax.config.update or jax.enable_x64())"
@@ -289,21 +293,32 @@ def plan(
     hi = np.maximum(x_hi, master.node_box[1]) + d_max
     # float32 computes in a frame at the scene's corner (DESIGN section 7); float64 globally.
     origin = lo if dtype == np.float32 else np.zeros(3)
-    centres, radii = master.face_bounds
     extent = float((hi - lo).max())
+    if dev_topo is not None:  # the Morton orders on the device, as morton_order's
+        t, wdev = dev_topo
+        node_order = _warp_surface().morton_order(t.points, t.nodes, t.n_nodes, lo, extent, wdev)
+        nf = master.n_faces
+        ids = _warp_surface().iota(nf, nf, wdev)
+        face_ids = _warp_surface().morton_order(t.centres, ids, nf, lo, extent, wdev)
+        r_max = t.r_max
+    else:
+        centres, radii = master.face_bounds
+        node_order = morton_order(master.points[master.nodes], lo, extent)
+        face_ids = morton_order(centres, lo, extent)
+        r_max = float(radii.max())
     prep = Prepared(
         slave_rows=np.arange(len(slave_x)),
-        node_ids=master.nodes[morton_order(master.points[master.nodes], lo, extent)],
-        face_ids=morton_order(centres, lo, extent),
+        node_ids=master.nodes[node_order],
+        face_ids=face_ids,
         origin=origin,
         d_max=d_max,
-        r_max=float(radii.max()) * growth,
+        r_max=r_max * growth,
         node_levels=level_sizes(len(master.nodes)),
         face_levels=level_sizes(master.n_faces),
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )
     st = Static.of(master, mode, prep, self_contact)
-    sc = scalars(prep, master, dtype)
+    sc = scalars(prep, master, dtype, longest)
     if search == "warp":
         # No pair counts to size: only the topology that the smooth outputs read.
         engine = _WarpSearch(
@@ -324,7 +339,12 @@ def plan(
             growth,
             engine,
         )
-    m = master_arrays(master, prep, dtype)
+    if dev_topo is not None:  # the plan-time geometry computed as detect does, on the device
+        nodes_x = jnp.asarray((master.points - origin).astype(dtype))
+        topo = jax.tree.map(jnp.asarray, master_topology(master, prep))
+        m = _plan_geometry(st.element, topo, nodes_x)
+    else:
+        m = master_arrays(master, prep, dtype)
     sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
     cap = _grown(
@@ -344,6 +364,31 @@ def plan(
         len(slave_x),
         growth,
     )
+
+
+def _warp_surface():
+    from arraycontact_warp import _surface
+
+    return _surface
+
+
+def _device_topology(master):
+    """The master's topology made by the Warp back end's kernels on the Warp device of JAX's
+    first device (its GPU, else Warp's CPU device), its exact tables put in the Surface's
+    cache (arraycontact_warp._surface.fill_surface): (topology, Warp device), or None
+    without Warp (the host's NumPy tables then)."""
+    try:
+        import warp as wp
+    except ImportError:
+        return None
+    dev = jax.devices()[0]
+    wdev = wp.device_from_jax(dev) if dev.platform == "gpu" else wp.get_device("cpu")
+    return _warp_surface().fill_surface(master, wdev), wdev
+
+
+@partial(jax.jit, static_argnums=0)
+def _plan_geometry(element, topo, nodes_x):
+    return master_geometry(jnp, element, topo, nodes_x)
 
 
 def plan_self(

@@ -75,13 +75,16 @@ def _edge_tables(
     count: int,
     face_edges: wp.array2d(dtype=int),
     edge_faces: wp.array2d(dtype=int),
+    starts: wp.array(dtype=int),
+    edges: wp.array2d(dtype=int),
     odd: wp.array(dtype=int),
     win_next: wp.array(dtype=int),
     win_prev: wp.array(dtype=int),
 ):
-    """Sorted entry t: its face's edge id; at an edge's first entry, the edge's (up to two)
-    faces, whether it has other than two (odd[0]) and, for an edge of one face, its claim on
-    its nodes' boundary neighbours (the largest face-order index wins)."""
+    """Sorted entry t: its face's edge id; at an edge's first entry, where it starts, its
+    corners (ascending), its (up to two) faces, whether it has other than two (odd[0]) and,
+    for an edge of one face, its claim on its nodes' boundary neighbours (the largest
+    face-order index wins)."""
     t = wp.tid()
     k = ends.shape[0]
     v = vals[t]
@@ -98,6 +101,9 @@ def _edge_tables(
         three = False
         if t + 2 < count:
             three = keys[t + 2] == keys[t]
+        starts[e] = t
+        edges[e, 0] = wp.min(faces[f, ends[v - f * k, 0]], faces[f, ends[v - f * k, 1]])
+        edges[e, 1] = wp.max(faces[f, ends[v - f * k, 0]], faces[f, ends[v - f * k, 1]])
         edge_faces[e, 0] = f
         edge_faces[e, 1] = -1
         if two:
@@ -195,13 +201,16 @@ def _face_scalars(
     points: wp.array(dtype=wp.vec3d),
     faces: wp.array2d(dtype=int),
     lebesgue: wp.float64,
+    centres: wp.array(dtype=wp.vec3d),
+    radii64: wp.array(dtype=wp.float64),
     radii: wp.array(dtype=wp.float32),
     ids: wp.array(dtype=int),
     out: wp.array(dtype=wp.float64),
 ):
-    """Faces t, t + T, ... (T threads): each face's radius (arraycontact._surface.face_bounds),
-    then one atomic update of the largest squared node distance within a face (out[0]) and
-    the largest radius (out[1])."""
+    """Faces t, t + T, ... (T threads): each face's centre and radius
+    (arraycontact._surface.face_bounds, the centre summed in its order), then one atomic
+    update of the largest squared node distance within a face (out[0]) and the largest
+    radius (out[1])."""
     t = wp.tid()
     n_threads = (faces.shape[0] + CHUNK - 1) // CHUNK
     nn = faces.shape[1]
@@ -221,6 +230,8 @@ def _face_scalars(
                 for b in range(a + 1, nn):
                     l2 = wp.max(l2, wp.length_sq(x - points[faces[f, b]]))
             r = lebesgue * wp.sqrt(r2)
+            centres[f] = c
+            radii64[f] = r
             radii[f] = wp.float32(r)  # to sort: a tenth percentile needs no more
             ids[f] = f
             r_max = wp.max(r_max, r)
@@ -310,6 +321,12 @@ class Topology:
     next_face: wp.array
     nodes: wp.array  # the used node ids, ascending
     n_nodes: int
+    points: wp.array  # float64, as the Surface's
+    centres: wp.array  # float64 face centres [F]
+    radii: wp.array  # float64 face radii [F]
+    edge_starts: wp.array  # [F k]: where each edge's entries start in the sorted keys
+    edges: wp.array  # [F k, 2]: each edge's corners, ascending
+    n_edges: int
     closed: bool
     longest_edge: float
     r_max: float
@@ -344,7 +361,7 @@ def _topology(master: Surface, device) -> Topology:
     ends = wp.array(e.edge_nodes, dtype=int, device=device)
 
     # Edges: the sorted (face, local edge) keys and the ranks of the distinct ones.
-    m = nf * k
+    m = m_edges = nf * k
     keys = wp.empty(2 * m, dtype=wp.int64, device=device)
     vals = empty(2 * m)
     wp.launch(
@@ -358,7 +375,7 @@ def _topology(master: Surface, device) -> Topology:
     ranks = empty(m)
     wp.launch(_heads, m, inputs=[keys], outputs=[ranks], device=device)
     wp.utils.array_scan(ranks, ranks, inclusive=True)
-    face_edges, edge_faces = empty(nf, k), empty(m, 2)
+    face_edges, edge_faces, starts, edges = empty(nf, k), empty(m, 2), empty(m), empty(m, 2)
     odd = wp.zeros(1, dtype=int, device=device)
     win_next = wp.full(n, -1, dtype=int, device=device)
     win_prev = wp.full(n, -1, dtype=int, device=device)
@@ -366,7 +383,7 @@ def _topology(master: Surface, device) -> Topology:
         _edge_tables,
         m,
         inputs=[faces, ends, keys, vals, ranks, m],
-        outputs=[face_edges, edge_faces, odd, win_next, win_prev],
+        outputs=[face_edges, edge_faces, starts, edges, odd, win_next, win_prev],
         device=device,
     )
     prev_node, next_node, prev_face, next_face = empty(n), empty(n), empty(n), empty(n)
@@ -397,13 +414,15 @@ def _topology(master: Surface, device) -> Topology:
     # Scalars in float64.
     points = wp.array(master.points, dtype=wp.vec3d, device=device)
     out, bad = _scalars(device)
+    centres = wp.empty(nf, dtype=wp.vec3d, device=device)
+    radii64 = wp.empty(nf, dtype=wp.float64, device=device)
     radii = wp.empty(2 * nf, dtype=wp.float32, device=device)
     rows = empty(2 * nf)
     wp.launch(
         _face_scalars,
         -(-nf // CHUNK),
         inputs=[points, faces, wp.float64(e.lebesgue)],
-        outputs=[radii, rows, out],
+        outputs=[centres, radii64, radii, rows, out],
         device=device,
     )
     wp.launch(_box, -(-n // CHUNK), inputs=[points, uses, 1], outputs=[out, bad], device=device)
@@ -413,6 +432,7 @@ def _topology(master: Surface, device) -> Topology:
     r01 = radii[i0 : min(i0 + 2, nf)].numpy()
     s = out.numpy()
     n_nodes = int(flags[n - 1 : n].numpy()[0]) if n else 0
+    n_edges = int(ranks[m_edges - 1 : m_edges].numpy()[0])
     r_small = float(r01[0] + (q - i0) * (r01[-1] - r01[0]))
     return Topology(
         faces=faces,
@@ -426,6 +446,12 @@ def _topology(master: Surface, device) -> Topology:
         next_face=next_face,
         nodes=nodes,
         n_nodes=n_nodes,
+        points=points,
+        centres=centres,
+        radii=radii64,
+        edge_starts=starts,
+        edges=edges,
+        n_edges=n_edges,
         closed=int(odd.numpy()[0]) == 0,
         longest_edge=float(np.sqrt(s[0])),
         r_max=float(s[1]),
@@ -434,4 +460,77 @@ def _topology(master: Surface, device) -> Topology:
     )
 
 
-__all__ = ["Topology", "device_points", "iota", "topology"]
+@wp.func
+def _spread21(v: wp.int64):
+    """The low 21 bits of v moved to every third bit (arraycontact._grid._spread)."""
+    x = v & wp.int64(0x1FFFFF)
+    x = (x | (x << wp.int64(32))) & wp.int64(0x1F00000000FFFF)
+    x = (x | (x << wp.int64(16))) & wp.int64(0x1F0000FF0000FF)
+    x = (x | (x << wp.int64(8))) & wp.int64(0x100F00F00F00F00F)
+    x = (x | (x << wp.int64(4))) & wp.int64(0x10C30C30C30C30C3)
+    x = (x | (x << wp.int64(2))) & wp.int64(0x1249249249249249)
+    return x
+
+
+@wp.kernel
+def _morton64(
+    x: wp.array(dtype=wp.vec3d),
+    ids: wp.array(dtype=int),
+    lo: wp.vec3d,
+    scale: wp.float64,
+    keys: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=int),
+):
+    """arraycontact._grid.morton_order's key of x[ids[t]] (the same float64 operations)."""
+    t = wp.tid()
+    p = x[ids[t]] - lo
+    key = wp.int64(0)
+    for a in range(3):
+        c = wp.clamp(wp.floor(p[a] * scale), wp.float64(0.0), wp.float64(2097151.0))
+        key = key | (_spread21(wp.int64(c)) << wp.int64(a))
+    keys[t] = key
+    order[t] = t
+
+
+def morton_order(x, ids, n: int, lo, extent: float, device):
+    """arraycontact._grid.morton_order of the rows x[ids[:n]] (x: float64 on the device) on
+    the device: positions into ids, as a host array (one stable radix sort)."""
+    keys = wp.empty(2 * max(n, 1), dtype=wp.int64, device=device)
+    order = wp.empty(2 * max(n, 1), dtype=int, device=device)
+    scale = (1 << 21) / max(float(extent), np.finfo(float).tiny)
+    lo = wp.vec3d(*[float(v) for v in lo])
+    wp.launch(_morton64, n, inputs=[x, ids, lo, wp.float64(scale)], outputs=[keys, order],
+              device=device)  # fmt: skip
+    wp.utils.radix_sort_pairs(keys, order, n, end_bit=63)
+    return order[:n].numpy()
+
+
+def fill_surface(master: Surface, device) -> Topology:
+    """The device's topology of `master`, with its exact tables copied into the Surface's own
+    cache (nodes, node_faces, the edge table, closed, node_box: equal to what its NumPy
+    properties compute, tests/test_warp.py checks them), so that host code reading them (the
+    JAX plan) does not compute them again. Float results (longest edge, face balls) are left
+    to the caller: on a GPU they may differ from NumPy's in the last bit."""
+    t = topology(master, device)
+    d = master.__dict__
+    if "_edge_table" not in d:
+        e, m = t.n_edges, len(master.faces) * master.element.n_corners
+        starts = t.edge_starts[:e].numpy().astype(np.int64)
+        d["_edge_table"] = (
+            t.edges[:e].numpy().astype(np.int64),
+            t.face_edges.numpy().astype(np.int64),
+            t.edge_faces[:e].numpy().astype(np.int64),
+            np.diff(np.r_[starts, m]),
+        )
+    if "node_faces" not in d:
+        d["node_faces"] = (
+            t.nf_offsets.numpy().astype(np.int64),
+            t.nf_ids.numpy().astype(np.int64),
+        )
+    d.setdefault("nodes", t.nodes[: t.n_nodes].numpy().astype(np.int64))
+    d.setdefault("closed", bool(t.closed))
+    d.setdefault("node_box", t.node_box)
+    return t
+
+
+__all__ = ["Topology", "device_points", "fill_surface", "iota", "morton_order", "topology"]
