@@ -461,7 +461,7 @@ def _topology(master: Surface, device) -> Topology:
 
 
 @wp.func
-def _spread21(v: wp.int64):
+def spread21(v: wp.int64):
     """The low 21 bits of v moved to every third bit (arraycontact._grid._spread)."""
     x = v & wp.int64(0x1FFFFF)
     x = (x | (x << wp.int64(32))) & wp.int64(0x1F00000000FFFF)
@@ -487,7 +487,7 @@ def _morton64(
     key = wp.int64(0)
     for a in range(3):
         c = wp.clamp(wp.floor(p[a] * scale), wp.float64(0.0), wp.float64(2097151.0))
-        key = key | (_spread21(wp.int64(c)) << wp.int64(a))
+        key = key | (spread21(wp.int64(c)) << wp.int64(a))
     keys[t] = key
     order[t] = t
 
@@ -499,8 +499,9 @@ def morton_order(x, ids, n: int, lo, extent: float, device):
     order = wp.empty(2 * max(n, 1), dtype=int, device=device)
     scale = (1 << 21) / max(float(extent), np.finfo(float).tiny)
     lo = wp.vec3d(*[float(v) for v in lo])
-    wp.launch(_morton64, n, inputs=[x, ids, lo, wp.float64(scale)], outputs=[keys, order],
-              device=device)  # fmt: skip
+    wp.launch(
+        _morton64, n, inputs=[x, ids, lo, wp.float64(scale)], outputs=[keys, order], device=device
+    )
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=63)
     return order[:n].numpy()
 
@@ -533,4 +534,12 @@ def fill_surface(master: Surface, device) -> Topology:
     return t
 
 
-__all__ = ["Topology", "device_points", "fill_surface", "iota", "morton_order", "topology"]
+__all__ = [
+    "Topology",
+    "device_points",
+    "fill_surface",
+    "iota",
+    "morton_order",
+    "spread21",
+    "topology",
+]
