@@ -528,7 +528,13 @@ def _topology_surfaces():
 def test_device_topology_equals_the_surfaces(name):
     """The plan's topology, made by Warp kernels, against the Surface's NumPy tables (a
     separate implementation): every table row for row, the scalars to rounding."""
-    from arraycontact_warp._surface import fill_surface, iota, morton_order, topology
+    from arraycontact_warp._surface import (
+        fill_surface,
+        iota,
+        morton_order,
+        node_face_table,
+        topology,
+    )
 
     from arraycontact._grid import morton_order as host_morton
     from arraycontact._select import boundary_topology
@@ -573,6 +579,11 @@ def test_device_topology_equals_the_surfaces(name):
     ids = iota(m.n_faces, m.n_faces, DEVICE)
     got = morton_order(t.centres, ids, m.n_faces, lo, extent, DEVICE)
     np.testing.assert_array_equal(got, host_morton(m.face_bounds[0], lo, extent))
+    from arraycontact_jax._gradients import MAX_VALENCE, padded_node_faces
+
+    np.testing.assert_array_equal(
+        node_face_table(t, len(m.points), MAX_VALENCE, DEVICE).numpy(), padded_node_faces(m)
+    )
     if name.startswith("closed"):
         assert t.closed
     if name.startswith("non-manifold"):

@@ -55,7 +55,7 @@ from arraycontact._surface import Surface, bounds, validate_points
 from arraycontact._sweep import FEATURE_TOL, T_TOL, feature_of
 
 from . import _grid, _sweep
-from ._gradients import padded_node_faces, smooth
+from ._gradients import MAX_VALENCE, padded_node_faces, smooth
 
 # Capacities are the plan-time counts times this: the candidate faces of a slave grow when
 # the slaves come closer to a rough master than they were at plan time.
@@ -326,7 +326,11 @@ def plan(
             dtype,
             self_contact,
         )
-        topo = _topology(master, prep, self_contact)
+        topo = (
+            _topology(master, prep, self_contact)
+            if dev_topo is None
+            else _device_topology_arrays(master, prep, self_contact, dev_topo)
+        )
         return Plan(
             topo,
             master,
@@ -340,10 +344,11 @@ def plan(
             engine,
         )
     if dev_topo is not None:  # the plan-time geometry computed as detect does, on the device
+        topo = _device_topology_arrays(master, prep, self_contact, dev_topo)
         nodes_x = jnp.asarray((master.points - origin).astype(dtype))
-        topo = jax.tree.map(jnp.asarray, master_topology(master, prep))
-        m = _plan_geometry(st.element, topo, nodes_x)
+        m = _plan_geometry(st.element, topo._replace(slave_nodes=None, node_faces=None), nodes_x)
     else:
+        topo = _topology(master, prep, self_contact)
         m = master_arrays(master, prep, dtype)
     sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
@@ -354,7 +359,7 @@ def plan(
         minimum,
     )
     return Plan(
-        _topology(master, prep, self_contact),
+        topo,
         master,
         st,
         tuple(sorted(cap.items())),
@@ -384,6 +389,40 @@ def _device_topology(master):
     dev = jax.devices()[0]
     wdev = wp.device_from_jax(dev) if dev.platform == "gpu" else wp.get_device("cpu")
     return _warp_surface().fill_surface(master, wdev), wdev
+
+
+def _device_topology_arrays(master, prep, self_contact, dev_topo):
+    """`_topology`'s Master from the device topology (its int32 arrays as they are: no host
+    copy on a GPU) with prep's trees' orders."""
+    t, wdev = dev_topo
+
+    def jx(a):
+        return wp_to_jax(a) if wdev.is_cuda else jnp.asarray(a.numpy())
+
+    table = _warp_surface().node_face_table(t, len(master.points), MAX_VALENCE, wdev)
+    prev_face, next_face = jx(t.prev_face), jx(t.next_face)
+    return Master(
+        faces=jx(t.faces),
+        node_ids=jnp.asarray(prep.node_ids.astype(np.int32)),
+        face_ids=jnp.asarray(prep.face_ids.astype(np.int32)),
+        face_edges=jx(t.face_edges),
+        edge_faces=jx(t.edge_faces[: t.n_edges]),
+        nf_offsets=jx(t.nf_offsets),
+        nf_ids=jx(t.nf_ids),
+        prev_node=jx(t.prev_node),
+        next_node=jx(t.next_node),
+        prev_face=prev_face,
+        next_face=next_face,
+        on_boundary=(prev_face >= 0) | (next_face >= 0),
+        slave_nodes=jx(t.nodes[: t.n_nodes]) if self_contact else None,
+        node_faces=None if table is None else jx(table),
+    )
+
+
+def wp_to_jax(a):
+    import warp as wp
+
+    return wp.to_jax(a)
 
 
 @partial(jax.jit, static_argnums=0)

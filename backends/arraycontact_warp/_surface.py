@@ -506,6 +506,24 @@ def morton_order(x, ids, n: int, lo, extent: float, device):
     return order[:n].numpy()
 
 
+@wp.kernel
+def _padded(offsets: wp.array(dtype=int), ids: wp.array(dtype=int), table: wp.array2d(dtype=int)):
+    i, j = wp.tid()
+    a = offsets[i]
+    table[i, j] = wp.where(j < offsets[i + 1] - a, ids[a + j], -1)
+
+
+def node_face_table(t: Topology, n_points: int, max_valence: int, device):
+    """[n_points, V] the faces of each node padded with -1 (V: the largest valence), as
+    arraycontact_jax._gradients.padded_node_faces; None when V exceeds max_valence."""
+    v = int(np.diff(t.nf_offsets.numpy()).max()) if n_points else 0
+    if v > max_valence:
+        return None
+    table = wp.empty((n_points, max(v, 1)), dtype=int, device=device)
+    wp.launch(_padded, table.shape, inputs=[t.nf_offsets, t.nf_ids], outputs=[table], device=device)
+    return table
+
+
 def fill_surface(master: Surface, device) -> Topology:
     """The device's topology of `master`, with its exact tables copied into the Surface's own
     cache (nodes, node_faces, the edge table, closed, node_box: equal to what its NumPy
@@ -540,6 +558,7 @@ __all__ = [
     "fill_surface",
     "iota",
     "morton_order",
+    "node_face_table",
     "spread21",
     "topology",
 ]
