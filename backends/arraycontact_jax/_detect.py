@@ -343,21 +343,18 @@ def plan(
             growth,
             engine,
         )
+    sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
+    ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
+    xs = jnp.asarray((slave_x - origin).astype(dtype))
     if dev_topo is not None:  # the plan-time geometry computed as detect does, on the device
         topo = _device_topology_arrays(master, prep, self_contact, dev_topo)
         nodes_x = jnp.asarray((master.points - origin).astype(dtype))
-        m = _plan_geometry(st.element, topo._replace(slave_nodes=None, node_faces=None), nodes_x)
+        bare = topo._replace(slave_nodes=None, node_faces=None)
+        counts = _count_at(sc_dev, bare, nodes_x, xs, ids, st=st)
     else:
         topo = _topology(master, prep, self_contact)
-        m = master_arrays(master, prep, dtype)
-    sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
-    ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
-    cap = _grown(
-        _count(sc_dev, m, jnp.asarray((slave_x - origin).astype(dtype)), ids, st=st),
-        growth,
-        len(slave_x),
-        minimum,
-    )
+        counts = _count(sc_dev, master_arrays(master, prep, dtype), xs, ids, st=st)
+    cap = _grown(counts, growth, len(slave_x), minimum)
     return Plan(
         topo,
         master,
@@ -425,9 +422,11 @@ def wp_to_jax(a):
     return wp.to_jax(a)
 
 
-@partial(jax.jit, static_argnums=0)
-def _plan_geometry(element, topo, nodes_x):
-    return master_geometry(jnp, element, topo, nodes_x)
+@partial(jax.jit, static_argnames=("st",))
+def _count_at(sc, topo, nodes_x, slave_x, ids=None, *, st):
+    """`_count` on the geometry of topo at nodes_x, made in the same program (one compilation
+    where the geometry took one of its own)."""
+    return _count(sc, master_geometry(jnp, st.element, topo, nodes_x), slave_x, ids, st=st)
 
 
 def plan_self(
