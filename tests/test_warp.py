@@ -598,7 +598,7 @@ def test_device_topology_equals_the_surfaces(name):
 @pytest.mark.parametrize("mode", ["exact", "node"])
 def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
     """On the CPU the per-slave kernels run in parts, one thread each: every output equals the
-    one-launch answer bit for bit (3 uneven parts, two bodies and self-contact)."""
+    one-launch answer bit for bit (3 uneven parts: two bodies, self-contact, swept)."""
     import arraycontact_warp._detect as wd
 
     s = scenes.graded_surfaces(2**10, ratio=20)
@@ -610,7 +610,12 @@ def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
         a = {k: v.copy() for k, v in acw.detect(p, s.slave, s.master.points).items()}
         q = acw.plan_self(spiral.master, device="cpu", mode=mode)
         b = {k: v.copy() for k, v in acw.detect_self(q, spiral.master.points).items()}
-        return a, b
+
+        step = scenes.closing_step(scenes.rough_surfaces(2**9))
+        r = acw.plan_swept(step.master, step.slave_x0, device="cpu")
+        args = (step.slave_x0, step.slave_x1, step.master.points, step.master_x1)
+        c = {k: v.copy() for k, v in acw.detect_swept(r, *args).items()}
+        return a, b, c
 
     outputs(1)  # the kernels' overloads loaded, so the next calls run in threads
     whole = outputs(1)

@@ -1157,10 +1157,10 @@ def _swept_launch(p: SweptPlan, xs):
     )
     _grid.fill(g, nf, dev)
     o = p.out
-    wp.launch(
+    _slave_launch(
         _sweep.swept_scan,
         p.n_slaves,
-        inputs=[
+        [
             g,
             p.kernel_element,
             m0,
@@ -1174,9 +1174,11 @@ def _swept_launch(p: SweptPlan, xs):
             real(c.t_tol),
             real(c.space_rtol),
             real(c.feature_tol),
+            0,
         ],
-        outputs=[o[k] for k, _ in SWEPT_OUTPUTS],
-        device=dev,
+        [o[k] for k, _ in SWEPT_OUTPUTS],
+        dev,
+        first=13,
     )
 
 

@@ -710,6 +710,7 @@ def swept_scan(
     t_tol: real,
     space_rtol: real,
     feature_tol: real,
+    start: int,
     hit: wp.array(dtype=int),
     toi: wp.array(dtype=real),
     face: wp.array(dtype=int),
@@ -723,8 +724,9 @@ def swept_scan(
 ):
     """Slave i's earliest contact over the step: the faces whose capture box meets the ball
     around its segment, each searched before the earliest contact so far plus t_tol; the tie
-    band (faces within t_tol of the earliest) goes to the smallest face id."""
-    i = wp.tid()
+    band (faces within t_tol of the earliest) goes to the smallest face id. Thread t takes
+    slave start + t."""
+    i = start + wp.tid()
     a = s0[i]
     b = s1[i]
     world = slave_world[i]
