@@ -391,10 +391,12 @@ def _device_topology(master):
 def _device_topology_arrays(master, prep, self_contact, dev_topo):
     """`_topology`'s Master from the device topology (its int32 arrays as they are: no host
     copy on a GPU) with prep's trees' orders."""
+    import warp as wp
+
     t, wdev = dev_topo
 
     def jx(a):
-        return wp_to_jax(a) if wdev.is_cuda else jnp.asarray(a.numpy())
+        return wp.to_jax(a) if wdev.is_cuda else jnp.asarray(a.numpy())
 
     table = _warp_surface().node_face_table(t, len(master.points), MAX_VALENCE, wdev)
     prev_face, next_face = jx(t.prev_face), jx(t.next_face)
@@ -414,12 +416,6 @@ def _device_topology_arrays(master, prep, self_contact, dev_topo):
         slave_nodes=jx(t.nodes[: t.n_nodes]) if self_contact else None,
         node_faces=None if table is None else jx(table),
     )
-
-
-def wp_to_jax(a):
-    import warp as wp
-
-    return wp.to_jax(a)
 
 
 @partial(jax.jit, static_argnames=("st",))

@@ -465,8 +465,6 @@ def plan(
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if master.n_faces == 0:
         raise ValueError("master has no faces")
-    if len(np.asarray(slave_points)) == 0:
-        raise ValueError("slave_points is empty: there is nothing to plan for")
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
     sort_slaves = {True: "detect", None: False}.get(sort_slaves, sort_slaves)
@@ -476,6 +474,8 @@ def plan(
     # The slaves on the device in float64, checked and bounded there.
     xd, x_lo, x_hi = _surface.device_points(slave_points, "slave_points", device)
     n = xd.shape[0]
+    if n == 0:
+        raise ValueError("slave_points is empty: there is nothing to plan for")
     if slave_world is None:
         slave_world = wp.zeros(n, dtype=int, device=device)
     else:
@@ -775,8 +775,11 @@ def _slave_launch(kernel, n, inputs, outputs, dev, order=None, first=None):
     """Launch a kernel over the n slaves. inputs[order]: the slaves' order (the part takes its
     slice), or inputs[first]: the first slave of the part (its threads take first + t)."""
     global _pool
+    if dev.is_cuda:
+        wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
+        return
     key = (kernel, tuple(type(v) for v in inputs))
-    if dev.is_cuda or CPU_PARTS < 2 or n < 2 * CPU_PARTS or key not in _loaded:
+    if CPU_PARTS < 2 or n < 2 * CPU_PARTS or key not in _loaded:
         wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
         _loaded.add(key)
         return

@@ -122,6 +122,23 @@ def _edge_tables(
                 wp.atomic_max(win_prev, mid, v)
 
 
+@wp.func
+def _neighbour(faces: wp.array2d(dtype=int), ends: wp.array2d(dtype=int), v: int, i: int, far: int):
+    """Node i's neighbour along the boundary edge v (face k + local edge) towards the edge's
+    end `far` (1: next, 0: previous), and the edge's face; (i, -1) for v < 0. A quadratic
+    edge a - mid - b: a's next and b's previous are mid, mid's are a and b."""
+    node = i
+    face = int(-1)
+    if v >= 0:
+        k = ends.shape[0]
+        face = v // k
+        le = v - face * k
+        node = faces[face, ends[le, far]]
+        if ends.shape[1] == 3 and i == faces[face, ends[le, 1 - far]]:
+            node = faces[face, ends[le, 2]]
+    return node, face
+
+
 @wp.kernel
 def _boundary(
     faces: wp.array2d(dtype=int),
@@ -134,32 +151,14 @@ def _boundary(
     prev_face: wp.array(dtype=int),
 ):
     """Each node's boundary neighbours from the edges that won its claims (itself and -1 off
-    the boundary). A quadratic edge a - mid - b: a's next is mid, mid's are a and b."""
+    the boundary)."""
     i = wp.tid()
-    k = ends.shape[0]
-    quadratic = ends.shape[1] == 3
-    next_node[i] = i
-    next_face[i] = -1
-    prev_node[i] = i
-    prev_face[i] = -1
-    v = win_next[i]
-    if v >= 0:
-        f = v // k
-        le = v - f * k
-        nxt = faces[f, ends[le, 1]]
-        if quadratic and i == faces[f, ends[le, 0]]:
-            nxt = faces[f, ends[le, 2]]
-        next_node[i] = nxt
-        next_face[i] = f
-    v = win_prev[i]
-    if v >= 0:
-        f = v // k
-        le = v - f * k
-        prv = faces[f, ends[le, 0]]
-        if quadratic and i == faces[f, ends[le, 1]]:
-            prv = faces[f, ends[le, 2]]
-        prev_node[i] = prv
-        prev_face[i] = f
+    node, face = _neighbour(faces, ends, win_next[i], i, 1)
+    next_node[i] = node
+    next_face[i] = face
+    node, face = _neighbour(faces, ends, win_prev[i], i, 0)
+    prev_node[i] = node
+    prev_face[i] = face
 
 
 @wp.kernel
