@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 from arraycontact_warp import _grid as warp_grid
+from arraycontact_warp._closest_node import closest_node as _closest_node
 from conftest import assert_matches_reference
 
 import arraycontact as ac
@@ -650,3 +651,138 @@ def test_morton_keys_interleave_every_bit(bits, n_worlds):
         for a in range(3):
             want |= ((cells[:, a] >> b) & 1) << (3 * b + a)
     np.testing.assert_array_equal(out.numpy(), want)
+
+
+def _radix_groups(keys, units):
+    """Independent of the build: the binary radix tree of the sorted keys (equal keys told
+    apart by their positions), split top-down at the highest differing bit; `units`: runs of
+    positions [a, b) that are nodes of it. Returns the largest nodes holding at most W units."""
+    comp = [(int(k) << 32) | p for p, k in enumerate(keys)]
+    starts = sorted(a for a, _ in units)
+    ends = sorted(b for _, b in units)
+    out = []
+
+    def split(a, b):
+        inside = np.searchsorted(ends, b, "right") - np.searchsorted(starts, a, "left")
+        if inside <= warp_grid.W:
+            out.append((a, b))
+            return
+        bit = (comp[a] ^ comp[b - 1]).bit_length() - 1
+        cut = next(p for p in range(a, b) if comp[p] >> bit & 1)
+        split(a, cut)
+        split(cut, b)
+
+    split(0, len(keys))
+    return sorted(out)
+
+
+def _grid_points(kind, rng):
+    if kind == "fine_patch":  # a graded mesh's nodes (sizes 1 to 1000)
+        return scenes.fine_patch(12).master.points
+    if kind == "clusters":  # clusters over six decades of size in 3D: groups of 3.5 on average
+        c = rng.uniform(0, 1, (12, 3))
+        r = 10.0 ** rng.uniform(-6, 0, (3000, 1))
+        return c[rng.integers(0, 12, 3000)] + r * rng.normal(size=(3000, 3))
+    if kind == "caterpillar":  # each radix node peels one point: groups of one
+        s = 2.0 ** -np.arange(40)
+        rows = [np.stack([s, s * 0 + y, s * 0], 1) for y in (0.0, 1.0)]
+        return np.concatenate(rows + [rng.uniform(5, 6, (50, 3))])
+    # "repeated": 300 of 500 points at one place (equal keys)
+    x = rng.uniform(0, 1, (500, 3))
+    x[100:400] = x[0]
+    return x
+
+
+@wp.kernel
+def _closest_nodes(grid: warp_grid.Grid, q: wp.array(dtype=wp.vec3),
+                   normals: wp.array(dtype=wp.vec3), node: wp.array(dtype=int),
+                   dist: wp.array(dtype=float)):  # fmt: skip
+    i = wp.tid()
+    n, d = _closest_node(q[i], 0, 1, grid, 1.0e30, 0.0, warp_grid.Plain(), normals)
+    node[i] = n
+    dist[i] = d
+
+
+@pytest.mark.parametrize(
+    "kind, measured, aligned",
+    [
+        ("fine_patch", True, 1),
+        ("clusters", True, 1),
+        ("clusters", False, 0),
+        ("caterpillar", True, 0),
+        ("repeated", True, 1),
+    ],
+)
+def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
+    """The Warp tree's groups: on a level that groups by the rule, the largest nodes of the
+    keys' radix tree holding at most W entries (a top-down split, independent of the build's
+    neighbour rule); elsewhere W consecutive entries: level 0 of the caterpillar (groups of
+    about 2 a plan does not make room for) and of the clusters in a tree not sized by a
+    measure (groups of 3.5 on average, where room was made for 4). Every slot's box is its
+    items' box, every item is in one slot, and the closest node through the tree equals brute
+    force."""
+    rng = np.random.default_rng(3)
+    x = _grid_points(kind, rng)
+    n = len(x)
+    lo = x.min(0)
+    dev = DEVICE
+    g, bits = warp_grid.new_grid(n, np.zeros(3), float((x.max(0) - lo).max()), dev, 0.0)
+    xs = wp.array((x - lo).astype(np.float32), dtype=wp.vec3, device=dev)
+    ids = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=dev)
+    world = wp.zeros(n, dtype=int, device=dev)
+    means = warp_grid.measure_nodes(g, xs, ids, world, n, dev, bits) if measured else ()
+    lay = warp_grid.allot(g, n, dev, means)
+    warp_grid.build(g, lay, xs, ids, world, n, dev, wp.zeros(1, dtype=wp.int32, device=dev), bits)
+    keys, order = g.keys.numpy()[:n], g.sorted_ids.numpy()[:n]
+    counts, rule = g.counts.numpy(), g.aligned.numpy()
+    slots, soff, off = g.slots.numpy(), g.slot_offsets.numpy(), g.offsets.numpy()
+    items = np.frombuffer(g.items.numpy().tobytes(), np.float32).reshape(-1, 8)
+    boxes = np.frombuffer(g.boxes.numpy().tobytes(), np.float32).reshape(-1, 8)
+    up = g.up.numpy()
+    assert rule[0] == aligned
+    assert np.array_equal(np.sort(items[:, 3].view(np.int32)[items[:, 3].view(np.int32) >= 0]),
+                          np.arange(n))  # fmt: skip
+    ranges = [(p, p + 1) for p in range(n)]  # each entry's run of item positions
+    nodes = True
+    root = int(g.root.numpy()[0])
+    for k in range(root + 1):
+        m = counts[k]
+        assert m == len(ranges) and (k < root or m == 1)
+        s = slots[soff[k] : soff[k] + m]
+        groups = {}
+        for e in range(m):
+            groups.setdefault(s[e] // warp_grid.W, []).append(e)
+        got = sorted((ranges[es[0]][0], ranges[es[-1]][1]) for es in groups.values())
+        if rule[k]:
+            if nodes:  # (units made by W consecutive entries are no nodes of the radix tree)
+                assert got == _radix_groups(keys, ranges), k
+        else:
+            nodes = False
+            want = [(ranges[e][0], ranges[min(e + warp_grid.W, m) - 1][1])
+                    for e in range(0, m, warp_grid.W)]  # fmt: skip
+            assert got == want, k
+        for e in range(m):  # entries in slot order within a group, one slot each
+            assert s[e] % warp_grid.W == e - min(groups[s[e] // warp_grid.W])
+        if k >= 1:
+            for e, (a, b) in enumerate(ranges):
+                rec = boxes[off[k] + s[e]]
+                pts = (x - lo)[order[a:b]].astype(np.float32)
+                np.testing.assert_array_equal(rec[:3], pts.min(0))
+                np.testing.assert_array_equal(rec[4:7], pts.max(0))
+                assert rec[3].view(np.int32) == warp_grid.W * e
+                if k >= 2:
+                    assert up[off[k - 1] // warp_grid.W + e] == s[e]
+        else:
+            rec = items[s]
+            np.testing.assert_array_equal(rec[:, :3], (x - lo)[order].astype(np.float32))
+        ranges = [(ranges[es[0]][0], ranges[es[-1]][1]) for _, es in sorted(groups.items())]
+    q = (x[rng.integers(0, n, 300)] + rng.normal(size=(300, 3)) * 1e-3 - lo).astype(np.float32)
+    node = wp.zeros(300, dtype=int, device=dev)
+    dist = wp.zeros(300, dtype=float, device=dev)
+    normals = wp.zeros(1, dtype=wp.vec3, device=dev)
+    wp.launch(_closest_nodes, 300, inputs=[g, wp.array(q, dtype=wp.vec3, device=dev), normals],
+              outputs=[node, dist], device=dev)  # fmt: skip
+    d = np.linalg.norm(q[:, None, :] - (x - lo).astype(np.float32)[None], axis=2)
+    np.testing.assert_allclose(dist.numpy(), d.min(1), rtol=1e-6, atol=1e-7)
+    hit = d[np.arange(300), node.numpy()]
+    np.testing.assert_allclose(hit, d.min(1), rtol=1e-6, atol=1e-7)

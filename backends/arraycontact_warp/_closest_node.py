@@ -16,6 +16,7 @@ from ._grid import (
     descend,
     enters,
     entry,
+    item_id,
     item_lo,
     item_world,
     next_pending,
@@ -39,7 +40,7 @@ def counts(o: Plain, normals: wp.array(dtype=vec3), grid: Grid, k: int):
 
 @wp.func
 def counts(o: Own, normals: wp.array(dtype=vec3), grid: Grid, k: int):  # noqa: F811
-    i = grid.sorted_ids[k]
+    i = item_id(grid, k)
     return i != o.node and wp.dot(o.normal, normals[i]) <= real(FACING_TOL)
 
 
@@ -68,45 +69,46 @@ def _scan(
     reach = wp.min(d_max, wp.max(real(3.0e38), limit))
     wide = reach * real(1.0001)
     stack = wp.uint64(0)  # level k's W bits: its children still to visit
-    k = grid.top
+    top = grid.root[0]
+    k = top
     j = int(0)
     visit = int(1)
     while visit == 1:
         visit = 0
-        if enters(s, world, shared, entry(grid, k, j), wide):
+        box = entry(grid, k, j)
+        if enters(s, world, shared, box, wide):
             if k == 1:
                 for t in range(W):
-                    kk = W * j + t
-                    if kk < grid.n:
-                        # Squares first: most nodes are out of reach, need no root.
-                        d2 = wp.length_sq(item_lo(grid, kk) - s)
-                        near = d2 <= wide * wide
-                        if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                            near = item_world(grid, kk) == world
-                        if near:
-                            near = counts(o, normals, grid, kk)
-                        if near:
-                            d = wp.sqrt(d2)
-                            if d <= d_max:
-                                i = grid.sorted_ids[kk]
-                                if d < dmin:
-                                    second = dmin
-                                    dmin = d
-                                    if limit < real(0.0):
-                                        best = i
-                                else:
-                                    second = wp.min(second, d)
-                                if d <= limit and (best < 0 or i < best):
+                    kk = box.first + t  # (an empty slot is out of every reach)
+                    # Squares first: most nodes are out of reach, need no root.
+                    d2 = wp.length_sq(item_lo(grid, kk) - s)
+                    near = d2 <= wide * wide
+                    if near and shared == 0:  # (Warp evaluates both sides of `or`)
+                        near = item_world(grid, kk) == world
+                    if near:
+                        near = counts(o, normals, grid, kk)
+                    if near:
+                        d = wp.sqrt(d2)
+                        if d <= d_max:
+                            i = item_id(grid, kk)
+                            if d < dmin:
+                                second = dmin
+                                dmin = d
+                                if limit < real(0.0):
                                     best = i
-                                reach = wp.min(reach, wp.max(dmin + tie, limit))
-                                wide = reach * real(1.0001)
+                            else:
+                                second = wp.min(second, d)
+                            if d <= limit and (best < 0 or i < best):
+                                best = i
+                            reach = wp.min(reach, wp.max(dmin + tie, limit))
+                            wide = reach * real(1.0001)
             else:
-                mask, near_c = children(grid, s, world, shared, k, j, wide, 1, o)
+                mask, near_c = children(grid, s, world, shared, k, box.first, wide, 1, o)
                 if mask != 0:
-                    stack, k, j = descend(stack, k, j, mask, near_c)
+                    stack, k, j = descend(stack, k, box.first, mask, near_c)
                     visit = 1
         if visit == 0:
-            stack, k, j, visit = next_pending(grid, stack, k, j)
+            stack, k, j, visit = next_pending(grid, top, stack, k, j)
     return dmin, second, best
 
 

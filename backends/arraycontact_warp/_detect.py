@@ -347,6 +347,8 @@ class Plan:
     m: Master
     node_grid: _grid.Grid
     face_grid: _grid.Grid
+    node_layout: _grid.Layout  # the trees' allocations
+    face_layout: _grid.Layout
     node_ids: wp.array  # the master's used nodes
     n_nodes: int
     slave_world: wp.array
@@ -376,6 +378,7 @@ class Plan:
     h_face: wp.array = None
     finer: wp.array = None  # [n] int32: the `finer` output (self-contact)
     master_ready: bool = False  # the master stages have run at least once
+    built: bool = False  # the trees hold a master (the plan's or a detect's): a refit may do
     graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
     refit: bool = True  # refit the master's grids where the device can choose (see `plan`)
     graph: object = None  # the captured graph and the inputs it was captured for
@@ -543,25 +546,47 @@ def plan(
     # Morton keys over the plan's box in the local frame; worlds above them in the key.
     margin = (growth - 1) * topo.r_small
     n_worlds = 1 if shared else int(nw.max()) + 1
-    node_grid, world_bits = _grid.new_grid(
-        topo.n_nodes,
-        lo - origin,
-        float((hi - lo).max()),
-        device,
-        margin,
-        n_worlds,
-        normals=self_contact,
+    box = (lo - origin, float((hi - lo).max()), device, margin, n_worlds)
+    node_grid, world_bits = _grid.new_grid(topo.n_nodes, *box, normals=self_contact)
+    face_grid, _ = _grid.new_grid(master.n_faces, *box, normals=self_contact)
+    # The trees sized by how the master at plan time groups (_grid.measure).
+    o64 = wp.vec3d(*[float(v) for v in origin])
+    wp.launch(
+        _prepare.localise64,
+        len(master.points),
+        inputs=[topo.points, o64],
+        outputs=[m.points],
+        device=device,
     )
-    face_grid, _ = _grid.new_grid(
-        master.n_faces,
-        lo - origin,
-        float((hi - lo).max()),
-        device,
-        margin,
-        n_worlds,
-        corners=e.name == "tri3",
-        normals=self_contact,
+    means = _grid.measure_nodes(
+        node_grid, m.points, topo.nodes, m.node_world, topo.n_nodes, device, world_bits
     )
+    node_layout = _grid.allot(node_grid, topo.n_nodes, device, means)
+    means = ()
+    if mode == "exact":  # node mode reads no face grid
+        means = _grid.measure_faces(
+            face_grid, m.points, m.faces, e.lebesgue, m.face_world, device, world_bits
+        )
+    tri3 = e.name == "tri3"
+    face_layout = _grid.allot(face_grid, master.n_faces, device, means, corners=tri3)
+    # With the keys sorted, the trees of the master at plan time (but self-contact's, whose
+    # normal boxes the detection makes): a first detect on the CPU refits them.
+    built = not self_contact
+    if built:
+        rebuild = wp.zeros(1, dtype=wp.int32, device=device)
+        _grid.place(node_grid, node_layout, m.points, m.node_world, topo.n_nodes, device, rebuild)
+        if mode == "exact":
+            _grid.place_faces(
+                face_grid,
+                face_layout,
+                m.points,
+                m.faces,
+                e.lebesgue,
+                m.face_world,
+                device,
+                tri3,
+                rebuild,
+            )
     p = Plan(
         device=device,
         master=master,
@@ -571,6 +596,8 @@ def plan(
         m=m,
         node_grid=node_grid,
         face_grid=face_grid,
+        node_layout=node_layout,
+        face_layout=face_layout,
         world_bits=world_bits,
         node_ids=topo.nodes,
         n_nodes=topo.n_nodes,
@@ -581,6 +608,7 @@ def plan(
         slave_in=wp.zeros(n, dtype=vec3, device=device),
         master_in=wp.zeros(len(master.points), dtype=vec3, device=device),
         rebuild=wp.zeros(1, dtype=wp.int32, device=device),
+        built=built,
         out=out,
         dtype=NP_REAL,
         order=_surface.iota(n, 2 * n, device),  # [n:]: the radix sort's scratch
@@ -606,7 +634,6 @@ def plan(
     if self_contact:
         out["finer"] = p.finer
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
-        o64 = wp.vec3d(*[float(v) for v in origin])
         wp.launch(_prepare.localise64, n, inputs=[xd, o64], outputs=[p.slave_in], device=device)
         _grid.spatial_order(
             p.slave_in,
@@ -665,6 +692,7 @@ def _build(p: Plan):
     node_n, face_n = _normal_boxes(p)
     _grid.build(
         p.node_grid,
+        p.node_layout,
         m.points,
         p.node_ids,
         m.node_world,
@@ -677,6 +705,7 @@ def _build(p: Plan):
     if p.mode == 0:  # node mode reads no face grid
         _grid.build_faces(
             p.face_grid,
+            p.face_layout,
             m.points,
             m.faces,
             c.lebesgue,
@@ -718,10 +747,9 @@ def _master_stages(p: Plan, xm, m_origin):
     node_n, face_n = _normal_boxes(p)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
-    # (On the CPU a first call builds: its trees hold nothing to refit yet.)
+    # (On the CPU a first call of a self-contact plan builds: its trees hold nothing yet.)
     if p.refit and (
-        (dev.is_cpu and p.master_ready)
-        or (dev.is_capturing and wp.is_conditional_graph_supported())
+        (dev.is_cpu and p.built) or (dev.is_capturing and wp.is_conditional_graph_supported())
     ):
         n_nodes = p.n_nodes
         p.rebuild.zero_()
@@ -740,14 +768,14 @@ def _master_stages(p: Plan, xm, m_origin):
             )
 
         def fill():
-            _grid.fill(p.node_grid, n_nodes, dev)
+            _grid.fill(p.node_grid, p.node_layout, dev)
             if p.mode == 0:
-                _grid.fill(p.face_grid, p.master.n_faces, dev)
+                _grid.fill(p.face_grid, p.face_layout, dev)
 
         wp.capture_if(p.rebuild, on_true=lambda: _build(p), on_false=fill)
     else:
         _build(p)
-    p.master_ready = True
+    p.master_ready = p.built = True
 
 
 @wp.kernel
@@ -1050,6 +1078,7 @@ class SweptPlan:
     slave_world: wp.array
     shared: int
     grid: _grid.Grid
+    layout: _grid.Layout
     world_bits: int
     origin: np.ndarray
     constants: SweptConstants
@@ -1115,6 +1144,7 @@ def plan_swept(
     grid, world_bits = _grid.new_grid(
         master.n_faces, np.zeros(3), max(extent, 1e-30), device, 0.0, n_worlds
     )
+    layout = _grid.allot(grid, master.n_faces, device)
 
     def arr(a, t):
         return wp.array(a, dtype=t, device=device)
@@ -1130,6 +1160,7 @@ def plan_swept(
         slave_world=arr(sw, int),
         shared=int(shared),
         grid=grid,
+        layout=layout,
         world_bits=world_bits,
         origin=origin,
         constants=consts,
@@ -1152,13 +1183,14 @@ def _swept_launch(p: SweptPlan, xs):
         device=dev,
     )
     _grid._sort(g, nf, p.world_bits)
+    _grid.arrange(g, nf, p.layout, dev)
     wp.launch(
         _sweep.capture_gather,
         nf,
         inputs=[m0, m1, p.faces, real(c.lebesgue), p.face_world, real(c.pad), g],
         device=dev,
     )
-    _grid.fill(g, nf, dev)
+    _grid.fill(g, p.layout, dev)
     o = p.out
     _slave_launch(
         _sweep.swept_scan,

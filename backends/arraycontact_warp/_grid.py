@@ -18,7 +18,7 @@ would stay exact, but grow loose).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
@@ -41,21 +41,21 @@ MAX_LEVELS = 9
 
 @wp.struct
 class Box:
-    """One tree entry: the box around the items under it and the range of their world ids
-    (an empty entry: lo > hi, wmin > wmax). One 32-byte record, so one memory transaction
-    reads it."""
+    """One tree slot: the box around the items under it, where its children start in the
+    level below (a group of W slots) and the world of its items (-1: several, -2: none, an
+    empty slot, whose lo > hi). One 32-byte record, so one memory transaction reads it."""
 
     lo: vec3
-    wmin: int
+    first: int
     hi: vec3
-    wmax: int
+    world: int
 
 
 @wp.struct
 class Item:
-    """One item in key order: the box around it (lo = hi for a node), its id and world. One
-    32-byte record in float32: a scan's one read per item. `id` repeats sorted_ids[k] to fill
-    the first half; the scans read sorted_ids, only for the items they keep."""
+    """One item slot (items in key order, in groups of W): the box around it (lo = hi for a
+    node), its id and world (an empty slot: lo > hi, id -1, world -2). One 32-byte record in
+    float32: a scan's one read per item."""
 
     lo: vec3
     id: int
@@ -75,12 +75,30 @@ class NBox:
 @wp.struct
 class Grid:
     n: int  # items
-    top: int  # the root's level (>= 1)
-    # Where level k >= 1 starts in `boxes` (levels padded to multiples of W), and the entries
-    # of level k (sizes[0] = n; the padding past them is empty): arrays, read by every thread
-    # alike (a vector indexed at run time would be copied to each thread's local memory).
+    # Levels of the allocation: the tree's root is at level root[0] <= top (its slot 0).
+    top: int
+    root: wp.array(dtype=int)
+    # Where level k >= 1's slots start in `boxes` (multiples of W; the items are level 0),
+    # read by every thread alike (a vector indexed at run time would be copied to each
+    # thread's local memory).
     offsets: wp.array(dtype=int)
-    sizes: wp.array(dtype=int)
+    # The build's bookkeeping (the module docstring): entries per level (counts[0] = n), the
+    # slot of each entry of level k at slots[slot_offsets[k] + entry], the groups each level
+    # may hold in Morton-aligned groups (0: none, W consecutive entries a group), whether it
+    # does (aligned[k]), and the parent slot of each group of slots (levels >= 1:
+    # up[(offsets[k] + slot) / W]), for a scan that goes back up.
+    counts: wp.array(dtype=int)
+    slots: wp.array(dtype=int)
+    slot_offsets: wp.array(dtype=int)
+    capacity: wp.array(dtype=int)
+    aligned: wp.array(dtype=int)
+    up: wp.array(dtype=int)
+    # Scratch of the grouping: the split of each pair of neighbours (two halves, the level's
+    # and the next's), group ends, group ids, group starts.
+    split: wp.array(dtype=int)
+    ends: wp.array(dtype=int)
+    group: wp.array(dtype=int)
+    start: wp.array(dtype=int)
     corner: vec3  # the lower corner of the plan's box (local frame): the Morton cells' origin
     quantum: real  # the Morton cell: 2^bits of them a side over the plan's box
     bits: int  # Morton bits an axis (fewer when world ids take the key's high bits)
@@ -90,14 +108,14 @@ class Grid:
     sorted_ids: wp.array(dtype=int)  # item ids in key order (first n of 2n: radix scratch)
     keys: wp.array(dtype=wp.int64)
     boxes: wp.array(dtype=Box)
-    items: wp.array(dtype=Item)  # in key order: a leaf's items are contiguous
-    # tri3 face trees: the three corners of each face in key order (the projection's only
+    items: wp.array(dtype=Item)  # item slots: a leaf's items are contiguous
+    # tri3 face trees: the three corners of each face by item slot (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
     # Each item's centre (a node: its position) when it was sorted, in key order.
     centres: wp.array(dtype=vec3)
-    # Self-contact (normals = 1): the normal boxes of the entries (as `boxes`) and of the
-    # items (in key order), so that a scan skips what nowhere faces the slave's normal.
+    # Self-contact (normals = 1): the normal boxes of the slots (as `boxes`) and of the
+    # items (by slot), so that a scan skips what nowhere faces the slave's normal.
     normals: int
     nboxes: wp.array(dtype=NBox)
     nitems: wp.array(dtype=NBox)
@@ -168,12 +186,16 @@ if real is wp.float32:
         return _item_int(grid.items, k, 1)
 
     @wp.func
+    def item_id(grid: Grid, k: int):
+        return _item_int(grid.items, k, 0)
+
+    @wp.func
     def read_box(grid: Grid, key: int):
         box = Box()
         box.lo = _box_vec(grid.boxes, key, 0)
         box.hi = _box_vec(grid.boxes, key, 1)
-        box.wmin = _box_int(grid.boxes, key, 0)
-        box.wmax = _box_int(grid.boxes, key, 1)
+        box.first = _box_int(grid.boxes, key, 0)
+        box.world = _box_int(grid.boxes, key, 1)
         return box
 
     @wp.func
@@ -182,7 +204,7 @@ if real is wp.float32:
 
     @wp.func
     def write_box(grid: Grid, key: int, box: Box):
-        _store_box(grid.boxes, key, box.lo, box.wmin, box.hi, box.wmax)
+        _store_box(grid.boxes, key, box.lo, box.first, box.hi, box.world)
 else:
 
     @wp.func
@@ -196,6 +218,10 @@ else:
     @wp.func
     def item_world(grid: Grid, k: int):
         return grid.items[k].world
+
+    @wp.func
+    def item_id(grid: Grid, k: int):
+        return grid.items[k].id
 
     @wp.func
     def read_box(grid: Grid, key: int):
@@ -217,8 +243,14 @@ else:
 
 @wp.func
 def entry(grid: Grid, k: int, j: int):
-    """Entry j of level k >= 1."""
+    """Slot j of level k >= 1."""
     return read_box(grid, grid.offsets[k] + j)
+
+
+@wp.func
+def of_world(w: int, world: int):
+    """Whether a slot whose items are of world w (-1: several) may hold items of `world`."""
+    return w == world or w == -1
 
 
 @wp.func
@@ -283,7 +315,7 @@ def enters(s: vec3, world: int, shared: int, box: Box, reach: real):
     ids) it holds items of the slave's world."""
     ok = box_gap_sq(s, box.lo, box.hi) <= reach * reach
     if ok and shared == 0:
-        ok = box.wmin <= world and world <= box.wmax
+        ok = of_world(box.world, world)
     return ok
 
 
@@ -294,12 +326,13 @@ def children(
     world: int,
     shared: int,
     k: int,
-    j: int,
+    first: int,
     reach: real,
     centred: int,
     o: Any,
 ):
-    """Which children (level k - 1 >= 1) of entry j of level k a scan enters: a bit mask, and
+    """Which children (slots first .. first + W - 1 of level k - 1 >= 1) of a slot of level k
+    a scan enters: a bit mask, and
     the child with the nearest box (-1 when none), which the scan visits first. centred = 1:
     among boxes that hold s (near the root, several), the one whose centre is nearest (node
     scan at 2^20 on an H100: 0.68 -> 0.58 ms uniform, 4.67 -> 3.53 ms graded_1000; the face
@@ -309,13 +342,13 @@ def children(
     near = int(-1)
     near_d2 = real(3.0e38)
     for c in range(W):
-        box = entry(grid, k - 1, W * j + c)
+        box = entry(grid, k - 1, first + c)
         d2 = box_gap_sq(s, box.lo, box.hi)
         ok = d2 <= reach * reach
         if ok and shared == 0:
-            ok = box.wmin <= world and world <= box.wmax
+            ok = of_world(box.world, world)
         if ok:
-            ok = may_face(o, grid, grid.offsets[k - 1] + W * j + c)
+            ok = may_face(o, grid, grid.offsets[k - 1] + first + c)
         if ok:
             mask = mask | (1 << c)
             if centred == 1 and d2 == real(0.0):
@@ -353,22 +386,23 @@ def lowest_bit(x: int) -> int:
 
 
 @wp.func
-def descend(stack: wp.uint64, k: int, j: int, mask: int, near: int):
-    """Go on with child `near` of entry j of level k, keeping the other children of `mask`
-    pending: (stack, level, entry)."""
-    return with_pending(stack, k - 1, mask & ~(1 << near)), k - 1, W * j + near
+def descend(stack: wp.uint64, k: int, first: int, mask: int, near: int):
+    """Go on with child `near` of a slot of level k whose children start at `first`, keeping
+    the other children of `mask` pending: (stack, level, slot)."""
+    return with_pending(stack, k - 1, mask & ~(1 << near)), k - 1, first + near
 
 
 @wp.func
-def next_pending(grid: Grid, stack: wp.uint64, k: int, j: int):
-    """The entry to visit after (k, j) and what is under it: the next pending sibling, here or
-    on a level above. Returns (stack, level, entry, 1), or (..., 0) when none is left."""
+def next_pending(grid: Grid, top: int, stack: wp.uint64, k: int, j: int):
+    """The slot to visit after (k, j) and what is under it: the next pending sibling, here or
+    on a level above (up to the root's level `top`). Returns (stack, level, slot, 1), or
+    (..., 0) when none is left."""
     kk = k
     jj = j
-    while kk < grid.top and pending(stack, kk) == 0:
+    while kk < top and pending(stack, kk) == 0:
+        jj = grid.up[(grid.offsets[kk] + jj) // W]
         kk += 1
-        jj = jj // W
-    if kk >= grid.top:
+    if kk >= top:
         return stack, kk, jj, 0
     left = pending(stack, kk)
     return with_pending(stack, kk, left & (left - 1)), kk, W * (jj // W) + lowest_bit(left), 1
@@ -411,6 +445,12 @@ def _face_keys(
     grid.sorted_ids[f] = f
 
 
+@wp.func
+def slot(grid: Grid, p: int):
+    """The item slot of the p-th item in key order."""
+    return grid.slots[p]
+
+
 @wp.kernel
 def _gather(
     x: wp.array(dtype=vec3),
@@ -419,7 +459,7 @@ def _gather(
     grid: Grid,
     rebuild: wp.array(dtype=wp.int32),
 ):
-    """Each node's record in key order (a point: lo = hi). refit = 1: the order is the
+    """Each node's record in its slot (a point: lo = hi). refit = 1: the order is the
     previous build's; rebuild[0] is raised when a node moved farther than grid.margin."""
     k = wp.tid()
     i = grid.sorted_ids[k]
@@ -428,7 +468,7 @@ def _gather(
             rebuild[0] = 1
     else:
         grid.centres[k] = x[i]
-    write_item(grid, k, x[i], i, x[i], world[i])
+    write_item(grid, slot(grid, k), x[i], i, x[i], world[i])
 
 
 @wp.kernel
@@ -442,7 +482,7 @@ def _face_gather(
     grid: Grid,
     rebuild: wp.array(dtype=wp.int32),
 ):
-    """Each face's record (its box) in key order, and (corners = 1, tri3) its corners.
+    """Each face's record (its box) in its slot, and (corners = 1, tri3) its corners.
     refit = 1: as _gather, for the faces' centres."""
     k = wp.tid()
     i = grid.sorted_ids[k]
@@ -452,20 +492,11 @@ def _face_gather(
             rebuild[0] = 1
     else:
         grid.centres[k] = c
-    write_item(grid, k, lo, i, hi, world[i])
+    q = slot(grid, k)
+    write_item(grid, q, lo, i, hi, world[i])
     if corners == 1:
         for j in range(3):
-            grid.corners[k, j] = points[faces[i, j]]
-
-
-@wp.func
-def _empty_box():
-    box = Box()
-    box.lo = vec3(real(1.0e30))
-    box.hi = vec3(real(-1.0e30))
-    box.wmin = int(2147483647)
-    box.wmax = int(-1)
-    return box
+            grid.corners[q, j] = points[faces[i, j]]
 
 
 @wp.func
@@ -486,74 +517,286 @@ def _nbox_union(a: NBox, b: NBox):
 
 @wp.kernel
 def _gather_normals(grid: Grid, lo: wp.array(dtype=vec3), hi: wp.array(dtype=vec3)):
-    """Self-contact: each item's normal box (lo, hi by item id) in key order."""
+    """Self-contact: each item's normal box (lo, hi by item id) in its slot."""
     k = wp.tid()
     i = grid.sorted_ids[k]
     b = NBox()
     b.lo = lo[i]
     b.hi = hi[i]
-    grid.nitems[k] = b
+    grid.nitems[slot(grid, k)] = b
+
+
+# The grouping. The items in key order are the leaves of a binary radix tree (Karras 2012):
+# the node over a run of items is the longest key prefix they share, and the split between
+# neighbours p and p + 1 is the length of theirs (`_split`). A group is a largest node of at
+# most W items: a Morton-aligned cluster, which a run of W items in key order is not when it
+# straddles two cells (a row of a stretched zone and the next, a dense patch and the sparse
+# plate after it). Pair p | p + 1 ends a group when the node over it, the run of pairs around
+# it with splits at least its own, holds more than W items: looked up within W pairs each
+# side. Each group takes W slots (the empty ones lo > hi), and the groups of level k are the
+# entries of level k + 1 with the splits between them that ended them: the same rule builds
+# every level. On a graded master this keeps each box as tight as its items (closest-node
+# scan at 2^16 on fine_patch: 37 -> 1 leaves a slave); a level whose groups would not fit its
+# capacity (a mean group below W / 2, seen on no mesh here) takes W consecutive entries a
+# group instead, as does every level above the lowest `aligned` ones of a tree too deep for
+# a scan's stack.
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __clzll(x);
+#else
+return x == 0 ? 64 : __builtin_clzll((unsigned long long)x);
+#endif
+""")
+def _clz64(x: wp.int64) -> int: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __clz(x);
+#else
+return x == 0 ? 32 : __builtin_clz((unsigned int)x);
+#endif
+""")
+def _clz32(x: int) -> int: ...
 
 
 @wp.kernel
-def _leaves(grid: Grid):
-    """Level 1: each entry's box and world range over its W items (empty past the last)."""
-    j = wp.tid()
-    box = _empty_box()
-    for t in range(W):
-        k = W * j + t
-        if k < grid.n:
-            box.lo = wp.min(box.lo, item_lo(grid, k))
-            box.hi = wp.max(box.hi, item_hi(grid, k))
-            w = item_world(grid, k)
-            box.wmin = wp.min(box.wmin, w)
-            box.wmax = wp.max(box.wmax, w)
-    write_box(grid, grid.offsets[1] + j, box)
+def _splits(grid: Grid):
+    """The split of each pair of neighbours in key order; equal keys split by their
+    positions', so that a run of equal keys still forms groups of W."""
+    p = wp.tid()
+    if p + 1 < grid.n:
+        x = grid.keys[p] ^ grid.keys[p + 1]
+        d = _clz64(x)
+        if x == wp.int64(0):
+            d = 64 + _clz32(p ^ (p + 1))
+        grid.split[p] = d
+
+
+@wp.kernel
+def _ends(grid: Grid, k: int, src: int):
+    """ends[e] = 1 where entry e of level k ends a group (the last entry always)."""
+    e = wp.tid()
+    m = grid.counts[k]
+    end = int(0)
+    if e == m - 1:
+        end = 1
+    elif e < m - 1:
+        d = grid.split[src + e]
+        left = int(0)
+        right = int(0)
+        for t in range(1, W):
+            if left == t - 1 and e - t >= 0:
+                if grid.split[src + e - t] >= d:
+                    left = t
+            if right == t - 1 and e + t < m - 1:
+                if grid.split[src + e + t] >= d:
+                    right = t
+        end = int(left + right + 2 > W)
+    grid.ends[e] = end
+
+
+@wp.kernel
+def _starts(grid: Grid, k: int):
+    """Whether level k groups by the rule, the next level's entry count, and where each
+    group starts."""
+    e = wp.tid()
+    m = grid.counts[k]
+    if m == 0:
+        if e == 0:
+            grid.aligned[k] = 0
+            grid.counts[k + 1] = 1
+        return
+    groups = grid.group[m - 1] + 1
+    aligned = int(groups <= grid.capacity[k])
+    if e == 0:
+        grid.aligned[k] = aligned
+        if aligned == 1:
+            grid.counts[k + 1] = groups
+        else:
+            grid.counts[k + 1] = (m + W - 1) // W
+    if aligned == 1 and e < m:
+        if e == 0 or grid.ends[e - 1] == 1:
+            grid.start[grid.group[e]] = e
+
+
+@wp.kernel
+def _place(grid: Grid, k: int, src: int, dst: int):
+    """Each entry's slot in level k, and the splits between the next level's entries."""
+    e = wp.tid()
+    m = grid.counts[k]
+    if e >= m:
+        return
+    g = e // W
+    pos = e - W * g
+    last = int(pos == W - 1)
+    if grid.aligned[k] == 1:
+        g = grid.group[e]
+        pos = e - grid.start[g]
+        last = grid.ends[e]
+    grid.slots[grid.slot_offsets[k] + e] = W * g + pos
+    if last == 1 and e < m - 1:
+        grid.split[dst + g] = grid.split[src + e]
+
+
+@wp.kernel
+def _clear_items(grid: Grid):
+    q = wp.tid()
+    write_item(grid, q, vec3(real(1.0e30)), -1, vec3(real(-1.0e30)), -2)
     if grid.normals == 1:
-        nb = _empty_nbox()
-        for t in range(W):
-            if W * j + t < grid.n:
-                nb = _nbox_union(nb, grid.nitems[W * j + t])
-        grid.nboxes[grid.offsets[1] + j] = nb
+        grid.nitems[q] = _empty_nbox()
 
 
 @wp.kernel
-def _level(grid: Grid, k: int):
-    """Level k >= 2: each entry's box and world range over its W children (empty past the
-    last: the padding of a level has no children)."""
-    j = wp.tid()
-    box = _empty_box()
+def _clear_boxes(grid: Grid, k: int):
+    q = grid.offsets[k] + wp.tid()
+    box = Box()
+    box.lo = vec3(real(1.0e30))
+    box.hi = vec3(real(-1.0e30))
+    box.first = -1
+    box.world = -2
+    write_box(grid, q, box)
+    if grid.normals == 1:
+        grid.nboxes[q] = _empty_nbox()
+
+
+@wp.kernel
+def _root(grid: Grid):
+    k = int(1)
+    while k < grid.top and grid.counts[k] > 1:
+        k += 1
+    grid.root[0] = k
+
+
+@wp.func
+def _worlds(w: int, c: int):
+    """The world of a slot's items so far (w: -2 none yet, -1 several) and a child's (c)."""
+    if c == -2 or w == c:
+        return w
+    if w == -2:
+        return c
+    return -1
+
+
+@wp.kernel
+def _reduce(grid: Grid, k: int):
+    """Level k >= 1: each entry's box over its group of W slots in level k - 1, into its
+    slot, and that group's parent slot."""
+    e = wp.tid()
+    if e >= grid.counts[k]:
+        return
+    box = Box()
+    box.lo = vec3(real(1.0e30))
+    box.hi = vec3(real(-1.0e30))
+    box.first = W * e
+    box.world = -2
+    nb = _empty_nbox()
     for c in range(W):
-        if W * j + c < grid.sizes[k - 1]:
-            b = entry(grid, k - 1, W * j + c)
+        q = W * e + c
+        if k == 1:
+            box.lo = wp.min(box.lo, item_lo(grid, q))
+            box.hi = wp.max(box.hi, item_hi(grid, q))
+            box.world = _worlds(box.world, item_world(grid, q))
+            if grid.normals == 1:
+                nb = _nbox_union(nb, grid.nitems[q])
+        else:
+            b = entry(grid, k - 1, q)
             box.lo = wp.min(box.lo, b.lo)
             box.hi = wp.max(box.hi, b.hi)
-            box.wmin = wp.min(box.wmin, b.wmin)
-            box.wmax = wp.max(box.wmax, b.wmax)
+            box.world = _worlds(box.world, b.world)
+            if grid.normals == 1:
+                nb = _nbox_union(nb, grid.nboxes[grid.offsets[k - 1] + q])
+    j = grid.slots[grid.slot_offsets[k] + e]
     write_box(grid, grid.offsets[k] + j, box)
     if grid.normals == 1:
-        nb = _empty_nbox()
-        for c in range(W):
-            if W * j + c < grid.sizes[k - 1]:
-                nb = _nbox_union(nb, grid.nboxes[grid.offsets[k - 1] + W * j + c])
         grid.nboxes[grid.offsets[k] + j] = nb
+    if k >= 2:
+        grid.up[grid.offsets[k - 1] // W + e] = j
 
 
-def level_sizes(n: int):
-    """Entries of levels 1 .. top (the NumPy tree's level_sizes without level 0), each padded
-    to a whole group of W in the allocation."""
-    sizes = [max(n, 1)]
-    while sizes[-1] > 1 or len(sizes) < 2:
-        sizes.append(-(-sizes[-1] // W))
-    return sizes[1:]
+class Layout(NamedTuple):
+    """A tree's allocation: per level k, the most entries it holds (entries[0]: the items) and
+    its slots (slots[k] = W x the most groups; slots[0]: the item slots), and which levels
+    may group by the rule."""
+
+    entries: tuple
+    slots: tuple
+    aligned: tuple
+
+    @property
+    def top(self):
+        return len(self.entries) - 1
 
 
-def fill(grid: Grid, n: int, device):
-    """Every level's boxes from the items in key order: one launch a level, leaves first."""
-    sizes = level_sizes(n)
-    wp.launch(_leaves, sizes[0] + (-sizes[0]) % W, inputs=[grid], device=device)
-    for k, size in enumerate(sizes[1:], start=2):
-        wp.launch(_level, size + (-size) % W, inputs=[grid, k], device=device)
+#: Room for this many times the groups a level held when the plan measured it.
+GROWTH = 1.25
+
+
+def layout(n: int, means=()) -> Layout:
+    """The allocation for n items. Level k may group by the rule with room for its measured
+    mean group size (means[k], see `measure`) divided by GROWTH, or W / 2 where not measured;
+    a level whose mean is below 2 takes W consecutive entries a group, as do the levels above
+    the lowest ones that keep the root within MAX_LEVELS (the scan's stack)."""
+    for n_aligned in range(MAX_LEVELS, -1, -1):
+        entries, slots, aligned = [max(n, 1)], [], []
+        while True:
+            k = len(slots)
+            mean = min(means[k] / GROWTH, W) if k < len(means) else W / 2
+            rule = k < n_aligned and entries[-1] > W and mean >= 2
+            groups = int(np.ceil(entries[-1] / (mean if rule else W)))
+            slots.append(W * groups)
+            aligned.append(int(rule))
+            if entries[-1] == 1 and k >= 1:
+                break  # the root's level
+            entries.append(groups)
+        if len(entries) - 1 <= MAX_LEVELS:
+            break
+    else:
+        raise ValueError(f"{n} items need more than {MAX_LEVELS} tree levels")
+    return Layout(tuple(entries), tuple(slots), tuple(aligned))
+
+
+def _group(grid: Grid, k: int, m: int, device):
+    """Level k's groups (capacity m entries): the next level's count and splits, and the
+    level's slots."""
+    half = grid.ends.shape[0]
+    src, dst = half * (k % 2), half * ((k + 1) % 2)
+    wp.launch(_ends, m, inputs=[grid, k, src], device=device)
+    wp.utils.array_scan(grid.ends[:m], grid.group[:m], inclusive=False)
+    wp.launch(_starts, m, inputs=[grid, k], device=device)
+    wp.launch(_place, m, inputs=[grid, k, src, dst], device=device)
+
+
+def measure(grid: Grid, n: int, device) -> list:
+    """The mean group size of the items by the rule, [] for W items or fewer (from the keys
+    the grid holds sorted: a plan's, to size the tree's item slots; one read)."""
+    if n <= W:
+        return []
+    wp.launch(_splits, n - 1, inputs=[grid], device=device)
+    wp.launch(_ends, n, inputs=[grid, 0, 0], device=device)
+    wp.utils.array_scan(grid.ends[:n], grid.group[:n], inclusive=False)
+    return [n / (int(grid.group[n - 1 : n].numpy()[0]) + 1)]
+
+
+def arrange(grid: Grid, n: int, lay: Layout, device):
+    """The slots of every level from the items' keys, sorted (launches only: capturable);
+    every slot emptied, for the items and `fill` to write theirs."""
+    wp.launch(_splits, max(n - 1, 1), inputs=[grid], device=device)
+    for k in range(lay.top + 1):
+        _group(grid, k, lay.entries[k], device)
+        if k == 0:
+            wp.launch(_clear_items, lay.slots[0], inputs=[grid], device=device)
+        else:
+            wp.launch(_clear_boxes, lay.slots[k], inputs=[grid, k], device=device)
+    wp.launch(_root, 1, inputs=[grid], device=device)
+
+
+def fill(grid: Grid, lay: Layout, device):
+    """Every level's boxes from the item slots: one launch a level, leaves first."""
+    for k in range(1, lay.top + 1):
+        wp.launch(_reduce, lay.entries[k], inputs=[grid, k], device=device)
 
 
 def _sort(grid: Grid, n: int, world_bits: int):
@@ -567,18 +810,27 @@ def _normals(grid: Grid, n: int, normals, device):
         wp.launch(_gather_normals, n, inputs=[grid, *normals], device=device)
 
 
-def build(grid: Grid, x, ids, world, n: int, device, rebuild, world_bits: int, normals=None):
+def build(
+    grid: Grid, lay: Layout, x, ids, world, n: int, device, rebuild, world_bits, normals=None
+):
     """Fill `grid` with the points x[ids[:n]] (launches only: capturable). normals
     (self-contact): the items' normal boxes (lo, hi) by item id."""
     wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
     _sort(grid, n, world_bits)
+    place(grid, lay, x, world, n, device, rebuild, normals)
+
+
+def place(grid: Grid, lay: Layout, x, world, n: int, device, rebuild, normals=None):
+    """`build` after the sort (the keys sorted in the grid)."""
+    arrange(grid, n, lay, device)
     wp.launch(_gather, n, inputs=[x, world, 0, grid, rebuild], device=device)
     _normals(grid, n, normals, device)
-    fill(grid, n, device)
+    fill(grid, lay, device)
 
 
 def build_faces(
     grid: Grid,
+    lay: Layout,
     points,
     faces,
     lebesgue: float,
@@ -590,10 +842,19 @@ def build_faces(
     normals=None,
 ):
     """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
-    corners in key order. normals: as `build`'s."""
+    corners by slot. normals: as `build`'s."""
     n = faces.shape[0]
     wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), world, grid], device=device)
     _sort(grid, n, world_bits)
+    place_faces(grid, lay, points, faces, lebesgue, world, device, corners, rebuild, normals)
+
+
+def place_faces(
+    grid: Grid, lay: Layout, points, faces, lebesgue, world, device, corners, rebuild, normals=None
+):
+    """`build_faces` after the sort."""
+    n = faces.shape[0]
+    arrange(grid, n, lay, device)
     wp.launch(
         _face_gather,
         n,
@@ -601,10 +862,25 @@ def build_faces(
         device=device,
     )
     _normals(grid, n, normals, device)
-    fill(grid, n, device)
+    fill(grid, lay, device)
 
 
-# A refit: the records again in the previous build's key order, raising rebuild[0] where an
+def measure_nodes(grid: Grid, x, ids, world, n: int, device, world_bits: int):
+    """`measure` on the points x[ids[:n]] (a plan's, before `allot`)."""
+    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+    _sort(grid, n, world_bits)
+    return measure(grid, n, device)
+
+
+def measure_faces(grid: Grid, points, faces, lebesgue: float, world, device, world_bits: int):
+    """`measure` on the faces (a plan's, before `allot`)."""
+    n = faces.shape[0]
+    wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), world, grid], device=device)
+    _sort(grid, n, world_bits)
+    return measure(grid, n, device)
+
+
+# A refit: the records again in the previous build's slots, raising rebuild[0] where an
 # item left the margin; then `fill`, or a build when raised (the caller's choice on the
 # device: wp.capture_if).
 def refit(grid: Grid, x, world, n: int, device, rebuild, normals=None):
@@ -631,41 +907,66 @@ def new_grid(
     device,
     margin: float,
     n_worlds: int = 1,
-    corners=False,
     normals=False,
 ):
     """A tree for n items in the cube of side `extent` at `corner` (local frame), with
     `margin` the distance an item may move before a refit asks for a build; normals: with
-    normal boxes (self-contact). Returns (grid, world bits)."""
+    normal boxes (self-contact). Its levels: `allot`. Returns (grid, world bits). (Arrays
+    that a build writes before any read are left unset: on the CPU, zeroing them cost more
+    than the build.)"""
     world_bits = max(int(n_worlds - 1).bit_length(), 0)
-    sizes = level_sizes(n)
-    if len(sizes) > MAX_LEVELS:
-        raise ValueError(f"{n} items need more than {MAX_LEVELS} tree levels")
     g = Grid()
-    g.n, g.top = max(n, 0), len(sizes)
-    offsets = np.zeros(MAX_LEVELS + 1, np.int32)
-    counts = np.zeros(MAX_LEVELS + 1, np.int32)
+    g.n = max(n, 0)
+    m = max(n, 1)
+    counts = np.zeros(MAX_LEVELS * 2 + 2, np.int32)
     counts[0] = n
-    total = 0
-    for k, size in enumerate(sizes, start=1):
-        offsets[k], counts[k] = total, size
-        total += size + (-size) % W
-    g.offsets = wp.array(offsets, dtype=int, device=device)
-    g.sizes = wp.array(counts, dtype=int, device=device)
+    g.counts = wp.array(counts, dtype=int, device=device)
+    g.aligned = wp.zeros_like(g.counts)
+    g.capacity = wp.zeros_like(g.counts)
+    g.slot_offsets = wp.zeros_like(g.counts)
+    g.slots = wp.empty(m, dtype=int, device=device)
+    g.split = wp.empty(2 * m, dtype=int, device=device)
+    g.ends = wp.empty(m, dtype=int, device=device)
+    g.group = wp.empty(m, dtype=int, device=device)
+    g.start = wp.empty(m, dtype=int, device=device)
     g.bits = min(21, (63 - world_bits) // 3)
     g.corner = vec3(*[float(v) for v in corner])
     g.quantum = real(max(float(extent), 1e-30) / (1 << g.bits))
     g.margin = real(margin)
-    g.sorted_ids = wp.zeros(2 * max(n, 1), dtype=int, device=device)
-    g.keys = wp.zeros(2 * max(n, 1), dtype=wp.int64, device=device)
-    g.boxes = wp.zeros(total, dtype=Box, device=device)
-    g.items = wp.zeros(max(n, 1), dtype=Item, device=device)
-    g.corners = wp.zeros((max(n, 1) if corners else 1, 3), dtype=vec3, device=device)
-    g.centres = wp.full(max(n, 1), vec3(1.0e30), dtype=vec3, device=device)
+    g.sorted_ids = wp.empty(2 * m, dtype=int, device=device)
+    g.keys = wp.empty(2 * m, dtype=wp.int64, device=device)
+    g.centres = wp.full(m, vec3(1.0e30), dtype=vec3, device=device)
     g.normals = int(normals)
-    g.nboxes = wp.zeros(total if normals else 1, dtype=NBox, device=device)
-    g.nitems = wp.zeros(max(n, 1) if normals else 1, dtype=NBox, device=device)
     return g, world_bits
+
+
+def allot(g: Grid, n: int, device, means=(), corners=False) -> Layout:
+    """Give `g` its levels for n items (`layout`: means, the mean group size of each level,
+    `measure`'s, or none); corners (tri3 faces): room for the faces' corners by slot."""
+    lay = layout(n, means)
+    g.top = lay.top
+    g.root = wp.full(1, lay.top, dtype=int, device=device)
+    offsets = np.zeros(MAX_LEVELS * 2 + 2, np.int32)
+    slot_offsets = np.zeros(MAX_LEVELS * 2 + 2, np.int32)
+    capacity = np.zeros(MAX_LEVELS * 2 + 2, np.int32)
+    total = 0
+    for k in range(1, lay.top + 1):
+        offsets[k] = total
+        total += lay.slots[k]
+    for k in range(lay.top + 1):
+        slot_offsets[k + 1] = slot_offsets[k] + lay.entries[k]
+        capacity[k] = lay.slots[k] // W if lay.aligned[k] else 0
+    g.offsets = wp.array(offsets, dtype=int, device=device)
+    g.slot_offsets = wp.array(slot_offsets, dtype=int, device=device)
+    g.capacity = wp.array(capacity, dtype=int, device=device)
+    g.slots = wp.empty(int(slot_offsets[lay.top + 1]), dtype=int, device=device)
+    g.up = wp.empty(max(total // W, 1), dtype=int, device=device)
+    g.boxes = wp.empty(total, dtype=Box, device=device)
+    g.items = wp.empty(lay.slots[0], dtype=Item, device=device)
+    g.corners = wp.empty((lay.slots[0] if corners else 1, 3), dtype=vec3, device=device)
+    g.nboxes = wp.empty(total if g.normals else 1, dtype=NBox, device=device)
+    g.nitems = wp.empty(lay.slots[0] if g.normals else 1, dtype=NBox, device=device)
+    return lay
 
 
 @wp.func

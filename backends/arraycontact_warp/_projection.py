@@ -39,6 +39,7 @@ from ._grid import (
     enters,
     entry,
     item_hi,
+    item_id,
     item_lo,
     item_world,
     may_face_item,
@@ -308,35 +309,36 @@ def scan_faces(
     unsure = int(0)
     found = _candidates(0)
     stack = wp.uint64(0)  # level k's W bits: its children still to visit
-    lv = grid.top
+    root = grid.root[0]
+    lv = root
     j = int(0)
     visit = int(1)
     while visit == 1:
         visit = 0
         n = int(0)
         first = int(0)  # the collected face with the nearest box: projected first
-        if enters(s, world, shared, entry(grid, lv, j), reach):
+        box = entry(grid, lv, j)
+        if enters(s, world, shared, box, reach):
             if lv == 1:
                 first_d2 = real(3.0e38)
                 for t in range(W):
-                    k = W * j + t
-                    if k < grid.n:
-                        d2 = box_gap_sq(s, item_lo(grid, k), item_hi(grid, k))
-                        near = d2 <= reach * reach
-                        if near and shared == 0:  # (Warp evaluates both sides of `or`)
-                            near = item_world(grid, k) == world
-                        if near:
-                            near = may_face_item(o, grid, k)
-                        if near:
-                            if d2 < first_d2:
-                                first = n
-                                first_d2 = d2
-                            found[n] = k
-                            n += 1
+                    k = box.first + t  # (an empty slot is out of every reach)
+                    d2 = box_gap_sq(s, item_lo(grid, k), item_hi(grid, k))
+                    near = d2 <= reach * reach
+                    if near and shared == 0:  # (Warp evaluates both sides of `or`)
+                        near = item_world(grid, k) == world
+                    if near:
+                        near = may_face_item(o, grid, k)
+                    if near:
+                        if d2 < first_d2:
+                            first = n
+                            first_d2 = d2
+                        found[n] = k
+                        n += 1
             else:
-                mask, near_c = children(grid, s, world, shared, lv, j, reach, 0, o)
+                mask, near_c = children(grid, s, world, shared, lv, box.first, reach, 0, o)
                 if mask != 0:
-                    stack, lv, j = descend(stack, lv, j, mask, near_c)
+                    stack, lv, j = descend(stack, lv, box.first, mask, near_c)
                     visit = 1
         for t in range(n):
             tt = t
@@ -345,7 +347,7 @@ def scan_faces(
             elif t == first:
                 tt = 0
             kt = found[tt]
-            f = grid.sorted_ids[kt]
+            f = item_id(grid, kt)
             cut = wp.min(reach, wp.max(dmin, limit) + slack)
             near = box_gap_sq(s, item_lo(grid, kt), item_hi(grid, kt)) <= cut * cut
             # The second scan skips ids above the best so far.
@@ -383,7 +385,7 @@ def scan_faces(
                     b_k = kt
                 reach = wp.min(reach, wp.max(dmin, limit) + slack)
         if visit == 0:
-            stack, lv, j, visit = next_pending(grid, stack, lv, j)
+            stack, lv, j, visit = next_pending(grid, root, stack, lv, j)
     return dmin, best, b_k, unsure
 
 

@@ -26,10 +26,12 @@ from ._grid import (
     enters,
     entry,
     item_hi,
+    item_id,
     item_lo,
     item_world,
     morton_key,
     next_pending,
+    slot,
     write_item,
 )
 from ._prepare import face_bounds
@@ -642,13 +644,15 @@ def capture_gather(
     pad: real,
     grid: Grid,
 ):
-    """Each face's capture box (its boxes at both ends of the step, grown by pad) in key
-    order."""
+    """Each face's capture box (its boxes at both ends of the step, grown by pad) in its
+    slot."""
     k = wp.tid()
     f = grid.sorted_ids[k]
     c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
     c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
-    write_item(grid, k, wp.min(lo0, lo1) - vec3(pad), f, wp.max(hi0, hi1) + vec3(pad), world[f])
+    write_item(
+        grid, slot(grid, k), wp.min(lo0, lo1) - vec3(pad), f, wp.max(hi0, hi1) + vec3(pad), world[f]
+    )
 
 
 @wp.func
@@ -741,21 +745,23 @@ def swept_scan(
     conv = int(1)
     total = int(0)
     stack = wp.uint64(0)
-    k = grid.top
+    top = grid.root[0]
+    k = top
     j = int(0)
     visit = int(1)
     while visit == 1:
         visit = 0
-        if enters(s, world, shared, entry(grid, k, j), reach):
+        box = entry(grid, k, j)
+        if enters(s, world, shared, box, reach):
             if k == 1:
                 for c in range(W):
-                    kk = W * j + c
-                    if kk < grid.n:
+                    kk = box.first + c
+                    f = item_id(grid, kk)
+                    if f >= 0:  # (not an empty slot)
                         near = box_gap_sq(s, item_lo(grid, kk), item_hi(grid, kk)) <= reach * reach
                         if near and shared == 0:
                             near = item_world(grid, kk) == world
                         if near:
-                            f = grid.sorted_ids[kk]
                             pr = _pair(el, x0, x1, faces, f, a, b, space_rtol)
                             bound = real(3.0e38)
                             if first < real(2.0):
@@ -785,12 +791,12 @@ def swept_scan(
                                 else:
                                     conv = 0  # more tied faces than kept
             else:
-                mask, near_c = children(grid, s, world, shared, k, j, reach, 0, Plain())
+                mask, near_c = children(grid, s, world, shared, k, box.first, reach, 0, Plain())
                 if mask != 0:
-                    stack, k, j = descend(stack, k, j, mask, near_c)
+                    stack, k, j = descend(stack, k, box.first, mask, near_c)
                     visit = 1
         if visit == 0:
-            stack, k, j, visit = next_pending(grid, stack, k, j)
+            stack, k, j, visit = next_pending(grid, top, stack, k, j)
     visits[i] = total
     converged[i] = conv
     if nb == 0:
