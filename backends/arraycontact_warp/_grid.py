@@ -94,11 +94,12 @@ class Grid:
     aligned: wp.array(dtype=int)
     up: wp.array(dtype=int)
     # Scratch of the grouping: the split of each pair of neighbours (two halves, the level's
-    # and the next's), group ends, group ids, group starts.
+    # and the next's), group ends, group ids, group starts, the prefix sum's.
     split: wp.array(dtype=int)
     ends: wp.array(dtype=int)
     group: wp.array(dtype=int)
     start: wp.array(dtype=int)
+    scratch: wp.array(dtype=int)  # exclusive_scan's
     corner: vec3  # the lower corner of the plan's box (local frame): the Morton cells' origin
     quantum: real  # the Morton cell: 2^bits of them a side over the plan's box
     bits: int  # Morton bits an axis (fewer when world ids take the key's high bits)
@@ -716,6 +717,57 @@ def _reduce(grid: Grid, k: int):
         grid.up[grid.offsets[k - 1] // W + e] = j
 
 
+#: Items a thread of the prefix sum adds up in order.
+SCAN_CHUNK = 64
+
+
+@wp.kernel
+def _chunk_sums(a: wp.array(dtype=int), n: int, sums: wp.array(dtype=int)):
+    t = wp.tid()
+    total = int(0)
+    for i in range(t * SCAN_CHUNK, wp.min(t * SCAN_CHUNK + SCAN_CHUNK, n)):
+        total += a[i]
+    sums[t] = total
+
+
+@wp.kernel
+def _chunk_scan(
+    a: wp.array(dtype=int),
+    n: int,
+    offsets: wp.array(dtype=int),
+    first: int,
+    out: wp.array(dtype=int),
+):
+    t = wp.tid()
+    total = int(0)
+    if first == 0:
+        total = offsets[t]
+    for i in range(t * SCAN_CHUNK, wp.min(t * SCAN_CHUNK + SCAN_CHUNK, n)):
+        v = a[i]
+        out[i] = total
+        total += v
+
+
+def exclusive_scan(a, out, n: int, scratch, device):
+    """out[:n] = the exclusive prefix sum of a[:n], chunk by chunk (launches only, scratch
+    [scan_scratch(n)]): Warp's array_scan may allocate, which a conditional graph node (a
+    rebuild inside detect's graph) cannot."""
+    t = -(-n // SCAN_CHUNK)
+    if t <= 1:
+        wp.launch(_chunk_scan, 1, inputs=[a, n, scratch, 1, out], device=device)
+        return
+    sums, offsets, rest = scratch[:t], scratch[t : 2 * t], scratch[2 * t :]
+    wp.launch(_chunk_sums, t, inputs=[a, n, sums], device=device)
+    exclusive_scan(sums, offsets, t, rest, device)
+    wp.launch(_chunk_scan, t, inputs=[a, n, offsets, 0, out], device=device)
+
+
+def scan_scratch(n: int) -> int:
+    """The scratch `exclusive_scan` of n items needs."""
+    t = -(-n // SCAN_CHUNK)
+    return 1 if t <= 1 else 2 * t + scan_scratch(t)
+
+
 class Layout(NamedTuple):
     """A tree's allocation: per level k, the most entries it holds (entries[0]: the items) and
     its slots (slots[k] = W x the most groups; slots[0]: the item slots), and which levels
@@ -764,7 +816,7 @@ def _group(grid: Grid, k: int, m: int, device):
     half = grid.ends.shape[0]
     src, dst = half * (k % 2), half * ((k + 1) % 2)
     wp.launch(_ends, m, inputs=[grid, k, src], device=device)
-    wp.utils.array_scan(grid.ends[:m], grid.group[:m], inclusive=False)
+    exclusive_scan(grid.ends, grid.group, m, grid.scratch, device)
     wp.launch(_starts, m, inputs=[grid, k], device=device)
     wp.launch(_place, m, inputs=[grid, k, src, dst], device=device)
 
@@ -776,7 +828,7 @@ def measure(grid: Grid, n: int, device) -> list:
         return []
     wp.launch(_splits, n - 1, inputs=[grid], device=device)
     wp.launch(_ends, n, inputs=[grid, 0, 0], device=device)
-    wp.utils.array_scan(grid.ends[:n], grid.group[:n], inclusive=False)
+    exclusive_scan(grid.ends, grid.group, n, grid.scratch, device)
     return [n / (int(grid.group[n - 1 : n].numpy()[0]) + 1)]
 
 
@@ -929,6 +981,7 @@ def new_grid(
     g.ends = wp.empty(m, dtype=int, device=device)
     g.group = wp.empty(m, dtype=int, device=device)
     g.start = wp.empty(m, dtype=int, device=device)
+    g.scratch = wp.empty(scan_scratch(m), dtype=int, device=device)
     g.bits = min(21, (63 - world_bits) // 3)
     g.corner = vec3(*[float(v) for v in corner])
     g.quantum = real(max(float(extent), 1e-30) / (1 << g.bits))
