@@ -600,7 +600,7 @@ def test_device_topology_equals_the_surfaces(name):
 def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
     """On the CPU the per-slave kernels run in parts, one thread each: every output equals the
     one-launch answer bit for bit (3 uneven parts: two bodies, self-contact, swept)."""
-    import arraycontact_warp._detect as wd
+    import arraycontact_warp._parts as wd
 
     s = scenes.graded_surfaces(2**10, ratio=20)
     spiral = scenes.spiral_strip(2**10)

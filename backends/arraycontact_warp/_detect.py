@@ -24,8 +24,6 @@ serves both) in a local frame at the plan's box corner.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -43,6 +41,7 @@ from arraycontact_warp import _surface  # one set of its (precision-free) kernel
 from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
+from ._parts import launch as _slave_launch  # noqa: F401 (the name its callers use)
 from ._projection import Master, project, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal, self_face_geometry, self_node_geometry
@@ -747,9 +746,11 @@ def _master_stages(p: Plan, xm, m_origin):
     node_n, face_n = _normal_boxes(p)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
-    # (On the CPU a first call of a self-contact plan builds: its trees hold nothing yet.)
+    # (A first call refits the plan's trees, reading the check on the host; a first call of a
+    # self-contact plan builds: its trees hold nothing yet.)
     if p.refit and (
-        (dev.is_cpu and p.built) or (dev.is_capturing and wp.is_conditional_graph_supported())
+        (p.built and (dev.is_cpu or not p.master_ready))
+        or (dev.is_capturing and wp.is_conditional_graph_supported())
     ):
         n_nodes = p.n_nodes
         p.rebuild.zero_()
@@ -787,46 +788,6 @@ def _gather_rows(x: wp.array(dtype=vec3), rows: wp.array(dtype=int), out: wp.arr
 def _self_kind(p: Plan):
     """The scans' self-contact type (see _grid.Plain)."""
     return _grid.Own() if p.self_contact else _grid.Plain()
-
-
-#: Warp runs a CPU launch on one core, releasing the GIL: on the CPU the per-slave kernels run
-#: in this many parts at once, one thread each (slaves are independent; a part is a run of
-#: the slaves' order, so its threads' neighbours stay neighbours). 2 cores: 1.8x on a kernel.
-CPU_PARTS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-_pool = None
-#: (kernel, argument types) launched once whole in the calling thread: its overload is
-#: compiled and loaded, so threads may launch it.
-_loaded = set()
-
-
-def _slave_launch(kernel, n, inputs, outputs, dev, order=None, first=None):
-    """Launch a kernel over the n slaves. inputs[order]: the slaves' order (the part takes its
-    slice), or inputs[first]: the first slave of the part (its threads take first + t)."""
-    global _pool
-    if dev.is_cuda:
-        wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
-        return
-    key = (kernel, tuple(type(v) for v in inputs))
-    if CPU_PARTS < 2 or n < 2 * CPU_PARTS or key not in _loaded:
-        wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
-        _loaded.add(key)
-        return
-    kernel.module.load(dev)  # another kernel's new overload may have made the module stale
-    if _pool is None:
-        _pool = ThreadPoolExecutor(CPU_PARTS, thread_name_prefix="arraycontact-warp")
-    cuts = np.linspace(0, n, CPU_PARTS + 1).astype(int)
-    jobs = []
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        part = list(inputs)
-        if order is not None:
-            part[order] = inputs[order][a:b]
-        else:
-            part[first] = int(a)
-        jobs.append(
-            _pool.submit(wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev)
-        )
-    for j in jobs:
-        j.result()
 
 
 def _launch(p: Plan, xs, s_origin, master):

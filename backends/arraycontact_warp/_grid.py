@@ -25,6 +25,7 @@ import warp as wp
 
 from arraycontact_warp._surface import spread21
 
+from ._parts import launch
 from ._prepare import face_bounds
 from ._real import real, vec3
 
@@ -94,11 +95,10 @@ class Grid:
     aligned: wp.array(dtype=int)
     up: wp.array(dtype=int)
     # Scratch of the grouping: the split of each pair of neighbours (two halves, the level's
-    # and the next's), group ends, group ids, group starts, the prefix sum's.
+    # and the next's), group ends, group ids, the prefix sum's.
     split: wp.array(dtype=int)
     ends: wp.array(dtype=int)
     group: wp.array(dtype=int)
-    start: wp.array(dtype=int)
     scratch: wp.array(dtype=int)  # exclusive_scan's
     corner: vec3  # the lower corner of the plan's box (local frame): the Morton cells' origin
     quantum: real  # the Morton cell: 2^bits of them a side over the plan's box
@@ -424,9 +424,13 @@ def morton_key(c: vec3, world: int, quantum: real, bits: int):
 
 @wp.kernel
 def _keys(
-    x: wp.array(dtype=vec3), ids: wp.array(dtype=int), world: wp.array(dtype=int), grid: Grid
+    first: int,
+    x: wp.array(dtype=vec3),
+    ids: wp.array(dtype=int),
+    world: wp.array(dtype=int),
+    grid: Grid,
 ):
-    k = wp.tid()
+    k = first + wp.tid()
     i = ids[k]
     grid.keys[k] = morton_key(x[i] - grid.corner, world[i], grid.quantum, grid.bits)
     grid.sorted_ids[k] = i
@@ -434,13 +438,14 @@ def _keys(
 
 @wp.kernel
 def _face_keys(
+    first: int,
     points: wp.array(dtype=vec3),
     faces: wp.array2d(dtype=int),
     lebesgue: real,
     world: wp.array(dtype=int),
     grid: Grid,
 ):
-    f = wp.tid()
+    f = first + wp.tid()
     c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
     grid.keys[f] = morton_key(c - grid.corner, world[f], grid.quantum, grid.bits)
     grid.sorted_ids[f] = f
@@ -454,6 +459,7 @@ def slot(grid: Grid, p: int):
 
 @wp.kernel
 def _gather(
+    first: int,
     x: wp.array(dtype=vec3),
     world: wp.array(dtype=int),
     refit: int,
@@ -462,7 +468,7 @@ def _gather(
 ):
     """Each node's record in its slot (a point: lo = hi). refit = 1: the order is the
     previous build's; rebuild[0] is raised when a node moved farther than grid.margin."""
-    k = wp.tid()
+    k = first + wp.tid()
     i = grid.sorted_ids[k]
     if refit == 1:
         if wp.length(x[i] - grid.centres[k]) > grid.margin:
@@ -474,6 +480,7 @@ def _gather(
 
 @wp.kernel
 def _face_gather(
+    first: int,
     points: wp.array(dtype=vec3),
     faces: wp.array2d(dtype=int),
     lebesgue: real,
@@ -485,7 +492,7 @@ def _face_gather(
 ):
     """Each face's record (its box) in its slot, and (corners = 1, tri3) its corners.
     refit = 1: as _gather, for the faces' centres."""
-    k = wp.tid()
+    k = first + wp.tid()
     i = grid.sorted_ids[k]
     c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
     if refit == 1:
@@ -577,9 +584,9 @@ def _splits(grid: Grid):
 
 
 @wp.kernel
-def _ends(grid: Grid, k: int, src: int):
+def _ends(first: int, grid: Grid, k: int, src: int):
     """ends[e] = 1 where entry e of level k ends a group (the last entry always)."""
-    e = wp.tid()
+    e = first + wp.tid()
     m = grid.counts[k]
     end = int(0)
     if e == m - 1:
@@ -600,12 +607,12 @@ def _ends(grid: Grid, k: int, src: int):
 
 
 @wp.kernel
-def _starts(grid: Grid, k: int):
-    """Whether level k groups by the rule, the next level's entry count, and where each
-    group starts."""
-    e = wp.tid()
+def _place(first: int, grid: Grid, k: int, src: int, dst: int):
+    """Whether level k groups by the rule (its groups fit), the next level's entry count, each
+    entry's slot in level k, and the splits between the next level's entries."""
+    e = first + wp.tid()
     m = grid.counts[k]
-    if m == 0:
+    if m == 0:  # no items: one empty group
         if e == 0:
             grid.aligned[k] = 0
             grid.counts[k + 1] = 1
@@ -614,28 +621,25 @@ def _starts(grid: Grid, k: int):
     aligned = int(groups <= grid.capacity[k])
     if e == 0:
         grid.aligned[k] = aligned
-        if aligned == 1:
-            grid.counts[k + 1] = groups
-        else:
-            grid.counts[k + 1] = (m + W - 1) // W
-    if aligned == 1 and e < m:
-        if e == 0 or grid.ends[e - 1] == 1:
-            grid.start[grid.group[e]] = e
-
-
-@wp.kernel
-def _place(grid: Grid, k: int, src: int, dst: int):
-    """Each entry's slot in level k, and the splits between the next level's entries."""
-    e = wp.tid()
-    m = grid.counts[k]
+        if aligned == 0:
+            groups = (m + W - 1) // W
+        grid.counts[k + 1] = groups
     if e >= m:
         return
     g = e // W
     pos = e - W * g
     last = int(pos == W - 1)
-    if grid.aligned[k] == 1:
+    if aligned == 1:
+        # A group holds at most W entries: its start is within W - 1 before e.
         g = grid.group[e]
-        pos = e - grid.start[g]
+        pos = int(0)
+        walk = int(1)
+        while walk == 1:  # (Warp evaluates every operand of `and`: no read before 0)
+            walk = 0
+            if pos < e and pos < W - 1:
+                if grid.ends[e - pos - 1] == 0:
+                    pos += 1
+                    walk = 1
         last = grid.ends[e]
     grid.slots[grid.slot_offsets[k] + e] = W * g + pos
     if last == 1 and e < m - 1:
@@ -643,8 +647,8 @@ def _place(grid: Grid, k: int, src: int, dst: int):
 
 
 @wp.kernel
-def _clear_items(grid: Grid):
-    q = wp.tid()
+def _clear_items(first: int, grid: Grid):
+    q = first + wp.tid()
     write_item(grid, q, vec3(real(1.0e30)), -1, vec3(real(-1.0e30)), -2)
     if grid.normals == 1:
         grid.nitems[q] = _empty_nbox()
@@ -682,10 +686,10 @@ def _worlds(w: int, c: int):
 
 
 @wp.kernel
-def _reduce(grid: Grid, k: int):
+def _reduce(first: int, grid: Grid, k: int):
     """Level k >= 1: each entry's box over its group of W slots in level k - 1, into its
     slot, and that group's parent slot."""
-    e = wp.tid()
+    e = first + wp.tid()
     if e >= grid.counts[k]:
         return
     box = Box()
@@ -718,7 +722,7 @@ def _reduce(grid: Grid, k: int):
 
 
 #: Items a thread of the prefix sum adds up in order.
-SCAN_CHUNK = 64
+SCAN_CHUNK = 128
 
 
 @wp.kernel
@@ -815,10 +819,9 @@ def _group(grid: Grid, k: int, m: int, device):
     level's slots."""
     half = grid.ends.shape[0]
     src, dst = half * (k % 2), half * ((k + 1) % 2)
-    wp.launch(_ends, m, inputs=[grid, k, src], device=device)
+    launch(_ends, m, [0, grid, k, src], [], device, first=0)
     exclusive_scan(grid.ends, grid.group, m, grid.scratch, device)
-    wp.launch(_starts, m, inputs=[grid, k], device=device)
-    wp.launch(_place, m, inputs=[grid, k, src, dst], device=device)
+    launch(_place, m, [0, grid, k, src, dst], [], device, first=0)
 
 
 def measure(grid: Grid, n: int, device) -> list:
@@ -827,7 +830,7 @@ def measure(grid: Grid, n: int, device) -> list:
     if n <= W:
         return []
     wp.launch(_splits, n - 1, inputs=[grid], device=device)
-    wp.launch(_ends, n, inputs=[grid, 0, 0], device=device)
+    launch(_ends, n, [0, grid, 0, 0], [], device, first=0)
     exclusive_scan(grid.ends, grid.group, n, grid.scratch, device)
     return [n / (int(grid.group[n - 1 : n].numpy()[0]) + 1)]
 
@@ -839,7 +842,7 @@ def arrange(grid: Grid, n: int, lay: Layout, device):
     for k in range(lay.top + 1):
         _group(grid, k, lay.entries[k], device)
         if k == 0:
-            wp.launch(_clear_items, lay.slots[0], inputs=[grid], device=device)
+            launch(_clear_items, lay.slots[0], [0, grid], [], device, first=0)
         else:
             wp.launch(_clear_boxes, lay.slots[k], inputs=[grid, k], device=device)
     wp.launch(_root, 1, inputs=[grid], device=device)
@@ -848,7 +851,7 @@ def arrange(grid: Grid, n: int, lay: Layout, device):
 def fill(grid: Grid, lay: Layout, device):
     """Every level's boxes from the item slots: one launch a level, leaves first."""
     for k in range(1, lay.top + 1):
-        wp.launch(_reduce, lay.entries[k], inputs=[grid, k], device=device)
+        launch(_reduce, lay.entries[k], [0, grid, k], [], device, first=0)
 
 
 def _sort(grid: Grid, n: int, world_bits: int):
@@ -867,7 +870,7 @@ def build(
 ):
     """Fill `grid` with the points x[ids[:n]] (launches only: capturable). normals
     (self-contact): the items' normal boxes (lo, hi) by item id."""
-    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+    launch(_keys, n, [0, x, ids, world, grid], [], device, first=0)
     _sort(grid, n, world_bits)
     place(grid, lay, x, world, n, device, rebuild, normals)
 
@@ -875,7 +878,7 @@ def build(
 def place(grid: Grid, lay: Layout, x, world, n: int, device, rebuild, normals=None):
     """`build` after the sort (the keys sorted in the grid)."""
     arrange(grid, n, lay, device)
-    wp.launch(_gather, n, inputs=[x, world, 0, grid, rebuild], device=device)
+    launch(_gather, n, [0, x, world, 0, grid, rebuild], [], device, first=0)
     _normals(grid, n, normals, device)
     fill(grid, lay, device)
 
@@ -896,7 +899,7 @@ def build_faces(
     """Fill `grid` with the faces (launches only: capturable); corners (tri3): also their
     corners by slot. normals: as `build`'s."""
     n = faces.shape[0]
-    wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), world, grid], device=device)
+    launch(_face_keys, n, [0, points, faces, real(lebesgue), world, grid], [], device, first=0)
     _sort(grid, n, world_bits)
     place_faces(grid, lay, points, faces, lebesgue, world, device, corners, rebuild, normals)
 
@@ -907,19 +910,15 @@ def place_faces(
     """`build_faces` after the sort."""
     n = faces.shape[0]
     arrange(grid, n, lay, device)
-    wp.launch(
-        _face_gather,
-        n,
-        inputs=[points, faces, real(lebesgue), world, int(corners), 0, grid, rebuild],
-        device=device,
-    )
+    args = [0, points, faces, real(lebesgue), world, int(corners), 0, grid, rebuild]
+    launch(_face_gather, n, args, [], device, first=0)
     _normals(grid, n, normals, device)
     fill(grid, lay, device)
 
 
 def measure_nodes(grid: Grid, x, ids, world, n: int, device, world_bits: int):
     """`measure` on the points x[ids[:n]] (a plan's, before `allot`)."""
-    wp.launch(_keys, n, inputs=[x, ids, world, grid], device=device)
+    launch(_keys, n, [0, x, ids, world, grid], [], device, first=0)
     _sort(grid, n, world_bits)
     return measure(grid, n, device)
 
@@ -927,7 +926,7 @@ def measure_nodes(grid: Grid, x, ids, world, n: int, device, world_bits: int):
 def measure_faces(grid: Grid, points, faces, lebesgue: float, world, device, world_bits: int):
     """`measure` on the faces (a plan's, before `allot`)."""
     n = faces.shape[0]
-    wp.launch(_face_keys, n, inputs=[points, faces, real(lebesgue), world, grid], device=device)
+    launch(_face_keys, n, [0, points, faces, real(lebesgue), world, grid], [], device, first=0)
     _sort(grid, n, world_bits)
     return measure(grid, n, device)
 
@@ -936,19 +935,15 @@ def measure_faces(grid: Grid, points, faces, lebesgue: float, world, device, wor
 # item left the margin; then `fill`, or a build when raised (the caller's choice on the
 # device: wp.capture_if).
 def refit(grid: Grid, x, world, n: int, device, rebuild, normals=None):
-    wp.launch(_gather, n, inputs=[x, world, 1, grid, rebuild], device=device)
+    launch(_gather, n, [0, x, world, 1, grid, rebuild], [], device, first=0)
     _normals(grid, n, normals, device)
 
 
 def refit_faces(
     grid: Grid, points, faces, lebesgue: float, world, device, corners: bool, rebuild, normals=None
 ):
-    wp.launch(
-        _face_gather,
-        faces.shape[0],
-        inputs=[points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild],
-        device=device,
-    )
+    args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
+    launch(_face_gather, faces.shape[0], args, [], device, first=0)
     _normals(grid, faces.shape[0], normals, device)
 
 
@@ -980,7 +975,6 @@ def new_grid(
     g.split = wp.empty(2 * m, dtype=int, device=device)
     g.ends = wp.empty(m, dtype=int, device=device)
     g.group = wp.empty(m, dtype=int, device=device)
-    g.start = wp.empty(m, dtype=int, device=device)
     g.scratch = wp.empty(scan_scratch(m), dtype=int, device=device)
     g.bits = min(21, (63 - world_bits) // 3)
     g.corner = vec3(*[float(v) for v in corner])
