@@ -10,8 +10,11 @@ of fixed fan-out W over that order: entry j of level k is the box around entries
 W - 1 of level k - 1 (level 0: the items). Morton order makes every run of consecutive items a
 compact cluster whatever the items' sizes, so the boxes adapt to the local face size by
 themselves; the levels are segment reductions (reshapes: the segments have a fixed length)
-and need no pointers. A moving master keeps the order and recomputes the boxes (a refit): the
-tree stays exact, only less tight, until the order is computed again.
+and need no pointers. (The Warp back end, arraycontact_warp._grid, groups tighter: a group is
+the largest node of the keys' radix tree holding at most W entries, padded to W slots, so no
+group straddles two Morton cells where the order jumps, at the price of a pointer a slot.)
+A moving master keeps the order and recomputes the boxes (a refit): the tree stays exact, only
+less tight, until the order is computed again.
 
 Each entry also keeps a representative point: a point of the surface inside it (the first
 item's first node). The distance to it bounds the answer from above, so a query starts with
