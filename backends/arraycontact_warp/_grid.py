@@ -1,19 +1,23 @@
 """Stage 2 in Warp: the size-adaptive tree of arraycontact._grid (read its docstring for the
-structure and the cost model), built by one radix sort and one reduction launch per level.
+structure and the cost model), built by one radix sort, a grouping pass and one reduction
+launch per level.
 
 Items (master nodes as points, faces as boxes) are sorted by a 63-bit key, the world id in the
 high bits and the Morton code of the item's centre below (21 bits an axis with one world), so
-each world's items are contiguous and every run of consecutive items is a compact cluster.
-Entry j of level k >= 1 is the box around entries W j ... W j + W - 1 of level k - 1 (level 0:
-the items) with the range of world ids under it. The scans walk the tree depth first; a visit
-of an entry tests its W children at once (one 256-byte read, the same work for every thread
-of a GPU warp), goes on with the nearest child and keeps the others as a bit mask per level
-(the whole stack: a thread's state stays in registers), each tested again against the reach
-when its turn comes: the reach shrinks as answers come, and the nearest-first path finds a
-close answer at once. A refit keeps
-the order and recomputes the boxes (always exact); a build sorts again, which a refit asks
-for when an item moved farther than the plan's margin from where it was sorted (the tree
-would stay exact, but grow loose).
+each world's items are contiguous. The items are then grouped by Morton prefixes (the comment
+above `_splits`): each group, at most W items in key order, is the largest node of the keys'
+binary radix tree that holds no more, and takes W slots (the empty ones lo > hi). The groups
+of level k are the entries of level k + 1, grouped by the same rule, and so on up to one
+root. A slot of level k >= 1 holds the box around its group of W slots in level k - 1 (level
+0: the item slots), where that group starts (`first`) and the world of the items under it;
+`up` gives a group's parent slot. The scans walk the tree depth first; a visit of a slot
+tests its W children at once (one 256-byte read, the same work for every thread of a GPU
+warp), goes on with the nearest child and keeps the others as a bit mask per level (the
+whole stack: a thread's state stays in registers), each tested again against the reach when
+its turn comes: the reach shrinks as answers come, and the nearest-first path finds a close
+answer at once. A refit keeps the slots and recomputes the boxes (always exact); a build
+sorts and groups again, which a refit asks for when an item moved farther than the plan's
+margin from where it was sorted (the tree would stay exact, but grow loose).
 """
 
 from __future__ import annotations
