@@ -740,8 +740,11 @@ def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
     boxes = np.frombuffer(g.boxes.numpy().tobytes(), np.float32).reshape(-1, 8)
     up = g.up.numpy()
     assert rule[0] == aligned
-    assert np.array_equal(np.sort(items[:, 3].view(np.int32)[items[:, 3].view(np.int32) >= 0]),
-                          np.arange(n))  # fmt: skip
+    ids = items[: counts[1] * warp_grid.W, 3].view(np.int32)  # the slots of the groups
+    assert np.array_equal(np.sort(ids[ids >= 0]), np.arange(n))
+    assert (
+        items[: counts[1] * warp_grid.W][ids < 0, 0] > items[: counts[1] * warp_grid.W][ids < 0, 4]
+    ).all()
     ranges = [(p, p + 1) for p in range(n)]  # each entry's run of item positions
     nodes = True
     root = int(g.root.numpy()[0])
@@ -763,6 +766,11 @@ def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
             assert got == want, k
         for e in range(m):  # entries in slot order within a group, one slot each
             assert s[e] % warp_grid.W == e - min(groups[s[e] // warp_grid.W])
+        if k >= 1:  # a group's other slots are empty
+            free = np.setdiff1d(
+                np.concatenate([np.arange(warp_grid.W) + warp_grid.W * g for g in groups]), s
+            )
+            assert (boxes[off[k] + free, 0] > boxes[off[k] + free, 4]).all()
         if k >= 1:
             for e, (a, b) in enumerate(ranges):
                 rec = boxes[off[k] + s[e]]

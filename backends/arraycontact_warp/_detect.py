@@ -548,44 +548,34 @@ def plan(
     box = (lo - origin, float((hi - lo).max()), device, margin, n_worlds)
     node_grid, world_bits = _grid.new_grid(topo.n_nodes, *box, normals=self_contact)
     face_grid, _ = _grid.new_grid(master.n_faces, *box, normals=self_contact)
-    # The trees sized by how the master at plan time groups (_grid.measure).
-    o64 = wp.vec3d(*[float(v) for v in origin])
-    wp.launch(
-        _prepare.localise64,
-        len(master.points),
-        inputs=[topo.points, o64],
-        outputs=[m.points],
-        device=device,
-    )
-    means = _grid.measure_nodes(
-        node_grid, m.points, topo.nodes, m.node_world, topo.n_nodes, device, world_bits
-    )
-    node_layout = _grid.allot(node_grid, topo.n_nodes, device, means)
-    means = ()
-    if mode == "exact":  # node mode reads no face grid
-        means = _grid.measure_faces(
-            face_grid, m.points, m.faces, e.lebesgue, m.face_world, device, world_bits
-        )
     tri3 = e.name == "tri3"
-    face_layout = _grid.allot(face_grid, master.n_faces, device, means, corners=tri3)
-    # With the keys sorted, the trees of the master at plan time (but self-contact's, whose
-    # normal boxes the detection makes): a first detect on the CPU refits them.
-    built = not self_contact
+    # On a GPU the trees are sized by how the master at plan time groups (_grid.measure: room
+    # for 1.25x its groups) and built from it, so that a first detect refits them; on the
+    # CPU, where the sorts and the grouping are a one-shot call's largest set-up cost, the
+    # first detect builds them in room for groups of W / 2 on average (_grid.layout).
+    built = device.is_cuda and not self_contact  # (self-contact's normal boxes: detect's)
+    node_means, face_means = (), ()
+    o64 = wp.vec3d(*[float(v) for v in origin])
     if built:
+        n_pts = len(master.points)
+        wp.launch(
+            _prepare.localise64, n_pts, inputs=[topo.points, o64], outputs=[m.points], device=device
+        )
+        node_means = _grid.measure_nodes(
+            node_grid, m.points, topo.nodes, m.node_world, topo.n_nodes, device, world_bits
+        )
+        if mode == "exact":  # node mode reads no face grid
+            face_means = _grid.measure_faces(
+                face_grid, m.points, m.faces, e.lebesgue, m.face_world, device, world_bits
+            )
+    node_layout = _grid.allot(node_grid, topo.n_nodes, device, node_means)
+    face_layout = _grid.allot(face_grid, master.n_faces, device, face_means, corners=tri3)
+    if built:  # the keys are sorted: the rest of a build
         rebuild = wp.zeros(1, dtype=wp.int32, device=device)
         _grid.place(node_grid, node_layout, m.points, m.node_world, topo.n_nodes, device, rebuild)
         if mode == "exact":
-            _grid.place_faces(
-                face_grid,
-                face_layout,
-                m.points,
-                m.faces,
-                e.lebesgue,
-                m.face_world,
-                device,
-                tri3,
-                rebuild,
-            )
+            args = (m.points, m.faces, e.lebesgue, m.face_world, device, tri3, rebuild)
+            _grid.place_faces(face_grid, face_layout, *args)
     p = Plan(
         device=device,
         master=master,
@@ -746,8 +736,8 @@ def _master_stages(p: Plan, xm, m_origin):
     node_n, face_n = _normal_boxes(p)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the
     # caller's) with conditional nodes, and on the CPU.
-    # (A first call refits the plan's trees, reading the check on the host; a first call of a
-    # self-contact plan builds: its trees hold nothing yet.)
+    # (A first call refits the trees a GPU plan built, reading the check on the host; on the
+    # CPU, and for self-contact, a first call builds: its trees hold nothing yet.)
     if p.refit and (
         (p.built and (dev.is_cpu or not p.master_ready))
         or (dev.is_capturing and wp.is_conditional_graph_supported())

@@ -610,16 +610,39 @@ def _ends(first: int, grid: Grid, k: int, src: int):
     grid.ends[e] = end
 
 
+@wp.func
+def _empty_slot(grid: Grid, k: int, q: int):
+    """Slot q of level k (0: an item slot) left empty: lo > hi, no item, no world."""
+    lo = vec3(real(1.0e30))
+    hi = vec3(real(-1.0e30))
+    if k == 0:
+        write_item(grid, q, lo, -1, hi, -2)
+        if grid.normals == 1:
+            grid.nitems[q] = _empty_nbox()
+    else:
+        box = Box()
+        box.lo = lo
+        box.hi = hi
+        box.first = -1
+        box.world = -2
+        write_box(grid, grid.offsets[k] + q, box)
+        if grid.normals == 1:
+            grid.nboxes[grid.offsets[k] + q] = _empty_nbox()
+
+
 @wp.kernel
 def _place(first: int, grid: Grid, k: int, src: int, dst: int):
     """Whether level k groups by the rule (its groups fit), the next level's entry count, each
-    entry's slot in level k, and the splits between the next level's entries."""
+    entry's slot in level k (a group's last entry empties the slots after it), and the splits
+    between the next level's entries."""
     e = first + wp.tid()
     m = grid.counts[k]
     if m == 0:  # no items: one empty group
         if e == 0:
             grid.aligned[k] = 0
             grid.counts[k + 1] = 1
+            for q in range(W):
+                _empty_slot(grid, k, q)
         return
     groups = grid.group[m - 1] + 1
     aligned = int(groups <= grid.capacity[k])
@@ -632,7 +655,7 @@ def _place(first: int, grid: Grid, k: int, src: int, dst: int):
         return
     g = e // W
     pos = e - W * g
-    last = int(pos == W - 1)
+    last = int(pos == W - 1 or e == m - 1)
     if aligned == 1:
         # A group holds at most W entries: its start is within W - 1 before e.
         g = grid.group[e]
@@ -646,29 +669,11 @@ def _place(first: int, grid: Grid, k: int, src: int, dst: int):
                     walk = 1
         last = grid.ends[e]
     grid.slots[grid.slot_offsets[k] + e] = W * g + pos
-    if last == 1 and e < m - 1:
-        grid.split[dst + g] = grid.split[src + e]
-
-
-@wp.kernel
-def _clear_items(first: int, grid: Grid):
-    q = first + wp.tid()
-    write_item(grid, q, vec3(real(1.0e30)), -1, vec3(real(-1.0e30)), -2)
-    if grid.normals == 1:
-        grid.nitems[q] = _empty_nbox()
-
-
-@wp.kernel
-def _clear_boxes(grid: Grid, k: int):
-    q = grid.offsets[k] + wp.tid()
-    box = Box()
-    box.lo = vec3(real(1.0e30))
-    box.hi = vec3(real(-1.0e30))
-    box.first = -1
-    box.world = -2
-    write_box(grid, q, box)
-    if grid.normals == 1:
-        grid.nboxes[q] = _empty_nbox()
+    if last == 1:
+        for q in range(pos + 1, W):
+            _empty_slot(grid, k, W * g + q)
+        if e < m - 1:
+            grid.split[dst + g] = grid.split[src + e]
 
 
 @wp.kernel
@@ -840,15 +845,11 @@ def measure(grid: Grid, n: int, device) -> list:
 
 
 def arrange(grid: Grid, n: int, lay: Layout, device):
-    """The slots of every level from the items' keys, sorted (launches only: capturable);
-    every slot emptied, for the items and `fill` to write theirs."""
+    """The slots of every level from the items' keys, sorted (launches only: capturable); the
+    slots no entry takes emptied, for the items and `fill` to write theirs."""
     wp.launch(_splits, max(n - 1, 1), inputs=[grid], device=device)
     for k in range(lay.top + 1):
         _group(grid, k, lay.entries[k], device)
-        if k == 0:
-            launch(_clear_items, lay.slots[0], [0, grid], [], device, first=0)
-        else:
-            wp.launch(_clear_boxes, lay.slots[k], inputs=[grid, k], device=device)
     wp.launch(_root, 1, inputs=[grid], device=device)
 
 
