@@ -41,7 +41,7 @@ from arraycontact_warp import _surface  # one set of its (precision-free) kernel
 from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
-from ._parts import launch as _slave_launch  # noqa: F401 (the name its callers use)
+from ._parts import launch as _slave_launch
 from ._projection import Master, project, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal, self_face_geometry, self_node_geometry

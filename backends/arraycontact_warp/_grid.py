@@ -748,12 +748,13 @@ def _chunk_scan(
     a: wp.array(dtype=int),
     n: int,
     offsets: wp.array(dtype=int),
-    first: int,
+    alone: int,
     out: wp.array(dtype=int),
 ):
+    """Chunk t's exclusive prefix sum from offsets[t] (alone = 1: the only chunk, from 0)."""
     t = wp.tid()
     total = int(0)
-    if first == 0:
+    if alone == 0:
         total = offsets[t]
     for i in range(t * SCAN_CHUNK, wp.min(t * SCAN_CHUNK + SCAN_CHUNK, n)):
         v = a[i]
@@ -1022,14 +1023,9 @@ def allot(g: Grid, n: int, device, means=(), corners=False) -> Layout:
 
 
 @wp.func
-def _spread(v: int):
-    """The low 10 bits of v moved to every third bit (a Morton code's interleaving)."""
-    x = wp.uint32(wp.clamp(v, 0, 1023))
-    x = (x | (x << wp.uint32(16))) & wp.uint32(0x030000FF)
-    x = (x | (x << wp.uint32(8))) & wp.uint32(0x0300F00F)
-    x = (x | (x << wp.uint32(4))) & wp.uint32(0x030C30C3)
-    x = (x | (x << wp.uint32(2))) & wp.uint32(0x09249249)
-    return x
+def _spread10(v: int):
+    """v clamped to 10 bits, moved to every third bit (the slaves' 30-bit Morton codes)."""
+    return spread21(wp.int64(wp.clamp(v, 0, 1023)))
 
 
 @wp.kernel
@@ -1045,7 +1041,7 @@ def _morton(
     cx = int(wp.floor(c[0] / quantum))
     cy = int(wp.floor(c[1] / quantum))
     cz = int(wp.floor(c[2] / quantum))
-    keys[i] = int(_spread(cx) | (_spread(cy) << wp.uint32(1)) | (_spread(cz) << wp.uint32(2)))
+    keys[i] = int(_spread10(cx) | (_spread10(cy) << wp.int64(1)) | (_spread10(cz) << wp.int64(2)))
     order[i] = i
 
 
