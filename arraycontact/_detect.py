@@ -18,7 +18,7 @@ from ._contacts import Contacts, Counts, Feature, Status, SweptContacts
 from ._elements import get_element
 from ._grid import FACING_TOL
 from ._normals import face_normal
-from ._prepare import Prepared, default_d_max, prepare
+from ._prepare import Prepared, default_d_max, ordered, prepare
 from ._surface import (
     Surface,
     _dot,
@@ -100,6 +100,8 @@ class Master(NamedTuple):
     next_face: Any
     on_boundary: Any  # [n] bool
     slave_nodes: Any = None  # JAX plans, self-contact: [slaves] the slaves' node ids
+    node_groups: Any = None  # the trees' slots per level (_grid.grouping; None: consecutive)
+    face_groups: Any = None
     node_faces: Any = None  # JAX plans: [n, w] node -> faces padded with -1 (vertex normals)
     node_live: Any = None  # sharded plans: [N'] false on padding items (empty boxes)
     face_live: Any = None  # [F']
@@ -145,7 +147,12 @@ def master_topology(master: Surface, prep: Prepared) -> Master:
         prev_face,
         next_face,
     ]
-    return Master(*(np.asarray(v).astype(np.int32) for v in ints), on_boundary=on)
+    return Master(
+        *(np.asarray(v).astype(np.int32) for v in ints),
+        on_boundary=on,
+        node_groups=prep.node_groups,
+        face_groups=prep.face_groups,
+    )
 
 
 def master_geometry(xp, element, topo: Master, nodes_x) -> Master:
@@ -230,12 +237,13 @@ def build_grids(xp, st: Static, m: Master) -> Grids:
         n = m.node_normals[m.node_ids]
         nodes_n = (n, n)
     lo, hi = _inert(xp, m.node_live, x, x)
-    grids = Grids(_grid.build(xp, m.node_ids, lo, hi, x, nodes_n))
+    grids = Grids(_grid.build(xp, m.node_ids, lo, hi, x, nodes_n, m.node_groups))
     if st.mode == "exact":
         xe = m.nodes_x[m.faces[m.face_ids]]
         lo, hi = _inert(xp, m.face_live, *face_boxes(element, xe, xp))
         faces_n = normal_boxes(element, xe, xp) if st.self_contact else None
-        grids = grids._replace(face=_grid.build(xp, m.face_ids, lo, hi, xe[:, 0], faces_n))
+        face = _grid.build(xp, m.face_ids, lo, hi, xe[:, 0], faces_n, m.face_groups)
+        grids = grids._replace(face=face)
     if st.self_contact:
         grids = grids._replace(sizes=mesh_sizes(element, m.faces, m.nodes_x, xp))
     return grids
@@ -662,6 +670,7 @@ class SweptSetup:
     lo: np.ndarray  # capture boxes of face_ids [m, 3] (local frame, grown by pad)
     hi: np.ndarray
     pad: float  # the contact tolerance and rounding the boxes are grown by (local frame)
+    groups: tuple = ()  # the face tree's slots per level (_grid.grouping)
 
 
 def capture_boxes(element, xe0, xe1, xp=np):
@@ -693,8 +702,9 @@ def swept_setup(x0, x1, master: Surface, m1, dtype) -> SweptSetup | None:
         return None
     origin = box_lo if np.dtype(dtype) == np.float32 else np.zeros(3)
     extent = float((box_hi - box_lo).max())
-    fids = fids[_grid.morton_order(0.5 * (lo[fids] + hi[fids]), box_lo, extent)]
-    return SweptSetup(rows, fids, origin, lo[fids] - origin - pad, hi[fids] - origin + pad, pad)
+    fids, groups = ordered(fids, 0.5 * (lo[fids] + hi[fids]), box_lo, extent)
+    lo, hi = lo[fids] - origin - pad, hi[fids] - origin + pad
+    return SweptSetup(rows, fids, origin, lo, hi, pad, groups)
 
 
 def _swept_inputs(slave_x0, slave_x1, master, master_x1):
@@ -729,9 +739,8 @@ def _swept_numpy(x0, x1, master, m1, su: SweptSetup, dtype, chunk=1 << 13):
     p1 = (x1[su.slave_rows] - o).astype(dtype)
     faces = master.faces
     lap = _Laps()
-    tree = _grid.build(
-        np, su.face_ids, su.lo.astype(dtype), su.hi.astype(dtype), su.lo.astype(dtype)
-    )
+    lo, hi = su.lo.astype(dtype), su.hi.astype(dtype)
+    tree = _grid.build(np, su.face_ids, lo, hi, lo, groups=su.groups)
     lap("grid")
     mid, half = 0.5 * (p0 + p1), 0.5 * norm(np, p1 - p0)
     slaves, fids = [], []
@@ -740,7 +749,7 @@ def _swept_numpy(x0, x1, master, m1, su: SweptSetup, dtype, chunk=1 << 13):
             np, tree, mid[i : i + chunk], half[i : i + chunk], 0.0, shrink=False
         )
         slaves.append(s + i)
-        fids.append(su.face_ids[entry])
+        fids.append(tree.ids[entry])
     slave, face = np.concatenate(slaves), np.concatenate(fids)
     lap("broad phase")
     xe0 = (master.points[faces[face]] - o).astype(dtype)

@@ -62,28 +62,22 @@ BITS = 21
 
 
 class Tree(NamedTuple):
-    """ids [n]: item ids in Morton order; lo, hi, rep: one array per level (level 0 the items
-    in that order, the last level a single root), [size_k, 3] each. An entry with no item has
-    lo > hi (an empty box no query reaches)."""
+    """One array per level (level 0 the item slots, the last level a single root), in slots:
+    the entries of level k in groups of W slots (`group` below), an empty slot with lo > hi.
+
+    ids [S_0]: the item id in each item slot (-1: empty); lo, hi, rep: [S_k, 3] per level;
+    down: per level k >= 1, [S_k] the group of level k - 1 under each slot (its children are
+    that level's slots W down .. W down + W - 1; -1: an empty slot; down[0] is unused)."""
 
     ids: object
     lo: tuple
     hi: tuple
     rep: tuple
+    down: tuple
     # Self-contact: per level, a box holding the unit normals of the items under each entry
     # (_surface.normal_boxes), so a scan skips entries that nowhere face the query's normal.
     nlo: tuple = ()
     nhi: tuple = ()
-
-
-def level_sizes(n: int) -> tuple:
-    """Entries per level for n items: (n, ceil(n / W), ..., 1) (at least one entry)."""
-    sizes = [max(n, 1)]
-    while sizes[-1] > 1:
-        sizes.append(-(-sizes[-1] // W))
-    if len(sizes) == 1:
-        sizes.append(1)  # a root above a single item: queries always expand at least once
-    return tuple(sizes)
 
 
 def _spread(v):
@@ -97,14 +91,89 @@ def _spread(v):
     return v
 
 
-def morton_order(x: np.ndarray, lo: np.ndarray, extent: float) -> np.ndarray:
-    """Rows of x [n, 3] in Morton order of 2^21 cells an axis over the cube [lo, lo + extent]
-    (host, float64, stable: equal codes keep their row order)."""
+def morton_keys(x: np.ndarray, lo: np.ndarray, extent: float) -> np.ndarray:
+    """The 63-bit Morton keys [n] of the rows of x [n, 3] over 2^21 cells an axis of the cube
+    [lo, lo + extent] (host, float64)."""
     scale = (1 << BITS) / max(float(extent), np.finfo(float).tiny)
     c = np.clip(np.floor((np.asarray(x, float) - lo) * scale), 0, (1 << BITS) - 1)
     c = c.astype(np.int64)
-    key = _spread(c[:, 0]) | (_spread(c[:, 1]) << 1) | (_spread(c[:, 2]) << 2)
-    return np.argsort(key, kind="stable")
+    return _spread(c[:, 0]) | (_spread(c[:, 1]) << 1) | (_spread(c[:, 2]) << 2)
+
+
+def morton_order(x: np.ndarray, lo: np.ndarray, extent: float) -> np.ndarray:
+    """Rows of x [n, 3] in the order of their morton_keys (stable: equal keys keep their row
+    order)."""
+    return np.argsort(morton_keys(x, lo, extent), kind="stable")
+
+
+def _bit_length(x):
+    """The bit length of each non-negative int64 of x (exact: 32-bit halves through float64)."""
+    hi, lo = x >> 32, x & 0xFFFFFFFF
+    return np.where(hi > 0, 32 + np.frexp(hi.astype(float))[1], np.frexp(lo.astype(float))[1])
+
+
+def grouping(keys) -> tuple:
+    """The slots of every level of the tree over items whose keys [n] are sorted (the
+    arraycontact_warp._grid rule, computed on the host): per level k below the root, [S_k]
+    the entry of level k in each slot (-1: empty), S_k = W x its groups. A group is the
+    largest node of the keys' binary radix tree (equal keys told apart by their positions)
+    that holds at most W entries; a group of level k is an entry of level k + 1, and the
+    splits between level k + 1's entries are those between the groups. A level whose groups
+    would hold fewer than 2 entries on average takes W consecutive entries a group instead
+    (slots stay within 4x the entries). Why not W consecutive items a group everywhere: where
+    the Morton order jumps (between the halves of a cell) such a group straddles both and its
+    box spans the two, and so do its ancestors."""
+    keys = np.asarray(keys, np.int64)
+    n = len(keys)
+    if n <= 1:
+        return (np.array([0] * n + [-1] * (W - n), np.int32),)
+    # The radix tree's depth at each pair of neighbours: the leading bits they share.
+    x = keys[:-1] ^ keys[1:]
+    p = np.arange(n - 1, dtype=np.int64)
+    split = np.where(x != 0, 64 - _bit_length(x), 96 - _bit_length(p ^ (p + 1)))
+    out = []
+    while True:
+        m = len(split) + 1
+        end = np.r_[_ends(split), True]
+        start = np.r_[0, np.flatnonzero(end[:-1]) + 1]
+        if m / len(start) < 2:  # W consecutive entries a group
+            end = (np.arange(m) % W == W - 1) | (np.arange(m) == m - 1)
+            start = np.arange(0, m, W)
+        group = np.cumsum(end) - end
+        slots = np.full(W * len(start), -1, np.int32)
+        slots[W * group + np.arange(m) - start[group]] = np.arange(m)
+        out.append(slots)
+        if len(start) == 1:
+            return tuple(out)
+        split = split[np.flatnonzero(end[:-1])]
+
+
+def _ends(split):
+    """Whether each pair of neighbours ends a group: the radix tree's node split there (the
+    run of pairs around it that split no higher) holds more than W entries."""
+    d = len(split)
+    e = np.arange(d)
+    left, right = np.zeros(d, int), np.zeros(d, int)
+    go_left, go_right = np.ones(d, bool), np.ones(d, bool)
+    for t in range(1, W):
+        go_left &= (e - t >= 0) & (split[np.maximum(e - t, 0)] >= split)
+        go_right &= (e + t < d) & (split[np.minimum(e + t, d - 1)] >= split)
+        left += go_left
+        right += go_right
+    return left + right + 2 > W
+
+
+def consecutive(n: int) -> tuple:
+    """`grouping`'s shape with W consecutive entries a group at every level."""
+    out, m = [], n
+    while True:
+        g = max(-(-m // W), 1)
+        slots = np.full(W * g, -1, np.int32)
+        slots[:m] = np.arange(m)
+        out.append(slots)
+        if g == 1:
+            return tuple(out)
+        m = g
 
 
 def _empty(dtype):
@@ -113,37 +182,48 @@ def _empty(dtype):
     return float(np.finfo(dtype).max) ** 0.25
 
 
-def build(xp, ids, lo, hi, rep, normals=None) -> Tree:
-    """The tree over items already in Morton order: ids [n], boxes lo, hi [n, 3], points of
-    the surface inside them rep [n, 3]; normals (self-contact): the items' normal boxes
-    (nlo, nhi) [n, 3] each."""
+def build(xp, ids, lo, hi, rep, normals=None, groups=None) -> Tree:
+    """The tree over items in key order: ids [n], boxes lo, hi [n, 3], points of the surface
+    inside them rep [n, 3]; normals (self-contact): the items' normal boxes (nlo, nhi) [n, 3]
+    each; groups: the slots of `grouping` for the items' keys (host arrays), or None: W
+    consecutive items a group. Each level is a gather into the slots and a reduction over
+    each group of W."""
     n = lo.shape[0]
-    sizes = level_sizes(n)
+    groups = consecutive(n) if groups is None else groups
     big = _empty(lo.dtype)
-    if n == 0:
-        lo = xp.full((1, 3), big, lo.dtype)
-        hi, rep = -lo, xp.zeros((1, 3), lo.dtype)
-    los, his, reps = [lo], [hi], [rep]
-    for size in sizes[1:]:
-        pad = size * W - los[-1].shape[0]
-        lo_k = xp.concatenate([los[-1], xp.full((pad, 3), big, lo.dtype)])
-        hi_k = xp.concatenate([his[-1], xp.full((pad, 3), -big, lo.dtype)])
-        los.append(xp.min(lo_k.reshape(size, W, 3), 1))
-        his.append(xp.max(hi_k.reshape(size, W, 3), 1))
-        reps.append(reps[-1][::W])  # the first child's point: a point of the surface
+
+    def levels(values, fills, reduce):
+        """Per kind of `values` (each [n, 3], the items), its slots at every level."""
+        out = []
+        for k, slots in enumerate(groups):
+            if k:  # the entries of level k: the groups of level k - 1
+                values = [r(v.reshape(-1, W, 3)) for r, v in zip(reduce, out[-1])]
+            elif not n:  # (something to gather from)
+                values = [xp.zeros((1, 3), lo.dtype) for _ in values]
+            s = xp.asarray(slots)
+            out.append([xp.where((s >= 0)[:, None], v[xp.maximum(s, 0)], f)
+                        for v, f in zip(values, fills)])  # fmt: skip
+        out.append([r(v.reshape(-1, W, 3)) for r, v in zip(reduce, out[-1])])  # the root
+        return [tuple(level[i] for level in out) for i in range(len(fills))]
+
+    def lo_min(v):
+        return xp.min(v, 1)
+
+    def hi_max(v):
+        return xp.max(v, 1)
+
+    def first(v):  # a group's first slot holds an entry: its point is a point of the surface
+        return v[:, 0]
+
+    los, his, reps = levels([lo, hi, rep], [big, -big, 0.0], [lo_min, hi_max, first])
+    s0 = xp.asarray(groups[0])
+    slot_ids = xp.where(s0 >= 0, xp.asarray(ids)[xp.maximum(s0, 0)] if n else -1, -1)
+    down = (None,) + tuple(xp.asarray(s) for s in groups[1:]) + (xp.zeros(1, np.int32),)
     if normals is None:
-        return Tree(ids, tuple(los), tuple(his), tuple(reps))
-    nlos, nhis = [normals[0]], [normals[1]]
-    if n == 0:
-        nlos, nhis = [xp.ones((1, 3), lo.dtype)], [-xp.ones((1, 3), lo.dtype)]
-    for size in sizes[1:]:
-        pad = size * W - nlos[-1].shape[0]
-        # Padding: lo = 1, hi = -1, neutral in the minimum and maximum.
-        nlo_k = xp.concatenate([nlos[-1], xp.ones((pad, 3), lo.dtype)])
-        nhi_k = xp.concatenate([nhis[-1], -xp.ones((pad, 3), lo.dtype)])
-        nlos.append(xp.min(nlo_k.reshape(size, W, 3), 1))
-        nhis.append(xp.max(nhi_k.reshape(size, W, 3), 1))
-    return Tree(ids, tuple(los), tuple(his), tuple(reps), tuple(nlos), tuple(nhis))
+        return Tree(slot_ids, los, his, reps, down)
+    # Empty slots: lo = 1, hi = -1, neutral in the minimum and maximum.
+    nlos, nhis = levels(list(normals), [1.0, -1.0], [lo_min, hi_max])
+    return Tree(slot_ids, los, his, reps, down, nlos, nhis)
 
 
 #: Self-contact's rule (_detect.detect_self): faces count when n_i . n_f < -FACING_TOL, nodes
@@ -180,7 +260,8 @@ def query(xp, tree: Tree, q, reach, slack, capacity=None, name="level", normal=N
     counts = {}
     for k in range(top, 0, -1):
         size = tree.lo[k - 1].shape[0]
-        child = (entry[:, None] * W + xp.arange(W, dtype=np.int32)[None, :]).reshape(-1)
+        first = W * xp.maximum(tree.down[k][entry], 0)
+        child = (first[:, None] + xp.arange(W, dtype=np.int32)[None, :]).reshape(-1)
         s = xp.broadcast_to(slave[:, None], (slave.shape[0], W)).reshape(-1)
         ok = xp.broadcast_to(valid[:, None], (slave.shape[0], W)).reshape(-1) & (child < size)
         c = xp.where(ok, child, 0)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._grid import level_sizes, morton_order
+from ._grid import consecutive, grouping, morton_keys
 from ._surface import bounds, in_box
 
 
@@ -40,9 +40,26 @@ class Prepared:
     origin: np.ndarray  # local frame origin (float64)
     d_max: float
     r_max: float  # the largest face radius, for rounding slack
-    node_levels: tuple  # the trees' level sizes (_grid.level_sizes)
-    face_levels: tuple
+    node_groups: tuple  # the trees' slots per level (_grid.grouping)
+    face_groups: tuple
     extent: float  # largest local coordinate, for rounding slack
+
+    @property
+    def node_levels(self) -> tuple:
+        """The node tree's slots per level (its static shape)."""
+        return tuple(len(g) for g in self.node_groups)
+
+    @property
+    def face_levels(self) -> tuple:
+        return tuple(len(g) for g in self.face_groups)
+
+
+def ordered(ids, x, lo, extent):
+    """ids in the Morton order of their points x [len(ids), 3] over the cube [lo, lo +
+    extent], and the tree's slots for that order (_grid.grouping)."""
+    keys = morton_keys(x, lo, extent)
+    order = np.argsort(keys, kind="stable")
+    return ids[order], grouping(keys[order])
 
 
 def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | None:
@@ -75,8 +92,10 @@ def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | 
     origin = lo if np.dtype(dtype) == np.float32 else np.zeros(3)
     extent = float((hi - lo).max())
     if order:
-        node_ids = node_ids[morton_order(master.points[node_ids], lo, extent)]
-        face_ids = face_ids[morton_order(centres[face_ids], lo, extent)]
+        node_ids, node_groups = ordered(node_ids, master.points[node_ids], lo, extent)
+        face_ids, face_groups = ordered(face_ids, centres[face_ids], lo, extent)
+    else:
+        node_groups, face_groups = consecutive(len(node_ids)), consecutive(len(face_ids))
     return Prepared(
         slave_rows=slave_rows,
         node_ids=node_ids,
@@ -84,7 +103,7 @@ def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | 
         origin=origin,
         d_max=float(d_max),
         r_max=r_max,
-        node_levels=level_sizes(len(node_ids)),
-        face_levels=level_sizes(len(face_ids)),
+        node_groups=node_groups,
+        face_groups=face_groups,
         extent=float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )

@@ -8,6 +8,7 @@ import warp as wp
 from arraycontact_warp import _grid as warp_grid
 from arraycontact_warp._closest_node import closest_node as _closest_node
 from conftest import assert_matches_reference
+from radix import grid_points, radix_groups
 
 import arraycontact as ac
 from arraycontact import scenes
@@ -653,46 +654,6 @@ def test_morton_keys_interleave_every_bit(bits, n_worlds):
     np.testing.assert_array_equal(out.numpy(), want)
 
 
-def _radix_groups(keys, units):
-    """Independent of the build: the binary radix tree of the sorted keys (equal keys told
-    apart by their positions), split top-down at the highest differing bit; `units`: runs of
-    positions [a, b) that are nodes of it. Returns the largest nodes holding at most W units."""
-    comp = [(int(k) << 32) | p for p, k in enumerate(keys)]
-    starts = sorted(a for a, _ in units)
-    ends = sorted(b for _, b in units)
-    out = []
-
-    def split(a, b):
-        inside = np.searchsorted(ends, b, "right") - np.searchsorted(starts, a, "left")
-        if inside <= warp_grid.W:
-            out.append((a, b))
-            return
-        bit = (comp[a] ^ comp[b - 1]).bit_length() - 1
-        cut = next(p for p in range(a, b) if comp[p] >> bit & 1)
-        split(a, cut)
-        split(cut, b)
-
-    split(0, len(keys))
-    return sorted(out)
-
-
-def _grid_points(kind, rng):
-    if kind == "fine_patch":  # a graded mesh's nodes (sizes 1 to 1000)
-        return scenes.fine_patch(12).master.points
-    if kind == "clusters":  # clusters over six decades of size in 3D: groups of 3.5 on average
-        c = rng.uniform(0, 1, (12, 3))
-        r = 10.0 ** rng.uniform(-6, 0, (3000, 1))
-        return c[rng.integers(0, 12, 3000)] + r * rng.normal(size=(3000, 3))
-    if kind == "caterpillar":  # each radix node peels one point: groups of one
-        s = 2.0 ** -np.arange(40)
-        rows = [np.stack([s, s * 0 + y, s * 0], 1) for y in (0.0, 1.0)]
-        return np.concatenate(rows + [rng.uniform(5, 6, (50, 3))])
-    # "repeated": 300 of 500 points at one place (equal keys)
-    x = rng.uniform(0, 1, (500, 3))
-    x[100:400] = x[0]
-    return x
-
-
 @wp.kernel
 def _closest_nodes(grid: warp_grid.Grid, q: wp.array(dtype=wp.vec3),
                    normals: wp.array(dtype=wp.vec3), node: wp.array(dtype=int),
@@ -722,7 +683,7 @@ def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
     items' box, every item is in one slot, and the closest node through the tree equals brute
     force."""
     rng = np.random.default_rng(3)
-    x = _grid_points(kind, rng)
+    x = grid_points(kind, rng)
     n = len(x)
     lo = x.min(0)
     dev = DEVICE
@@ -758,7 +719,7 @@ def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
         got = sorted((ranges[es[0]][0], ranges[es[-1]][1]) for es in groups.values())
         if rule[k]:
             if nodes:  # (units made by W consecutive entries are no nodes of the radix tree)
-                assert got == _radix_groups(keys, ranges), k
+                assert got == radix_groups(keys, ranges), k
         else:
             nodes = False
             want = [(ranges[e][0], ranges[min(e + warp_grid.W, m) - 1][1])

@@ -49,7 +49,7 @@ from arraycontact._detect import (
     self_reach,
 )
 from arraycontact._elements import get_element
-from arraycontact._grid import level_sizes, morton_order
+from arraycontact._grid import consecutive, grouping, morton_keys, morton_order
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds, validate_points
 from arraycontact._sweep import FEATURE_TOL, T_TOL, feature_of
@@ -300,21 +300,28 @@ def plan(
         nf = master.n_faces
         ids = _warp_surface().iota(nf, nf, wdev)
         face_ids = _warp_surface().morton_order(t.centres, ids, nf, lo, extent, wdev)
-        r_max = t.r_max
+        centres, r_max = t.centres, t.r_max
     else:
         centres, radii = master.face_bounds
         node_order = morton_order(master.points[master.nodes], lo, extent)
         face_ids = morton_order(centres, lo, extent)
         r_max = float(radii.max())
+    node_ids = master.nodes[node_order]
+    node_groups, face_groups = consecutive(len(node_ids)), consecutive(len(face_ids))
+    if search == "jax":  # the trees' groups, from the keys in the orders found
+        node_groups = grouping(morton_keys(master.points[node_ids], lo, extent))
+        if not isinstance(centres, np.ndarray):
+            centres = centres.numpy()
+        face_groups = grouping(morton_keys(centres[face_ids], lo, extent))
     prep = Prepared(
         slave_rows=np.arange(len(slave_x)),
-        node_ids=master.nodes[node_order],
+        node_ids=node_ids,
         face_ids=face_ids,
         origin=origin,
         d_max=d_max,
         r_max=r_max * growth,
-        node_levels=level_sizes(len(master.nodes)),
-        face_levels=level_sizes(master.n_faces),
+        node_groups=node_groups,
+        face_groups=face_groups,
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )
     st = Static.of(master, mode, prep, self_contact)
@@ -415,6 +422,8 @@ def _device_topology_arrays(master, prep, self_contact, dev_topo):
         on_boundary=(prev_face >= 0) | (next_face >= 0),
         slave_nodes=jx(t.nodes[: t.n_nodes]) if self_contact else None,
         node_faces=None if table is None else jx(table),
+        node_groups=tuple(jnp.asarray(g) for g in prep.node_groups),
+        face_groups=tuple(jnp.asarray(g) for g in prep.face_groups),
     )
 
 
@@ -889,7 +898,7 @@ def _swept_pairs(xp, element, order, s0, s1, m0, m1, faces, pad, capacity):
     slave, entry, valid, counts = tree.query(
         xp, t, mid, half, 0.0, capacity, name="pairs", shrink=False
     )
-    return slave, order[entry], valid, counts
+    return slave, t.ids[entry], valid, counts
 
 
 def plan_swept(

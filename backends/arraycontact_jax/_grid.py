@@ -35,36 +35,34 @@ _LOWEST_BIT = np.array([(m & -m).bit_length() - 1 if m else 0 for m in range(1 <
 
 
 class Flat(NamedTuple):
-    """A tree's levels 0 .. top-1 as groups of W siblings, each row the W children of one
-    entry as [9, W] (box lo x, y, z, box hi x, y, z, representative point x, y, z; empty boxes
-    past a level's end; self-contact: [15, W], then the normal box's lo and hi): the children
-    of entry j of level k are row offset[k - 1] + j. One
-    gather of 9 W contiguous values a step, and the arithmetic on [n, W] planes: as [W, 9] rows
-    with reductions over the axis of 3, a step took 4x longer on the CPU."""
+    """A tree's levels 0 .. top-1 as rows of W slots (a group of level k, [9, W]: box lo x, y,
+    z, box hi x, y, z, representative point x, y, z; self-contact: [15, W], then the normal
+    box's lo and hi), the levels one after the other from level 0, and per slot of a level
+    k >= 1 the row of its children (`down`). One gather of 9 W contiguous values a step, and
+    the arithmetic on [n, W] planes: as [W, 9] rows with reductions over the axis of 3, a
+    step took 4x longer on the CPU."""
 
     groups: jax.Array  # [rows, 9 or 15, W]
-    offset: jax.Array  # [top] first row of each level
+    down: jax.Array  # [rows, W] (level 0's rows: 0)
+    root: int  # the row of the root's children
     top: int
 
 
 def flatten(tree: Tree) -> Flat:
     top = len(tree.lo) - 1
-    big = float(np.finfo(tree.lo[0].dtype).max) ** 0.25
-    rows, offset = [], [0]
+    rows, downs, offset = [], [], [0]
     for k in range(top):
-        n = tree.lo[k].shape[0]
-        pad = ((0, -n % W), (0, 0))
-        parts = [
-            jnp.pad(tree.lo[k], pad, constant_values=big),
-            jnp.pad(tree.hi[k], pad, constant_values=-big),
-            jnp.pad(tree.rep[k], pad),
-        ]
+        parts = [tree.lo[k], tree.hi[k], tree.rep[k]]
         if tree.nlo:
-            parts += [jnp.pad(tree.nlo[k], pad), jnp.pad(tree.nhi[k], pad)]
+            parts += [tree.nlo[k], tree.nhi[k]]
         lv = jnp.concatenate(parts, -1)
         rows.append(jnp.swapaxes(lv.reshape(-1, W, lv.shape[-1]), 1, 2))
+        down = jnp.zeros(lv.shape[0], jnp.int32)
+        if k:
+            down = offset[k - 1] + jnp.maximum(jnp.asarray(tree.down[k]), 0).astype(jnp.int32)
+        downs.append(down.reshape(-1, W))
         offset.append(offset[-1] + rows[-1].shape[0])
-    return Flat(jnp.concatenate(rows), jnp.asarray(offset[:-1], jnp.int32), top)
+    return Flat(jnp.concatenate(rows), jnp.concatenate(downs), offset[top - 1], top)
 
 
 def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, shrink=True):
@@ -74,7 +72,7 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
     min(reach, nearest representative + slack) (self-contact, `normal` [n, 3] given: the
     reach stays, a representative may lie on a face that does not count, and only children
     whose normal box may face the normal are entered); `visit(carry, pos, keep, dist)` is called
-    with, per slave, the W children's positions in their level `pos` [n, W], which of them
+    with, per slave, the W children's slots in their level `pos` [n, W], which of them
     are items within reach (`keep`, false except where the children are items) and the
     representatives' distances `dist` [n, W], and returns the new carry. shrink=False: the
     reach stays (every item within it is visited). Returns (carry, reach, steps)."""
@@ -86,9 +84,12 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
     bits = jnp.left_shift(1, lane)
     lowest = jnp.asarray(_LOWEST_BIT)
     done = jnp.zeros(n, bool) if active is None else ~active
+    # Per slave: the level k of the entry whose children it tests, their row, the pending
+    # entries of each level (W bits) and the row they are in.
     state = (
         jnp.full(n, top, jnp.int32),
-        jnp.zeros(n, jnp.int32),
+        jnp.full(n, flat.root, jnp.int32),
+        jnp.zeros((n, top + 1), jnp.int32),
         jnp.zeros((n, top + 1), jnp.int32),
         reach,
         done,
@@ -97,9 +98,9 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
     )
 
     def step(state):
-        k, j, stack, reach, done, carry, steps = state
-        pos = W * j[:, None] + lane  # the children's positions in their level
-        box = flat.groups[flat.offset[k - 1] + j]  # [n, 9, W]
+        k, row, stack, base, reach, done, carry, steps = state
+        pos = W * row[:, None] + lane  # the children's slots (level 0's rows come first)
+        box = flat.groups[row]  # [n, 9, W]
         lo, hi, rep = box[:, 0:3], box[:, 3:6], box[:, 6:9]
         qs = q[:, :, None]
         g = jnp.maximum(jnp.maximum(lo - qs, qs - hi), 0)
@@ -127,28 +128,32 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
         rest = jnp.sum(jnp.where(keep, bits, 0), -1, dtype=jnp.int32) & ~jnp.left_shift(1, near)
         at = levels == (k - 1)[:, None]
         stack_down = jnp.where(at, rest[:, None], stack)
+        base_down = jnp.where(at, row[:, None], base)
         # Else the next pending entry: the lowest level >= k with pending children.
         kk = jnp.min(jnp.where((stack != 0) & (levels >= k[:, None]), levels, top), -1)
-        left = jnp.take_along_axis(stack, jnp.minimum(kk, top)[:, None], 1)[:, 0]
+        at = jnp.minimum(kk, top)[:, None]
+        left = jnp.take_along_axis(stack, at, 1)[:, 0]
         stack_up = jnp.where(levels == kk[:, None], (left & (left - 1))[:, None], stack)
-        j_up = W * (jnp.right_shift(j, 3 * (kk - k)) // W) + lowest[left]
+        up = jnp.where(down, row, jnp.take_along_axis(base, at, 1)[:, 0])
+        row_new = flat.down[up, jnp.where(down, near, lowest[left])]
         finished = ~down & (kk >= top)
         k_new = jnp.where(down, k - 1, kk)
-        j_new = jnp.where(down, W * j + near, j_up)
         stack_new = jnp.where(down[:, None], stack_down, stack_up)
+        base_new = jnp.where(down[:, None], base_down, base)
         keep_old = done | finished
         return (
             jnp.where(keep_old, k, k_new),
-            jnp.where(keep_old, j, j_new),
+            jnp.where(keep_old, row, row_new),
             jnp.where(keep_old[:, None], stack, stack_new),
+            jnp.where(keep_old[:, None], base, base_new),
             reach,
             done | finished,
             carry,
             steps + 1,
         )
 
-    k, j, stack, reach, done, carry, steps = jax.lax.while_loop(
-        lambda s: ~jnp.all(s[4]), step, state
+    k, row, stack, base, reach, done, carry, steps = jax.lax.while_loop(
+        lambda s: ~jnp.all(s[5]), step, state
     )
     return carry, reach, steps
 

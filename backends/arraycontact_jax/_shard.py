@@ -46,7 +46,7 @@ from arraycontact._detect import (
     master_geometry,
     scalars,
 )
-from arraycontact._grid import W, level_sizes, morton_order
+from arraycontact._grid import W, consecutive, morton_order
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds
@@ -155,8 +155,8 @@ def plan(
         origin=origin,
         d_max=d_max,
         r_max=r_max * growth,
-        node_levels=level_sizes(len(master.nodes)),
-        face_levels=level_sizes(master.n_faces),
+        node_groups=consecutive(len(master.nodes)),
+        face_groups=consecutive(master.n_faces),
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )
     sc = scalars(prep, master, dtype)
@@ -223,8 +223,8 @@ def plan(
             prep,
             node_ids=np.pad(n_ids, (0, t_n - len(n_ids))),
             face_ids=np.pad(f_ids, (0, t_f - len(f_ids))),
-            node_levels=level_sizes(t_n),
-            face_levels=level_sizes(t_f),
+            node_groups=consecutive(t_n),
+            face_groups=consecutive(t_f),
         )
         locals_.append((surf, pq))
         tables.append(pad_x)
@@ -242,7 +242,8 @@ def plan(
         n_live, f_live = lives[e]
         topo[e] = topo[e]._replace(slave_nodes=slave_nodes, node_live=n_live, face_live=f_live)
     topo = _stack(topo)
-    st = replace(st_global, node_levels=level_sizes(t_n), face_levels=level_sizes(t_f))
+    pq = locals_[0][1]
+    st = replace(st_global, node_levels=pq.node_levels, face_levels=pq.face_levels)
 
     # 3. The exchange: rows a device sends to each part and where each part reads them.
     n_rows, n_pts = len(all_x), len(master.points)

@@ -1,0 +1,84 @@
+"""The NumPy and JAX back ends' trees (arraycontact._grid): groups by Morton prefixes, boxes,
+and the JAX scan's closest node, against independent computations."""
+
+import numpy as np
+import pytest
+from radix import W, grid_points, radix_groups
+
+from arraycontact import _grid
+
+
+@pytest.mark.parametrize(
+    "kind, falls", [("fine_patch", False), ("clusters", True), ("caterpillar", True),
+                   ("repeated", False)]
+)  # fmt: skip
+def test_host_tree_groups_are_the_radix_trees_largest_nodes(kind, falls):
+    """`grouping`: on a level whose groups hold 2 entries or more on average, the largest
+    nodes of the keys' radix tree holding at most W entries (a top-down split, independent of
+    the neighbour rule); elsewhere W consecutive entries (`falls`: level 1 of the clusters and
+    of the caterpillar, whose radix groups hold fewer than 2). Entries fill their group's
+    slots from its first in order. The tree's boxes are their items' boxes, and the JAX
+    scan's closest node is brute force's."""
+    import jax
+    import jax.numpy as jnp
+    from arraycontact_jax._grid import closest_node
+
+    rng = np.random.default_rng(3)
+    x = grid_points(kind, rng)
+    lo = x.min(0)
+    keys = _grid.morton_keys(x, lo, float((x.max(0) - lo).max()))
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    groups = _grid.grouping(keys)
+    ranges = [(p, p + 1) for p in range(len(x))]  # each entry's run of item positions
+    nodes, fell = True, False
+    for k, slots in enumerate(groups):
+        m = len(ranges)
+        assert len(slots) % W == 0 and np.array_equal(np.sort(slots[slots >= 0]), np.arange(m))
+        got = []
+        for g in slots.reshape(-1, W):
+            c = int((g >= 0).sum())
+            assert c >= 1 and np.array_equal(g[:c], g[0] + np.arange(c)) and (g[c:] < 0).all()
+            got.append((ranges[g[0]][0], ranges[g[c - 1]][1]))
+        if nodes:  # (after W consecutive entries, the entries are no nodes of the radix tree)
+            radix = radix_groups(keys, ranges)
+            by_rule = m / len(radix) >= 2
+            fell = fell or not by_rule
+            want = radix if by_rule else [
+                (ranges[e][0], ranges[min(e + W, m) - 1][1]) for e in range(0, m, W)
+            ]  # fmt: skip
+            assert got == want, k
+            nodes = by_rule
+        ranges = got
+    assert len(ranges) == 1 and ranges[0] == (0, len(x)) and fell == falls
+    assert len(groups[0]) <= 4 * len(x) + W  # slots: at most 4 an item
+
+    xs = (x - lo)[order]
+    tree = _grid.build(np, order, xs, xs, xs, groups=groups)
+    for k in range(1, len(tree.lo)):  # a slot's box is the box of its group's slots
+        filled = tree.lo[k][:, 0] <= tree.hi[k][:, 0]
+        assert np.array_equal(filled, np.asarray(tree.down[k]) >= 0) if k < len(groups) else 1
+        below = tree.lo[k - 1].reshape(-1, W, 3)[np.maximum(tree.down[k], 0)].min(1)
+        np.testing.assert_array_equal(tree.lo[k][filled], below[filled])
+    np.testing.assert_array_equal(tree.lo[-1][0], xs.min(0))
+    np.testing.assert_array_equal(tree.hi[-1][0], xs.max(0))
+    assert np.array_equal(np.sort(tree.ids[tree.ids >= 0]), np.arange(len(x)))
+
+    q = x[rng.integers(0, len(x), 300)] + rng.normal(size=(300, 3)) * 1e-3 - lo
+    with jax.enable_x64(True):
+        jtree = _grid.build(
+            jnp, jnp.asarray(order, jnp.int32), *(jnp.asarray(xs),) * 3, groups=groups
+        )
+        node, dist, _ = closest_node(
+            jnp,
+            jtree,
+            None,
+            jnp.asarray(q),
+            d_max=np.inf,
+            tie=1e-9 * np.ptp(x),
+            slack=1e-9 * np.ptp(x),
+        )
+    d = np.linalg.norm(q[:, None] - (x - lo)[None], axis=-1)
+    np.testing.assert_allclose(np.asarray(dist), d.min(1), rtol=1e-12, atol=1e-12)
+    tied = d <= d.min(1, keepdims=True) + 1e-9 * np.ptp(x)  # ties: the smallest id
+    assert np.array_equal(np.asarray(node), tied.argmax(1))
