@@ -107,9 +107,13 @@ def morton_order(x: np.ndarray, lo: np.ndarray, extent: float) -> np.ndarray:
 
 
 def _bit_length(x):
-    """The bit length of each non-negative int64 of x (exact: 32-bit halves through float64)."""
-    hi, lo = x >> 32, x & 0xFFFFFFFF
-    return np.where(hi > 0, 32 + np.frexp(hi.astype(float))[1], np.frexp(lo.astype(float))[1])
+    """The bit length of each non-negative int64 of x (through float64, exact below 2^53:
+    above, a rounding up could add one, so those go by their high 32 bits)."""
+    out = np.frexp(x.astype(np.float64))[1]
+    big = x >= 1 << 53
+    if big.any():
+        out[big] = 32 + np.frexp((x[big] >> 32).astype(np.float64))[1]
+    return out
 
 
 def grouping(keys) -> tuple:
@@ -129,8 +133,9 @@ def grouping(keys) -> tuple:
         return (np.array([0] * n + [-1] * (W - n), np.int32),)
     # The radix tree's depth at each pair of neighbours: the leading bits they share.
     x = keys[:-1] ^ keys[1:]
-    p = np.arange(n - 1, dtype=np.int64)
-    split = np.where(x != 0, 64 - _bit_length(x), 96 - _bit_length(p ^ (p + 1)))
+    split = 64 - _bit_length(x)
+    same = np.flatnonzero(x == 0)
+    split[same] = 96 - _bit_length(same ^ (same + 1))
     out = []
     while True:
         m = len(split) + 1
@@ -152,12 +157,12 @@ def _ends(split):
     """Whether each pair of neighbours ends a group: the radix tree's node split there (the
     run of pairs around it that split no higher) holds more than W entries."""
     d = len(split)
-    e = np.arange(d)
-    left, right = np.zeros(d, int), np.zeros(d, int)
+    padded = np.r_[np.full(W, -1), split, np.full(W, -1)]  # (splits are >= 0)
+    left, right = np.zeros(d, np.int8), np.zeros(d, np.int8)
     go_left, go_right = np.ones(d, bool), np.ones(d, bool)
     for t in range(1, W):
-        go_left &= (e - t >= 0) & (split[np.maximum(e - t, 0)] >= split)
-        go_right &= (e + t < d) & (split[np.minimum(e + t, d - 1)] >= split)
+        go_left &= padded[W - t : W - t + d] >= split
+        go_right &= padded[W + t : W + t + d] >= split
         left += go_left
         right += go_right
     return left + right + 2 > W

@@ -156,3 +156,29 @@ def test_vmap_over_scenes_equals_one_by_one(search="jax"):
         for k in ("face", "feature", "status"):
             assert np.array_equal(getattr(cb, k)[i], getattr(ci, k))
         assert np.allclose(cb.gap[i], ci.gap, equal_nan=True, atol=1e-14)
+
+
+def test_scans_on_fewer_lanes_equal_numpy(monkeypatch):
+    """The scans go on with the busy slaves gathered into fewer lanes (`_grid.MIN_LANES`
+    lowered so that these small scenes take that path twice): the same contacts as NumPy, in
+    exact and node mode, and for self-contact (whose scans carry the slave's own node and
+    normal along)."""
+    import arraycontact_jax._grid as jg
+
+    monkeypatch.setattr(jg, "MIN_LANES", 8)
+    jax.clear_caches()  # (programs compiled with the default would be reused)
+    try:
+        s = scenes.graded_surfaces(2**10, ratio=100.0, seed=2)
+        for mode in ("exact", "node"):
+            p = acj.plan(s.master, s.slave, mode=mode)
+            c = acj.detect(p, jnp.asarray(s.slave), jnp.asarray(s.master.points))
+            assert not bool(c.overflow)
+            _compare(c, ac.detect(s.slave, s.master, mode=mode, backend="numpy"))
+        sc = scenes.crumpled_sheet(700, element="tri3")
+        d = sc.params["d_max"]
+        c = acj.detect_self(acj.plan_self(sc.master, d_max=d), jnp.asarray(sc.master.points))
+        a = ac.detect_self(sc.master, backend="numpy", d_max=d)
+        for k in ("active", "face", "feature", "master_node"):
+            np.testing.assert_array_equal(np.asarray(getattr(c, k)), getattr(a, k), err_msg=k)
+    finally:
+        jax.clear_caches()

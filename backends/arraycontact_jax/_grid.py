@@ -65,17 +65,28 @@ def flatten(tree: Tree) -> Flat:
     return Flat(jnp.concatenate(rows), jnp.concatenate(downs), offset[top - 1], top)
 
 
-def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, shrink=True):
+#: The scans go on with the busy slaves alone, gathered into 1/SHRINK of the lanes, once no
+#: more than that many are busy (and they are MIN_LANES or more): the last steps of the
+#: busiest slaves then cost what they touch, not a step of every slave.
+SHRINK = 8
+MIN_LANES = 4096
+
+
+def scan(
+    flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, shrink=True, extra=()
+):
     """Depth-first scans of `flat` from the root, one per query point q [n, 3], with reach [n].
 
     At each step every busy slave tests the W children of its entry; the reach becomes
     min(reach, nearest representative + slack) (self-contact, `normal` [n, 3] given: the
     reach stays, a representative may lie on a face that does not count, and only children
-    whose normal box may face the normal are entered); `visit(carry, pos, keep, dist)` is called
-    with, per slave, the W children's slots in their level `pos` [n, W], which of them
-    are items within reach (`keep`, false except where the children are items) and the
-    representatives' distances `dist` [n, W], and returns the new carry. shrink=False: the
-    reach stays (every item within it is visited). Returns (carry, reach, steps)."""
+    whose normal box may face the normal are entered); `visit(carry, extra, pos, keep, dist)`
+    is called with, per slave, the W children's slots in their level `pos` [n, W], which of
+    them are items within reach (`keep`, false except where the children are items) and the
+    representatives' distances `dist` [n, W], and returns the new carry. `carry` and `extra`
+    (read only): pytrees of per-slave arrays [n, ...] (the busy slaves' rows when the lanes
+    shrink). shrink=False: the reach stays (every item within it is visited). Returns
+    (carry, reach, steps: the busiest slave's)."""
     n = q.shape[0]
     top = flat.top
     # Row vectors: the tests run JAX with rank promotion off (broadcasts written out).
@@ -85,7 +96,7 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
     lowest = jnp.asarray(_LOWEST_BIT)
     done = jnp.zeros(n, bool) if active is None else ~active
     # Per slave: the level k of the entry whose children it tests, their row, the pending
-    # entries of each level (W bits) and the row they are in.
+    # entries of each level (W bits) and the row they are in; and what it reads.
     state = (
         jnp.full(n, top, jnp.int32),
         jnp.full(n, flat.root, jnp.int32),
@@ -94,11 +105,11 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
         reach,
         done,
         carry,
-        jnp.int32(0),
     )
+    inputs = (q, normal, extra)
 
-    def step(state):
-        k, row, stack, base, reach, done, carry, steps = state
+    def step(loop):
+        (k, row, stack, base, reach, done, carry), (q, normal, extra), steps = loop
         pos = W * row[:, None] + lane  # the children's slots (level 0's rows come first)
         box = flat.groups[row]  # [n, 9, W]
         lo, hi, rep = box[:, 0:3], box[:, 3:6], box[:, 6:9]
@@ -118,7 +129,7 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
             filled = filled & (low < FACING_MARGIN)
         keep = filled & (d2 <= (reach * reach)[:, None]) & ~done[:, None]
         leaf = k == 1
-        carry = visit(carry, pos, keep & leaf[:, None], dr)
+        carry = visit(carry, extra, pos, keep & leaf[:, None], dr)
         # Descend to the nearest child (among boxes that hold q, the nearest centre), keeping
         # the others pending at their level.
         c = 0.5 * (lo + hi) - qs
@@ -141,7 +152,7 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
         stack_new = jnp.where(down[:, None], stack_down, stack_up)
         base_new = jnp.where(down[:, None], base_down, base)
         keep_old = done | finished
-        return (
+        state = (
             jnp.where(keep_old, k, k_new),
             jnp.where(keep_old, row, row_new),
             jnp.where(keep_old[:, None], stack, stack_new),
@@ -149,13 +160,33 @@ def scan(flat: Flat, q, reach, slack, visit, carry, active=None, normal=None, sh
             reach,
             done | finished,
             carry,
-            steps + 1,
         )
+        return state, (q, normal, extra), steps + 1
 
-    k, row, stack, base, reach, done, carry, steps = jax.lax.while_loop(
-        lambda s: ~jnp.all(s[5]), step, state
-    )
-    return carry, reach, steps
+    def run(state, inputs, steps):
+        """Steps until no more than 1/SHRINK of the lanes are busy, then the busy ones on
+        their own (recursively), put back in their rows."""
+        size = state[5].shape[0]
+        m = size // SHRINK
+        until = m if m >= MIN_LANES else 0
+
+        def busy(loop):
+            b = ~loop[0][5]
+            return jnp.any(b) & (jnp.sum(b, dtype=jnp.int32) > until)
+
+        state, inputs, steps = jax.lax.while_loop(busy, step, (state, inputs, steps))
+        if not until:
+            return state, steps
+        rows = jnp.nonzero(~state[5], size=m, fill_value=size)[0]
+        at = jnp.minimum(rows, size - 1)
+        sub = jax.tree.map(lambda a: a[at], state)
+        sub = sub[:5] + (sub[5] | (rows >= size),) + sub[6:]  # the spare lanes: done
+        sub, steps = run(sub, jax.tree.map(lambda a: a[at], inputs), steps)
+        state = jax.tree.map(lambda a, b: a.at[rows].set(b, mode="drop"), state, sub)
+        return state, steps
+
+    state, steps = run(state, inputs, jnp.int32(0))
+    return state[6], state[4], steps
 
 
 def _shrinks_to(d_max, slack, n, dtype):
@@ -173,36 +204,58 @@ def closest_node(
     ids = tree.ids
     normal = None if self_contact is None else self_contact[1]
 
-    def counted(keep, pos):
+    def counted(keep, pos, slave):
         """The nodes that count: all, or (self-contact, item 4) those other than the slave's
-        own with a normal at an obtuse angle to its normal."""
+        own (slave: its node and normal) with a normal at an obtuse angle to its normal."""
         if self_contact is None:
             return keep
-        own, normal, node_normals = self_contact
+        own, normal = slave
         node = ids[jnp.minimum(pos, ids.shape[0] - 1)]
-        dot = jnp.sum(node_normals[node] * normal[:, None, :], -1)
+        dot = jnp.sum(self_contact[2][node] * normal[:, None, :], -1)
         return keep & (node != own[:, None]) & (dot <= FACING_TOL)
 
-    def nearest(dmin, pos, keep, dist):
-        keep = counted(keep, pos)
-        return jnp.minimum(dmin, jnp.min(jnp.where(keep, dist, jnp.inf), -1))
+    def nearest(carry, slave, pos, keep, dist):
+        """The smallest distance so far, and the smallest id within `tie` of it (and d_max)
+        with its distance, or unsure: where the smallest distance fell by less than `tie`
+        and the id kept fell out of the band, another id seen before may be in it."""
+        dmin, best, best_d, unsure = carry
+        d = jnp.where(counted(keep, pos, slave), dist, jnp.inf)
+        low = jnp.minimum(dmin, jnp.min(d, -1))
+        band = jnp.minimum(low + tie, d_max)
+        node = ids[jnp.minimum(pos, ids.shape[0] - 1)]
+        step_id = jnp.min(jnp.where(d <= band[:, None], node, BIG), -1)
+        step_d = jnp.min(jnp.where(node == step_id[:, None], d, jnp.inf), -1)
+        kept = best_d <= band
+        unsure = unsure | (~kept & (best < BIG) & (dmin <= band))
+        best_d = jnp.where(kept & (best < step_id), best_d, step_d)
+        best = jnp.where(kept, jnp.minimum(best, step_id), step_id)
+        return low, best, best_d, unsure
 
     reach = _shrinks_to(d_max, slack, n, slave_x.dtype)
-    dmin, _, steps = scan(
-        flat, slave_x, reach, slack, nearest, jnp.full(n, jnp.inf, slave_x.dtype), None, normal
+    inf = jnp.full(n, jnp.inf, slave_x.dtype)
+    own = None if self_contact is None else self_contact[:2]
+    carry = (inf, jnp.full(n, BIG, jnp.int32), inf, jnp.zeros(n, bool))
+    (dmin, best, _, unsure), _, steps = scan(
+        flat, slave_x, reach, slack, nearest, carry, None, normal, extra=own
     )
     dmin = jnp.where(dmin <= d_max, dmin, jnp.inf)
     has = dmin < jnp.inf
 
-    def smallest_id(best, pos, keep, dist):
-        ok = counted(keep, pos) & (dist <= (dmin + tie)[:, None]) & (dist <= d_max)
+    def smallest_id(best, slave, pos, keep, dist):
+        ok = counted(keep, pos, slave[:2]) & (dist <= (slave[2] + tie)[:, None]) & (dist <= d_max)
         node = ids[jnp.minimum(pos, ids.shape[0] - 1)]
         return jnp.minimum(best, jnp.min(jnp.where(ok, node, BIG), -1))
 
-    band = jnp.where(has, dmin + slack, 0)
-    best, _, steps2 = scan(
-        flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), has, normal
-    )
+    # The unsure slaves again, with a reach of the smallest distance (few: none at all where
+    # no two nodes lie within `tie` of each other's distance).
+    again = has & unsure
+    band = jnp.where(again, dmin + slack, 0)
+    extra = (None, None, dmin) if own is None else (*own, dmin)
+    best2, _, steps2 = scan(
+        flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), again, normal,
+        extra=extra,
+    )  # fmt: skip
+    best = jnp.where(again, best2, best)
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
 
@@ -238,10 +291,10 @@ def _collect(tree, slave_x, rho, slack, K, normal, shrink=True):
     positions), their count [n] and the scan's steps."""
     n = slave_x.shape[0]
     flat = flatten(tree)
-    rows = jnp.arange(n)[:, None]
 
-    def collect(carry, pos, keep, dist):
+    def collect(carry, slave, pos, keep, dist):
         found, count = carry
+        rows = jnp.arange(found.shape[0])[:, None]
         slot = count[:, None] + jnp.cumsum(keep, -1, dtype=jnp.int32) - 1
         found = found.at[rows, jnp.where(keep, slot, K)].set(pos, mode="drop")
         return found, count + jnp.sum(keep, -1, dtype=jnp.int32)
