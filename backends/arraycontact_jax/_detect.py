@@ -80,7 +80,7 @@ def _count(sc, m, slave_x, ids=None, *, st):
     slave (exact mode), or the faces attached to the closest nodes (node mode)."""
     per = _per_slave(sc, m, slave_x, ids, st=st)
     if st.mode == "exact":
-        return {"face_candidates": jnp.max(per, initial=0), "face_pairs": jnp.sum(per)}
+        return {"face_candidates": jnp.max(per, initial=0)}
     return {"attached": jnp.sum(per)}
 
 
@@ -126,9 +126,8 @@ def _per_slave(sc, m, slave_x, ids=None, *, st, slots=0):
 
 def _grown(counts, growth, n_slaves, minimum=None):
     """Capacities from counts, times growth: at least MIN_CANDIDATES candidate faces a slave;
-    at least 64 + 2 a slave for the totals (the candidate pairs of exact mode, the attached
-    faces of node mode: a new configuration of a small scene can double them); at least
-    `minimum` (counts) times growth."""
+    at least 64 + 2 a slave for the attached faces of node mode (a total, which on a small
+    scene a new configuration can double); at least `minimum` (counts) times growth."""
     floor = {"face_candidates": MIN_CANDIDATES}
     cap = {
         k: max(int(np.ceil(int(v) * growth)), floor.get(k, 64 + 2 * n_slaves))

@@ -262,26 +262,21 @@ def closest_node(
 def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=None, shrink=True):
     """Candidate (slave, face) pairs: the faces whose box is within the slave's reach (rho,
     shrunk by the scan to the nearest surface point it meets; self-contact, `normal` given:
-    those that may face it), K = capacity["face_candidates"] slots a slave, then (where the
-    capacity has "face_pairs", P) the pairs found packed into P slots: the projections after
-    take the pairs found, not K a slave (a few slaves of a graded mesh need many more slots
-    than the rest). Returns (slave, face, valid, counts), grouped by slave; the counts: the
-    largest number of candidates of one slave and all the pairs (above K or P: overflow, the
-    extra ones dropped)."""
+    those that may face it), K = capacity["face_candidates"]
+    slots a slave. Returns (slave [n K], face [n K], valid [n K], counts); the count is the
+    largest number of candidates of one slave (above K: overflow, the extra ones dropped)."""
     n = slave_x.shape[0]
     K = capacity["face_candidates"]
     found, count, steps = _collect(tree, slave_x, rho, slack, K, normal, shrink)
     valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
     face = tree.ids[found.reshape(-1)]
     slave = jnp.repeat(jnp.arange(n), K)
-    counts = {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps}
-    if "face_pairs" in capacity:
-        P = capacity["face_pairs"]
-        at = jnp.nonzero(valid, size=P, fill_value=0)[0]
-        counts["face_pairs"] = jnp.sum(jnp.minimum(count, K), dtype=jnp.int32)
-        valid = jnp.arange(P, dtype=jnp.int32) < counts["face_pairs"]
-        slave, face = slave[at], face[at]
-    return slave, face, valid, counts
+    return (
+        slave,
+        face,
+        valid,
+        {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps},
+    )
 
 
 def candidate_counts(tree: Tree, slave_x, rho, *, slack, normal=None, shrink=True):
