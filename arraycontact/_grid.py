@@ -6,13 +6,17 @@ every slave near them scans them all: the cost grows with the size ratio, not th
 
 The structure (the same in every back end): items (master nodes as points, or faces as boxes)
 sorted by the Morton code of their centres (21 bits an axis over the scene's box), then a tree
-of fixed fan-out W over that order: entry j of level k is the box around entries W j ... W j +
-W - 1 of level k - 1 (level 0: the items). Morton order makes every run of consecutive items a
-compact cluster whatever the items' sizes, so the boxes adapt to the local face size by
-themselves; the levels are segment reductions (reshapes: the segments have a fixed length)
-and need no pointers. (The Warp back end, arraycontact_warp._grid, groups tighter: a group is
-the largest node of the keys' radix tree holding at most W entries, padded to W slots, so no
-group straddles two Morton cells where the order jumps, at the price of a pointer a slot.)
+of fan-out W over that order: level k holds its entries in groups of W slots (empty slots:
+lo > hi), each group an entry of level k + 1 whose box is the box of the group. A group is the
+largest node of the keys' binary radix tree holding at most W entries (`grouping`), so every
+group is a compact Morton cluster whatever the items' sizes and the boxes adapt to the local
+face size by themselves; W consecutive entries a group would straddle two Morton cells
+wherever the order jumps (a stretched zone's rows, a fine patch and the coarse plate after
+it). The grouping is computed on the host when the items are sorted (a plan's), the levels by
+a gather into the slots and a reduction over each group of W (reshapes); a slot's `down`
+gives its children's group. The Warp back end (arraycontact_warp._grid) groups by the same
+rule on the device. Sharded and swept JAX plans keep W consecutive entries a group
+(`consecutive`).
 A moving master keeps the order and recomputes the boxes (a refit): the tree stays exact, only
 less tight, until the order is computed again.
 
