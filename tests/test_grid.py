@@ -69,10 +69,11 @@ def test_host_tree_groups_are_the_radix_trees_largest_nodes(kind, falls):
     # Ties: the smallest id within `tie` of the smallest distance; a wide band makes many, and
     # sends slaves whose kept id fell out of the band while another might stay in it to the
     # second scan.
+    with jax.enable_x64(True):
+        jtree = _grid.build(jnp, jnp.asarray(order, jnp.int32), *(jnp.asarray(xs),) * 3,
+                            groups=groups)  # fmt: skip
     for tie in (1e-9 * np.ptp(x), 1e-2 * np.ptp(x)):
         with jax.enable_x64(True):
-            jtree = _grid.build(jnp, jnp.asarray(order, jnp.int32), *(jnp.asarray(xs),) * 3,
-                                groups=groups)  # fmt: skip
             node, dist, _ = closest_node(
                 jnp,
                 jtree,
