@@ -99,19 +99,25 @@ def _interior_candidates(element, r, xe):
     starts = np.stack(np.meshgrid(s, s, indexing="ij"), -1).reshape(-1, 2)
     if element.kind == "tri":
         starts = starts[starts.sum(1) <= 0.98]
-    xi = np.broadcast_to(starts, (len(r), len(starts), 2)).copy()
-    rr, xx = r[:, None], np.broadcast_to(xe[:, None], (len(r), len(starts)) + xe.shape[1:])
+    # The starts of all points in one flat list [P * S]: the descent goes on with the starts
+    # that still move (a start whose step left it where it was stays there: the same
+    # arithmetic again).
+    xi = np.tile(starts, (len(r), 1))
+    xx, rr = np.repeat(xe, len(starts), 0), np.repeat(r, len(starts), 0)
 
-    def f(xi):  # |x(xi) - r|^2, x = sum_n N_n x_n as a matmul (einsum's loops are slow here)
-        return np.sum(((shape_functions(element, xi)[..., None, :] @ xx)[..., 0, :] - rr) ** 2, -1)
+    def f(xi, rows):  # |x(xi) - r|^2, x = sum_n N_n x_n as a matmul (einsum's loops are slow here)
+        x = (shape_functions(element, xi)[:, None, :] @ xx[rows])[:, 0, :]
+        return np.sum((x - rr[rows]) ** 2, -1)
 
     # Descent: Newton where the Hessian is positive definite, Gauss-Newton elsewhere, each step
     # halved until the distance does not grow; so iterates go to local minima, not saddles.
+    live = np.arange(len(xi))
     for _ in range(30):
-        x, dx = interpolate(element, xx, xi)
-        d = rr - x
+        at, xe_, r_ = xi[live], xx[live], rr[live]
+        x, dx = interpolate(element, xe_, at)
+        d = r_ - x
         g = -np.einsum("...ka,...k->...a", dx, d)
-        d2 = np.swapaxes(xx, -1, -2) @ shape_second_derivatives(element, xi)  # [..., 3, 3]
+        d2 = np.swapaxes(xe_, -1, -2) @ shape_second_derivatives(element, at)  # [..., 3, 3]
         c = np.einsum("...ks,...k->...s", d2, d)
         gn = np.einsum("...ka,...kb->...ab", dx, dx)
         h = gn - np.stack(
@@ -131,12 +137,21 @@ def _interior_candidates(element, r, xe):
             )
             / det[..., None]
         )
-        f0 = f(xi)
-        alpha = np.ones(f0.shape)
+        # The halvings evaluated only where the distance still grows (a step accepted stays
+        # accepted).
+        f0, alpha = np.sum(d**2, -1), np.ones(len(live))
+        todo = np.arange(len(live))
         for _ in range(10):
-            grow = f(xi - alpha[..., None] * step) > f0 * (1 + 1e-14)
-            alpha = np.where(grow, alpha / 2, alpha)
-        xi = np.clip(xi - alpha[..., None] * step, -10.0, 10.0)  # keep runaways finite
+            trial = at[todo] - alpha[todo, None] * step[todo]
+            todo = todo[f(trial, live[todo]) > f0[todo] * (1 + 1e-14)]
+            alpha[todo] /= 2
+        new = np.clip(at - alpha[:, None] * step, -10.0, 10.0)  # keep runaways finite
+        xi[live] = new
+        live = live[(new != at).any(1)]
+        if len(live) == 0:
+            break
+    xi = xi.reshape(len(r), len(starts), 2)
+    xx, rr = xx.reshape((len(r), len(starts)) + xe.shape[1:]), rr.reshape(len(r), len(starts), 3)
     x, dx = interpolate(element, xx, xi)
     g = -np.einsum("...ka,...k->...a", dx, rr - x)
     scale = np.einsum("...kaa->...", dx[..., None] * dx[..., None, :])
