@@ -86,8 +86,13 @@ def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | 
     lo = np.maximum(lo, s_lo - d_max)  # shrink to the slaves actually inside
     hi = np.minimum(hi, s_hi + d_max)
     node_ids = master.nodes[in_box(used, lo, hi)]
-    outside = np.maximum(np.maximum(lo - centres, centres - hi), 0)
-    face_ids = np.nonzero(np.linalg.norm(outside, axis=1) <= radii + d_max)[0]
+    # Faces whose ball comes within d_max of the box (squared, with room for the rounding of
+    # the square: a face more is harmless; norm() took 6 ms of a 2^16 one-shot call).
+    o = np.maximum(lo - centres, centres - hi)
+    np.maximum(o, 0, out=o)
+    o *= o
+    reach = radii + d_max
+    face_ids = np.nonzero(o[:, 0] + o[:, 1] + o[:, 2] <= reach * reach * (1 + 1e-12))[0]
     r_max = float(radii[face_ids].max()) if len(face_ids) else 0.0
     origin = lo if np.dtype(dtype) == np.float32 else np.zeros(3)
     extent = float((hi - lo).max())
