@@ -65,6 +65,29 @@ GROWTH = 1.5
 MIN_CANDIDATES = 8
 
 
+#: The programs a plan runs once (the counts), compiled at XLA's lowest backend optimisation:
+#: on a GPU, ptxas and LLVM at full optimisation took 27-60 s over the scans of some scenes
+#: (the gmsh ball-on-block, run h100-s19) where level 0 takes about a second; a count's run
+#: time does not matter. Kept per program and argument types, as jit keeps its own.
+_ONCE = {}
+
+
+def once(fn, *args, **static):
+    """fn(*args, **static) (a jitted fn, static its static arguments) compiled as above."""
+    leaves, tree = jax.tree.flatten(args)
+    key = (
+        fn,
+        tuple(sorted(static.items())),
+        tree,
+        jax.config.jax_enable_x64,
+        tuple((jnp.shape(a), jnp.result_type(a), getattr(a, "sharding", None)) for a in leaves),
+    )
+    if key not in _ONCE:
+        low = fn.lower(*args, **static)
+        _ONCE[key] = low.compile({"xla_backend_optimization_level": 0})
+    return _ONCE[key](*args)
+
+
 @partial(jax.jit, static_argnames=("st", "capacity"))
 def _kernel(sc, m, slave_x, ids=None, *, st, capacity):
     grids = build_grids(jnp, st, m)
@@ -154,7 +177,7 @@ def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
         if slave_ids is not None:
             ids = jnp.asarray(slave_ids[prep.slave_rows].astype(np.int32))
         # The counts of these very coordinates: no growth needed (the loop is a safeguard).
-        cap = _grown(_count(sc_dev, m_dev, x_dev, ids, st=st), 1.0, len(x))
+        cap = _grown(once(_count, sc_dev, m_dev, x_dev, ids, st=st), 1.0, len(x))
         for _ in range(4):
             out, counts = _kernel(
                 sc_dev, m_dev, x_dev, ids, st=st, capacity=tuple(sorted(cap.items()))
@@ -357,10 +380,10 @@ def plan(
         topo = _device_topology_arrays(master, prep, self_contact, dev_topo)
         nodes_x = jnp.asarray((master.points - origin).astype(dtype))
         bare = topo._replace(slave_nodes=None, node_faces=None)
-        counts = _count_at(sc_dev, bare, nodes_x, xs, ids, st=st)
+        counts = once(_count_at, sc_dev, bare, nodes_x, xs, ids, st=st)
     else:
         topo = _topology(master, prep, self_contact)
-        counts = _count(sc_dev, master_arrays(master, prep, dtype), xs, ids, st=st)
+        counts = once(_count, sc_dev, master_arrays(master, prep, dtype), xs, ids, st=st)
     cap = _grown(counts, growth, len(slave_x), minimum)
     return Plan(
         topo,

@@ -61,6 +61,7 @@ from ._detect import (
     contacts_of,
     local_detect,
     master_arrays,
+    once,
     warp_plan,
 )
 
@@ -173,7 +174,7 @@ def plan(
         face_ids=morton_order(centres, lo, extent),
     )
     m = jax.tree.map(jnp.asarray, master_arrays(master, prep, dtype))
-    per = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global))
+    per = np.asarray(once(_per_slave, sc_dev, m, x_dev, ids, st=st_global))
     # The work the JAX search does per item: every slave is a lane of the same scans and the
     # same candidate slots, whatever its candidates (weighting slaves by 1 + candidates
     # left 2^23 rough nodes split 3.6M / 4.8M on two H200s: 122 ms where the even split
@@ -181,7 +182,7 @@ def plan(
     weights, face_weights = np.ones(len(all_x)), None
     if mode == "exact":
         slots = max(int(per.max(initial=0)), 1)
-        used = np.asarray(_per_slave(sc_dev, m, x_dev, ids, st=st_global, slots=slots))
+        used = np.asarray(once(_per_slave, sc_dev, m, x_dev, ids, st=st_global, slots=slots))
         face_weights = (used > 0).astype(float)
     margin = (growth - 1) * (d_max + r_max) if margin is None else float(margin)
     if not margin >= 0:
@@ -314,7 +315,7 @@ def plan(
             own = jnp.asarray(t_e.slave_nodes) if self_contact else None
             xs = jnp.asarray((xs - origin).astype(dtype))
             m_e = jax.tree.map(jnp.asarray, m_e)
-            cand.append(np.asarray(_per_slave(sc_dev, m_e, xs, own, st=st))[: len(mine)])
+            cand.append(np.asarray(once(_per_slave, sc_dev, m_e, xs, own, st=st))[: len(mine)])
         if mode == "exact":
             counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
         else:
