@@ -80,9 +80,12 @@ def test_empty_sets(backend):
 
 def test_jax_overflow_is_reported_and_replanned(monkeypatch):
     import arraycontact_jax._detect as jd
+    import jax
 
     # Plan with room for one candidate face a slave: the one-shot call must grow and re-run.
-    monkeypatch.setattr(jd, "_count", lambda *a, **k: {"face_candidates": 1})
+    # (The count is a jitted program: the plan compiles it apart, see jd.once.)
+    count = jax.jit(lambda *a, st: {"face_candidates": 1}, static_argnames=("st",))
+    monkeypatch.setattr(jd, "_count", count)
     monkeypatch.setattr(jd, "MIN_CANDIDATES", 1)
     c = ac.detect(SLAVE, MASTER, backend="jax")
     ref = ac.detect(SLAVE, MASTER, backend="numpy")

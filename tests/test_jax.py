@@ -125,6 +125,23 @@ def test_overflow_is_reported_and_update_plan_fixes_it():
     _compare(c4, ac.detect(slave, s.master.with_points(stretched), d_max=p.d_max, backend="numpy"))
 
 
+def test_plans_count_with_a_program_compiled_once_per_shapes():
+    """The plan's counting program, compiled apart at XLA's lowest backend optimisation, is
+    compiled once for a scene's shapes, and counts what the detection (its own program)
+    counts at the plan's coordinates."""
+    from arraycontact_jax import _detect as jd
+
+    s = scenes.rough_surfaces(2**9, seed=4, gap=0.2)
+    p = acj.plan(s.master, s.slave, growth=1.0)
+    n = len(jd._ONCE)
+    assert acj.plan(s.master, s.slave, growth=1.0).capacity == p.capacity
+    assert len(jd._ONCE) == n
+    c = acj.detect(p, jnp.asarray(s.slave), jnp.asarray(s.master.points))
+    count = int(c.counts.count["face_candidates"])
+    assert count > jd.MIN_CANDIDATES  # (so that the capacity is the count itself)
+    assert dict(p.capacity)["face_candidates"] == count and not bool(c.overflow)
+
+
 def test_plan_rejects_bad_input():
     s = scenes.rough_surfaces(2**8, seed=0)
     with pytest.raises(ValueError, match="mode"):
