@@ -65,11 +65,14 @@ GROWTH = 1.5
 MIN_CANDIDATES = 8
 
 
-#: The programs a plan runs once (the counts), compiled at XLA's lowest backend optimisation:
-#: on a GPU, ptxas and LLVM at full optimisation took 27-60 s over the scans of some scenes
-#: (the gmsh ball-on-block, run h100-s19) where level 0 takes about a second; a count's run
-#: time does not matter. Kept per program and argument types, as jit keeps its own.
+#: The programs a plan runs once (the counts), compiled on a GPU at XLA's lowest backend
+#: optimisation: there ptxas and LLVM at full optimisation took 27-60 s over the scans of some
+#: scenes (the gmsh ball-on-block, run h100-s19) where level 0 takes about a second, and a
+#: count's run time does not matter. Not on the CPU: there the count at level 0 ran 3-4x
+#: longer (a second plan at 2^17: 0.4 -> 1.5 s) and compiling was not slow. Kept per program
+#: and argument types, as jit keeps its own.
 _ONCE = {}
+_GPU_ONCE = {"xla_backend_optimization_level": 0}
 
 
 def once(fn, *args, **static):
@@ -84,7 +87,8 @@ def once(fn, *args, **static):
     )
     if key not in _ONCE:
         low = fn.lower(*args, **static)
-        _ONCE[key] = low.compile({"xla_backend_optimization_level": 0})
+        gpu = jax.devices()[0].platform == "gpu"
+        _ONCE[key] = low.compile(_GPU_ONCE if gpu else None)
     return _ONCE[key](*args)
 
 
