@@ -103,17 +103,17 @@ def _interior_candidates(element, r, xe):
     # that still move (a start whose step left it where it was stays there: the same
     # arithmetic again).
     xi = np.tile(starts, (len(r), 1))
-    xx, rr = np.repeat(xe, len(starts), 0), np.repeat(r, len(starts), 0)
+    pair = np.repeat(np.arange(len(r)), len(starts))  # each start's (point, face) pair
 
     def f(xi, rows):  # |x(xi) - r|^2, x = sum_n N_n x_n as a matmul (einsum's loops are slow here)
-        x = (shape_functions(element, xi)[:, None, :] @ xx[rows])[:, 0, :]
-        return np.sum((x - rr[rows]) ** 2, -1)
+        x = (shape_functions(element, xi)[:, None, :] @ xe[pair[rows]])[:, 0, :]
+        return np.sum((x - r[pair[rows]]) ** 2, -1)
 
     # Descent: Newton where the Hessian is positive definite, Gauss-Newton elsewhere, each step
     # halved until the distance does not grow; so iterates go to local minima, not saddles.
     live = np.arange(len(xi))
     for _ in range(30):
-        at, xe_, r_ = xi[live], xx[live], rr[live]
+        at, xe_, r_ = xi[live], xe[pair[live]], r[pair[live]]
         x, dx = interpolate(element, xe_, at)
         d = r_ - x
         g = -np.einsum("...ka,...k->...a", dx, d)
@@ -151,7 +151,7 @@ def _interior_candidates(element, r, xe):
         if len(live) == 0:
             break
     xi = xi.reshape(len(r), len(starts), 2)
-    xx, rr = xx.reshape((len(r), len(starts)) + xe.shape[1:]), rr.reshape(len(r), len(starts), 3)
+    rr, xx = r[:, None], np.broadcast_to(xe[:, None], (len(r), len(starts)) + xe.shape[1:])
     x, dx = interpolate(element, xx, xi)
     g = -np.einsum("...ka,...k->...a", dx, rr - x)
     scale = np.einsum("...kaa->...", dx[..., None] * dx[..., None, :])
