@@ -126,9 +126,9 @@ def test_overflow_is_reported_and_update_plan_fixes_it():
 
 
 def test_plans_count_with_a_program_compiled_once_per_shapes():
-    """The plan's counting program, compiled apart at XLA's lowest backend optimisation, is
-    compiled once for a scene's shapes, and counts what the detection (its own program)
-    counts at the plan's coordinates."""
+    """The plan's counting program, compiled apart (on a GPU at XLA's lowest backend
+    optimisation), is compiled once for a scene's shapes, and counts what the detection (its
+    own program) counts at the plan's coordinates."""
     from arraycontact_jax import _detect as jd
 
     s = scenes.rough_surfaces(2**9, seed=4, gap=0.2)

@@ -70,8 +70,10 @@ MIN_CANDIDATES = 8
 #: scenes (the gmsh ball-on-block, run h100-s19) where level 0 takes about a second, and a
 #: count's run time does not matter. Not on the CPU: there the count at level 0 ran 3-4x
 #: longer (a second plan at 2^17: 0.4 -> 1.5 s) and compiling was not slow. Kept per program
-#: and argument types, as jit keeps its own.
+#: and argument types, as jit keeps its own, the newest _ONCE_KEEP of them (a long run of
+#: different scenes would otherwise keep every executable).
 _ONCE = {}
+_ONCE_KEEP = 64
 _GPU_ONCE = {"xla_backend_optimization_level": 0}
 
 
@@ -86,6 +88,8 @@ def once(fn, *args, **static):
         tuple((jnp.shape(a), jnp.result_type(a), getattr(a, "sharding", None)) for a in leaves),
     )
     if key not in _ONCE:
+        if len(_ONCE) >= _ONCE_KEEP:
+            del _ONCE[next(iter(_ONCE))]  # the oldest
         low = fn.lower(*args, **static)
         gpu = jax.devices()[0].platform == "gpu"
         _ONCE[key] = low.compile(_GPU_ONCE if gpu else None)
