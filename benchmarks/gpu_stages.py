@@ -1,6 +1,7 @@
 """The time of every launch of one Warp detection (GPU), per scene of the suite: where a
 detection's time goes. The launches one by one (graphs off), timed by Warp's CUDA activity
-timing after warm-up calls.
+timing after warm-up calls, on the path a graph replays (the trees refitted: each call is
+made a plan's first, whose refit check the host reads); "launches" counts them.
 
     python benchmarks/gpu_stages.py --log2 20 --only uniform graded_1000
 """
@@ -44,21 +45,23 @@ def main():
         for _ in range(3):
             acw.detect(p, xs, xm)
         wp.synchronize()
-        totals = defaultdict(float)
+        totals, counts = defaultdict(float), defaultdict(int)
         runs = 5
         for _ in range(runs):
+            p.master_ready = False
             with wp.ScopedTimer(
                 "detect", print=False, synchronize=True, cuda_filter=wp.TIMING_ALL
             ) as t:
                 acw.detect(p, xs, xm)
             for r in t.timing_results:
                 totals[r.name] += r.elapsed / runs
+                counts[r.name] += 1
         print(
             f"{label}: {scene.master.n_faces} faces, {len(scene.slave)} slaves; "
-            f"total {sum(totals.values()):.3f} ms"
+            f"total {sum(totals.values()):.3f} ms in {sum(counts.values()) // runs} launches"
         )
         for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:12]:
-            print(f"   {ms:8.3f} ms  {name}")
+            print(f"   {ms:8.3f} ms  {counts[name] // runs:3d}x  {name}")
 
 
 if __name__ == "__main__":

@@ -750,28 +750,14 @@ def _master_stages(p: Plan, xm, m_origin):
         (p.built and (dev.is_cpu or not p.master_ready))
         or (dev.is_capturing and wp.is_conditional_graph_supported())
     ):
-        n_nodes = p.n_nodes
         p.rebuild.zero_()
-        _grid.refit(p.node_grid, m.points, m.node_world, n_nodes, dev, p.rebuild, node_n)
+        args = (m.points, m.faces)
+        _grid.refit(p.node_grid, p.node_layout, *args, m.node_world, dev, p.rebuild, node_n)
         if p.mode == 0:
-            _grid.refit_faces(
-                p.face_grid,
-                m.points,
-                m.faces,
-                c.lebesgue,
-                m.face_world,
-                dev,
-                p.master.element.name == "tri3",
-                p.rebuild,
-                face_n,
-            )
-
-        def fill():
-            _grid.fill(p.node_grid, p.node_layout, dev)
-            if p.mode == 0:
-                _grid.fill(p.face_grid, p.face_layout, dev)
-
-        wp.capture_if(p.rebuild, on_true=lambda: _build(p), on_false=fill)
+            tri3 = p.master.element.name == "tri3"
+            args = (*args, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
+            _grid.refit_faces(p.face_grid, p.face_layout, *args)
+        wp.capture_if(p.rebuild, on_true=lambda: _build(p))
     else:
         _build(p)
     p.master_ready = p.built = True

@@ -98,6 +98,10 @@ class Grid:
     capacity: wp.array(dtype=int)
     aligned: wp.array(dtype=int)
     up: wp.array(dtype=int)
+    # A refit on a GPU (`_refit_tree`): the occupied slots of each group of slots (levels >= 1,
+    # indexed as `up`), and the arrivals counted at each (zero between launches).
+    need: wp.array(dtype=int)
+    arrived: wp.array(dtype=int)
     # Scratch of the grouping: the split of each pair of neighbours (two halves, the level's
     # and the next's), group ends, group ids, the prefix sum's.
     split: wp.array(dtype=int)
@@ -117,7 +121,7 @@ class Grid:
     # tri3 face trees: the three corners of each face by item slot (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
-    # Each item's centre (a node: its position) when it was sorted, in key order.
+    # Each item's centre (a node: its position) when it was sorted, by item slot.
     centres: wp.array(dtype=vec3)
     # Self-contact (normals = 1): the normal boxes of the slots (as `boxes`) and of the
     # items (by slot), so that a scan skips what nowhere faces the slave's normal.
@@ -244,6 +248,46 @@ else:
     @wp.func
     def write_box(grid: Grid, key: int, box: Box):
         grid.boxes[key] = box
+
+
+# Reads through L2 alone (`_refit_tree`: records that other threads of the launch wrote; an
+# SM's L1 may hold a line of them loaded before), a record's lo (h = 0) or hi half.
+_T = "float" if real is wp.float32 else "double"
+_CG_VEC = f"""
+const auto& r = a.data[k];
+const {_T}* p = reinterpret_cast<const {_T}*>(h == 0 ? &r.lo : &r.hi);
+#if defined(__CUDA_ARCH__)
+return wp::vec_t<3, {_T}>(__ldcg(p), __ldcg(p + 1), __ldcg(p + 2));
+#else
+return wp::vec_t<3, {_T}>(p[0], p[1], p[2]);
+#endif
+"""
+
+
+@wp.func_native(_CG_VEC)
+def _box_half_cg(a: wp.array(dtype=Box), k: int, h: int) -> vec3: ...
+
+
+@wp.func_native(_CG_VEC)
+def _nbox_half_cg(a: wp.array(dtype=NBox), k: int, h: int) -> vec3: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __ldcg(&a.data[k].world);
+#else
+return a.data[k].world;
+#endif
+""")
+def _box_world_cg(a: wp.array(dtype=Box), k: int) -> int: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__threadfence();
+#endif
+""")
+def _fence(): ...
 
 
 @wp.func
@@ -474,12 +518,13 @@ def _gather(
     previous build's; rebuild[0] is raised when a node moved farther than grid.margin."""
     k = first + wp.tid()
     i = grid.sorted_ids[k]
+    q = slot(grid, k)
     if refit == 1:
-        if wp.length(x[i] - grid.centres[k]) > grid.margin:
+        if wp.length(x[i] - grid.centres[q]) > grid.margin:
             rebuild[0] = 1
     else:
-        grid.centres[k] = x[i]
-    write_item(grid, slot(grid, k), x[i], i, x[i], world[i])
+        grid.centres[q] = x[i]
+    write_item(grid, q, x[i], i, x[i], world[i])
 
 
 @wp.kernel
@@ -499,12 +544,12 @@ def _face_gather(
     k = first + wp.tid()
     i = grid.sorted_ids[k]
     c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
+    q = slot(grid, k)
     if refit == 1:
-        if wp.length(c - grid.centres[k]) > grid.margin:
+        if wp.length(c - grid.centres[q]) > grid.margin:
             rebuild[0] = 1
     else:
-        grid.centres[k] = c
-    q = slot(grid, k)
+        grid.centres[q] = c
     write_item(grid, q, lo, i, hi, world[i])
     if corners == 1:
         for j in range(3):
@@ -707,6 +752,7 @@ def _reduce(first: int, grid: Grid, k: int):
     box.first = W * e
     box.world = -2
     nb = _empty_nbox()
+    need = int(0)
     for c in range(W):
         q = W * e + c
         if k == 1:
@@ -717,6 +763,7 @@ def _reduce(first: int, grid: Grid, k: int):
                 nb = _nbox_union(nb, grid.nitems[q])
         else:
             b = entry(grid, k - 1, q)
+            need += int(b.world != -2)
             box.lo = wp.min(box.lo, b.lo)
             box.hi = wp.max(box.hi, b.hi)
             box.world = _worlds(box.world, b.world)
@@ -728,6 +775,7 @@ def _reduce(first: int, grid: Grid, k: int):
         grid.nboxes[grid.offsets[k] + j] = nb
     if k >= 2:
         grid.up[grid.offsets[k - 1] // W + e] = j
+        grid.need[grid.offsets[k - 1] // W + e] = need
 
 
 #: Items a thread of the prefix sum adds up in order.
@@ -938,19 +986,132 @@ def measure_faces(grid: Grid, points, faces, lebesgue: float, world, device, wor
 
 
 # A refit: the records again in the previous build's slots, raising rebuild[0] where an
-# item left the margin; then `fill`, or a build when raised (the caller's choice on the
-# device: wp.capture_if).
-def refit(grid: Grid, x, world, n: int, device, rebuild, normals=None):
-    launch(_gather, n, [0, x, world, 1, grid, rebuild], [], device, first=0)
-    _normals(grid, n, normals, device)
+# item left the margin, and every level's boxes; a build follows when raised (the caller's
+# choice on the device: wp.capture_if).
+@wp.kernel
+def _refit_tree(
+    grid: Grid,
+    points: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    lebesgue: real,
+    is_faces: int,
+    world: wp.array(dtype=int),
+    corners: int,
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
+    rebuild: wp.array(dtype=wp.int32),
+):
+    """A refit in one launch (CUDA): thread e takes entry e of level 1, refits the items of its
+    group of slots (records, corners, normal boxes, the rebuild check of _gather) and its box,
+    then goes up as in Karras's refit of a binary tree: the last of a group's slots to arrive
+    (counted in grid.arrived after a fence) makes the parent's box from the siblings' (read
+    through L2), and resets the count for the next launch."""
+    e = wp.tid()
+    if e >= grid.counts[1]:
+        return
+    box = Box()
+    box.lo = vec3(real(1.0e30))
+    box.hi = vec3(real(-1.0e30))
+    box.first = W * e
+    box.world = -2
+    nb = _empty_nbox()
+    for c in range(W):
+        q = W * e + c
+        i = item_id(grid, q)
+        if i >= 0:
+            centre = vec3(real(0.0))
+            lo = centre
+            hi = centre
+            if is_faces == 1:
+                centre, r, lo, hi = face_bounds(points, faces, i, lebesgue)
+                if corners == 1:
+                    for v in range(3):
+                        grid.corners[q, v] = points[faces[i, v]]
+            else:
+                centre = points[i]
+                lo = centre
+                hi = centre
+            if wp.length(centre - grid.centres[q]) > grid.margin:
+                rebuild[0] = 1
+            w = world[i]
+            write_item(grid, q, lo, i, hi, w)
+            box.lo = wp.min(box.lo, lo)
+            box.hi = wp.max(box.hi, hi)
+            box.world = _worlds(box.world, w)
+            if grid.normals == 1:
+                b = NBox()
+                b.lo = nlo[i]
+                b.hi = nhi[i]
+                grid.nitems[q] = b
+                nb = _nbox_union(nb, b)
+    k = int(1)
+    j = grid.slots[grid.slot_offsets[1] + e]
+    top = grid.root[0]
+    while k <= top:
+        key = grid.offsets[k] + j
+        write_box(grid, key, box)
+        if grid.normals == 1:
+            grid.nboxes[key] = nb
+        if k == top:
+            return
+        g = key // W  # this slot's group (offsets are multiples of W)
+        _fence()
+        if wp.atomic_add(grid.arrived, g, 1) < grid.need[g] - 1:
+            return  # a sibling yet to arrive goes on
+        grid.arrived[g] = 0
+        box.lo = vec3(real(1.0e30))
+        box.hi = vec3(real(-1.0e30))
+        box.first = W * (j // W)
+        box.world = -2
+        nb = _empty_nbox()
+        for c in range(W):
+            box.lo = wp.min(box.lo, _box_half_cg(grid.boxes, W * g + c, 0))
+            box.hi = wp.max(box.hi, _box_half_cg(grid.boxes, W * g + c, 1))
+            box.world = _worlds(box.world, _box_world_cg(grid.boxes, W * g + c))
+            if grid.normals == 1:
+                nb.lo = wp.min(nb.lo, _nbox_half_cg(grid.nboxes, W * g + c, 0))
+                nb.hi = wp.max(nb.hi, _nbox_half_cg(grid.nboxes, W * g + c, 1))
+        j = grid.up[g]
+        k += 1
+
+
+def _refit(
+    grid: Grid, lay, points, faces, lebesgue, is_faces, world, corners, device, rebuild, normals
+):
+    """Every level's boxes refitted: one launch on a GPU; on the CPU (whose Warp atomics are
+    not atomic) the items, then a launch a level."""
+    if wp.get_device(device).is_cuda:
+        nlo, nhi = normals if normals is not None else (points, points)
+        args = [grid, points, faces, real(lebesgue), is_faces, world, int(corners), nlo, nhi]
+        wp.launch(_refit_tree, lay.entries[1], inputs=[*args, rebuild], device=device)
+        return
+    if is_faces:
+        args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
+        launch(_face_gather, faces.shape[0], args, [], device, first=0)
+    else:
+        launch(_gather, grid.n, [0, points, world, 1, grid, rebuild], [], device, first=0)
+    _normals(grid, grid.n, normals, device)
+    fill(grid, lay, device)
+
+
+def refit(grid: Grid, lay: Layout, x, faces, world, device, rebuild, normals=None):
+    """The node tree's refit (faces: any int array2d, not read)."""
+    _refit(grid, lay, x, faces, 0.0, 0, world, False, device, rebuild, normals)
 
 
 def refit_faces(
-    grid: Grid, points, faces, lebesgue: float, world, device, corners: bool, rebuild, normals=None
+    grid: Grid,
+    lay: Layout,
+    points,
+    faces,
+    lebesgue: float,
+    world,
+    device,
+    corners: bool,
+    rebuild,
+    normals=None,
 ):
-    args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
-    launch(_face_gather, faces.shape[0], args, [], device, first=0)
-    _normals(grid, faces.shape[0], normals, device)
+    _refit(grid, lay, points, faces, lebesgue, 1, world, corners, device, rebuild, normals)
 
 
 def new_grid(
@@ -988,7 +1149,6 @@ def new_grid(
     g.margin = real(margin)
     g.sorted_ids = wp.empty(2 * m, dtype=int, device=device)
     g.keys = wp.empty(2 * m, dtype=wp.int64, device=device)
-    g.centres = wp.full(m, vec3(1.0e30), dtype=vec3, device=device)
     g.normals = int(normals)
     return g, world_bits
 
@@ -1014,6 +1174,9 @@ def allot(g: Grid, n: int, device, means=(), corners=False) -> Layout:
     g.capacity = wp.array(capacity, dtype=int, device=device)
     g.slots = wp.empty(int(slot_offsets[lay.top + 1]), dtype=int, device=device)
     g.up = wp.empty(max(total // W, 1), dtype=int, device=device)
+    g.need = wp.empty(max(total // W, 1), dtype=int, device=device)
+    g.arrived = wp.zeros(max(total // W, 1), dtype=int, device=device)
+    g.centres = wp.full(lay.slots[0], vec3(1.0e30), dtype=vec3, device=device)
     g.boxes = wp.empty(total, dtype=Box, device=device)
     g.items = wp.empty(lay.slots[0], dtype=Item, device=device)
     g.corners = wp.empty((lay.slots[0] if corners else 1, 3), dtype=vec3, device=device)
