@@ -429,7 +429,7 @@ def test_one_launch_refit_equals_a_launch_a_level(name):
                 if one:
                     args = [g, m.points, m.faces, p.constants.lebesgue, faces, world, tri3, *n]
                     wp.launch(
-                        warp_grid._refit_tree, lay.entries[1], [*args, p.rebuild], device=DEVICE
+                        warp_grid._refit_tree, lay.slots[0], [*args, p.rebuild], device=DEVICE
                     )
                 elif faces:
                     args = [0, m.points, m.faces, p.constants.lebesgue, world, tri3, 1, g]
