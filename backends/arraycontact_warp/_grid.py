@@ -264,7 +264,11 @@ return wp::vec_t<3, {_T}>(p[0], p[1], p[2]);
 """
 
 
-@wp.func_native(_CG_VEC)
+# A record's half in one 16-byte read in float32 (as _HALF).
+_CG_REC = _HALF.replace("__ldg", "__ldcg") if real is wp.float32 else _CG_VEC
+
+
+@wp.func_native(_CG_REC)
 def _box_half_cg(a: wp.array(dtype=Box), k: int, h: int) -> vec3: ...
 
 
@@ -287,10 +291,19 @@ def _box_world_cg(a: wp.array(dtype=Box), k: int) -> int: ...
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-__threadfence();
+int old;
+asm volatile("atom.acq_rel.gpu.add.s32 %0, [%1], 1;"
+             : "=r"(old) : "l"(a.data + k) : "memory");
+return old;
+#else
+return a.data[k]++;
 #endif
 """)
-def _fence(): ...
+def _arrive(a: wp.array(dtype=int), k: int) -> int:
+    """a[k] += 1, returning the count before: on a GPU an atomic that releases this thread's
+    writes and acquires those of the threads that added before it (a __threadfence is a
+    sequentially consistent fence: 0.5 -> ? ms for both trees' refits at 2^20 on an H100)."""
+    ...
 
 
 @wp.func
@@ -1000,7 +1013,7 @@ def measure_faces(grid: Grid, points, faces, lebesgue: float, world, device, wor
 # A refit: the records again in the previous build's slots, raising rebuild[0] where an
 # item left the margin, and every level's boxes; a build follows when raised (the caller's
 # choice on the device: wp.capture_if).
-@wp.func_native(_CG_VEC)
+@wp.func_native(_CG_REC)
 def _item_half_cg(a: wp.array(dtype=Item), k: int, h: int) -> vec3: ...
 
 
@@ -1023,7 +1036,7 @@ def _refit_tree(
 ):
     """A refit in one launch (CUDA): thread q refits item slot q (its record, corners, normal
     box, the rebuild check of _gather), then goes up as in Karras's refit of a binary tree:
-    the last of a group's slots to arrive (counted in grid.arrived, after a fence) makes the
+    the last of a group's slots to arrive (counted in grid.arrived, `_arrive`) makes the
     parent's box from the siblings' (read through L2) and resets the count for the next
     launch; the others stop."""
     q = wp.tid()
@@ -1057,8 +1070,7 @@ def _refit_tree(
     top = grid.root[0]
     while k < top:
         g = group_of(grid, k, j)
-        _fence()
-        if wp.atomic_add(grid.arrived, g, 1) < grid.need[g] - 1:
+        if _arrive(grid.arrived, g) < grid.need[g] - 1:
             return  # a sibling yet to arrive goes on
         grid.arrived[g] = 0
         box = Box()
