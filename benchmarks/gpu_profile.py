@@ -44,6 +44,7 @@ def main():
     wp.synchronize()
     cuda = ctypes.CDLL("libcuda.so.1")
     cuda.cuProfilerStart()
+    p.master_ready = False  # the trees refitted, as a graph's replay does (see gpu_stages.py)
     acw.detect(p, xs, xm)
     wp.synchronize()
     cuda.cuProfilerStop()
