@@ -397,11 +397,10 @@ def _tree_state(g):
 
 
 @pytest.mark.parametrize("name", ["graded_tri3", "rough_quad4", "self_quad4"])
-def test_one_launch_refit_equals_a_launch_a_level(name):
-    """The GPU's refit (`_refit_tree`: items and every level in one launch, the last thread
-    to reach a group making its parent) writes the bytes the CPU's refit writes (the items
-    by key order, then one reduction launch a level), on master coordinates moved twice;
-    its arrival counts are back at zero after each launch."""
+def test_refit_in_one_launch_equals_a_launch_a_level(name):
+    """A refit's boxes (`_refit_up`: every level in one launch, the last thread to reach a
+    group making its parent) are the bytes of `fill`'s (one reduction launch a level), on
+    master coordinates moved twice; its arrival counts are back at zero after each launch."""
     if name == "self_quad4":
         s = scenes.crumpled_sheet(2**10)
         p = acw.plan_self(s.master, device=DEVICE)
@@ -411,45 +410,27 @@ def test_one_launch_refit_equals_a_launch_a_level(name):
         p = acw.plan(s.master, s.slave, device=DEVICE)
         acw.detect(p, s.slave, s.master.points)
     m, L = p.m, s.master.longest_edge
-    tri3 = int(s.master.element.name == "tri3")
-    node_n = (p.normals, p.normals) if p.self_contact else (m.points, m.points)
-    face_n = (p.face_nlo, p.face_nhi) if p.self_contact else (m.points, m.points)
+    tri3 = s.master.element.name == "tri3"
+    node_n = (p.normals, p.normals) if p.self_contact else None
+    face_n = (p.face_nlo, p.face_nhi) if p.self_contact else None
     rng = np.random.default_rng(4)
     for _ in range(2):
         moved = s.master.points + rng.normal(0, 0.3 * L, s.master.points.shape)
         m.points.assign((moved - p.origin).astype(np.float32))
-        flags = []
-        for one in (True, False):
-            p.rebuild.zero_()
-            for g, lay, faces, n in (
-                (p.node_grid, p.node_layout, 0, node_n),
-                (p.face_grid, p.face_layout, 1, face_n),
-            ):
-                world = m.face_world if faces else m.node_world
-                if one:
-                    args = [g, m.points, m.faces, p.constants.lebesgue, faces, world, tri3, *n]
-                    wp.launch(
-                        warp_grid._refit_tree, lay.slots[0], [*args, p.rebuild], device=DEVICE
-                    )
-                elif faces:
-                    args = [0, m.points, m.faces, p.constants.lebesgue, world, tri3, 1, g]
-                    wp.launch(warp_grid._face_gather, g.n, [*args, p.rebuild], device=DEVICE)
-                else:
-                    args = [0, m.points, world, 1, g, p.rebuild]
-                    wp.launch(warp_grid._gather, g.n, args, device=DEVICE)
-                if not one:
-                    warp_grid._normals(g, g.n, n if p.self_contact else None, DEVICE)
-                    warp_grid.fill(g, lay, DEVICE)
-            flags.append(int(p.rebuild.numpy()[0]))
-            if one:
-                trees = [_tree_state(p.node_grid), _tree_state(p.face_grid)]
-        assert flags[0] == flags[1] == 1  # moved 0.3 edges: past the margin
-        for (one, arrived), (level, _) in zip(
-            trees, [_tree_state(p.node_grid), _tree_state(p.face_grid)]
-        ):
+        p.rebuild.zero_()
+        args = (m.points, m.faces)
+        warp_grid.refit(p.node_grid, p.node_layout, *args, m.node_world, DEVICE, p.rebuild, node_n)
+        args = (*args, p.constants.lebesgue, m.face_world, DEVICE, tri3, p.rebuild, face_n)
+        warp_grid.refit_faces(p.face_grid, p.face_layout, *args)
+        assert int(p.rebuild.numpy()[0]) == 1  # moved 0.3 edges: past the margin
+        one = [_tree_state(p.node_grid), _tree_state(p.face_grid)]
+        warp_grid.fill(p.node_grid, p.node_layout, DEVICE)
+        warp_grid.fill(p.face_grid, p.face_layout, DEVICE)
+        level = [_tree_state(p.node_grid), _tree_state(p.face_grid)]
+        for (a, arrived), (b, _) in zip(one, level):
             assert not arrived.any()
-            for a, b in zip(one, level):
-                assert np.array_equal(a, b)
+            for x, y in zip(a, b):
+                assert np.array_equal(x, y)
 
 
 def test_exported_geometry_in_a_user_kernel():

@@ -98,8 +98,8 @@ class Grid:
     capacity: wp.array(dtype=int)
     aligned: wp.array(dtype=int)
     up: wp.array(dtype=int)
-    # A refit on a GPU (`_refit_tree`): the occupied slots of each group of slots (`group_of`)
-    # and the arrivals counted at each (zero between launches).
+    # A refit (`_refit_up`): the occupied slots of each group of slots (levels >= 1, indexed
+    # as `up`) and the arrivals counted at each (zero between launches).
     need: wp.array(dtype=int)
     arrived: wp.array(dtype=int)
     # Scratch of the grouping: the split of each pair of neighbours (two halves, the level's
@@ -250,7 +250,7 @@ else:
         grid.boxes[key] = box
 
 
-# Reads through L2 alone (`_refit_tree`: records that other threads of the launch wrote; an
+# Reads through L2 alone (`_refit_up`: records that other threads of the launch wrote; an
 # SM's L1 may hold a line of them loaded before), a record's lo (h = 0) or hi half.
 _T = "float" if real is wp.float32 else "double"
 _CG_VEC = f"""
@@ -276,16 +276,13 @@ def _box_half_cg(a: wp.array(dtype=Box), k: int, h: int) -> vec3: ...
 def _nbox_half_cg(a: wp.array(dtype=NBox), k: int, h: int) -> vec3: ...
 
 
-_CG_WORLD = """
+@wp.func_native("""
 #if defined(__CUDA_ARCH__)
 return __ldcg(&a.data[k].world);
 #else
 return a.data[k].world;
 #endif
-"""
-
-
-@wp.func_native(_CG_WORLD)
+""")
 def _box_world_cg(a: wp.array(dtype=Box), k: int) -> int: ...
 
 
@@ -304,14 +301,6 @@ def _arrive(a: wp.array(dtype=int), k: int) -> int:
     writes and acquires those of the threads that added before it (a __threadfence is a
     sequentially consistent fence: 0.5 -> ? ms for both trees' refits at 2^20 on an H100)."""
     ...
-
-
-@wp.func
-def group_of(grid: Grid, k: int, j: int):
-    """The group of slot j of level k (0: the item slots), numbered over every level."""
-    if k == 0:
-        return j // W
-    return (grid.items.shape[0] + grid.offsets[k] + j) // W
 
 
 @wp.func
@@ -780,7 +769,6 @@ def _reduce(first: int, grid: Grid, k: int):
     for c in range(W):
         q = W * e + c
         if k == 1:
-            need += int(item_world(grid, q) != -2)
             box.lo = wp.min(box.lo, item_lo(grid, q))
             box.hi = wp.max(box.hi, item_hi(grid, q))
             box.world = _worlds(box.world, item_world(grid, q))
@@ -798,9 +786,9 @@ def _reduce(first: int, grid: Grid, k: int):
     write_box(grid, grid.offsets[k] + j, box)
     if grid.normals == 1:
         grid.nboxes[grid.offsets[k] + j] = nb
-    grid.need[group_of(grid, k - 1, W * e)] = need
     if k >= 2:
         grid.up[grid.offsets[k - 1] // W + e] = j
+        grid.need[grid.offsets[k - 1] // W + e] = need
 
 
 #: Items a thread of the prefix sum adds up in order.
@@ -1013,115 +1001,70 @@ def measure_faces(grid: Grid, points, faces, lebesgue: float, world, device, wor
 # A refit: the records again in the previous build's slots, raising rebuild[0] where an
 # item left the margin, and every level's boxes; a build follows when raised (the caller's
 # choice on the device: wp.capture_if).
-@wp.func_native(_CG_REC)
-def _item_half_cg(a: wp.array(dtype=Item), k: int, h: int) -> vec3: ...
-
-
-@wp.func_native(_CG_WORLD)
-def _item_world_cg(a: wp.array(dtype=Item), k: int) -> int: ...
-
-
 @wp.kernel
-def _refit_tree(
-    grid: Grid,
-    points: wp.array(dtype=vec3),
-    faces: wp.array2d(dtype=int),
-    lebesgue: real,
-    is_faces: int,
-    world: wp.array(dtype=int),
-    corners: int,
-    nlo: wp.array(dtype=vec3),
-    nhi: wp.array(dtype=vec3),
-    rebuild: wp.array(dtype=wp.int32),
-):
-    """A refit in one launch (CUDA): thread q refits item slot q (its record, corners, normal
-    box, the rebuild check of _gather), then goes up as in Karras's refit of a binary tree:
-    the last of a group's slots to arrive (counted in grid.arrived, `_arrive`) makes the
-    parent's box from the siblings' (read through L2) and resets the count for the next
-    launch; the others stop."""
-    q = wp.tid()
-    if q >= W * grid.counts[1]:
+def _refit_up(grid: Grid):
+    """Every level's boxes over the item slots in one launch, as Karras refits a binary tree:
+    thread e makes entry e of level 1 and goes up; the last slot of a group to arrive
+    (counted in grid.arrived, `_arrive`) makes the parent's box from its siblings' (read
+    through L2) and resets the count for the next launch, the others stop. The same boxes
+    as `fill`'s launch a level (tested), without `fill`'s launches (a dozen a tree)."""
+    e = wp.tid()
+    if e >= grid.counts[1]:
         return
-    i = item_id(grid, q)
-    if i < 0:
-        return  # an empty slot: its record (lo > hi) is the build's
-    centre = vec3(real(0.0))
-    lo = centre
-    hi = centre
-    if is_faces == 1:
-        centre, r, lo, hi = face_bounds(points, faces, i, lebesgue)
-        if corners == 1:
-            for v in range(3):
-                grid.corners[q, v] = points[faces[i, v]]
-    else:
-        centre = points[i]
-        lo = centre
-        hi = centre
-    if wp.length(centre - grid.centres[q]) > grid.margin:
-        rebuild[0] = 1
-    write_item(grid, q, lo, i, hi, world[i])
-    if grid.normals == 1:
-        nb = NBox()
-        nb.lo = nlo[i]
-        nb.hi = nhi[i]
-        grid.nitems[q] = nb
-    k = int(0)
-    j = q
+    box = Box()
+    box.lo = vec3(real(1.0e30))
+    box.hi = vec3(real(-1.0e30))
+    box.first = W * e
+    box.world = -2
+    nb = _empty_nbox()
+    for c in range(W):
+        q = W * e + c
+        box.lo = wp.min(box.lo, item_lo(grid, q))
+        box.hi = wp.max(box.hi, item_hi(grid, q))
+        box.world = _worlds(box.world, item_world(grid, q))
+        if grid.normals == 1:
+            nb = _nbox_union(nb, grid.nitems[q])
+    k = int(1)
+    j = grid.slots[grid.slot_offsets[1] + e]
     top = grid.root[0]
-    while k < top:
-        g = group_of(grid, k, j)
+    while k <= top:
+        key = grid.offsets[k] + j
+        write_box(grid, key, box)
+        if grid.normals == 1:
+            grid.nboxes[key] = nb
+        if k == top:
+            return
+        g = key // W  # this slot's group (offsets are multiples of W)
         if _arrive(grid.arrived, g) < grid.need[g] - 1:
             return  # a sibling yet to arrive goes on
         grid.arrived[g] = 0
-        box = Box()
         box.lo = vec3(real(1.0e30))
         box.hi = vec3(real(-1.0e30))
         box.first = W * (j // W)
         box.world = -2
         nb = _empty_nbox()
         for c in range(W):
-            if k == 0:
-                box.lo = wp.min(box.lo, _item_half_cg(grid.items, box.first + c, 0))
-                box.hi = wp.max(box.hi, _item_half_cg(grid.items, box.first + c, 1))
-                box.world = _worlds(box.world, _item_world_cg(grid.items, box.first + c))
-                if grid.normals == 1:
-                    nb.lo = wp.min(nb.lo, _nbox_half_cg(grid.nitems, box.first + c, 0))
-                    nb.hi = wp.max(nb.hi, _nbox_half_cg(grid.nitems, box.first + c, 1))
-            else:
-                key = grid.offsets[k] + box.first + c
-                box.lo = wp.min(box.lo, _box_half_cg(grid.boxes, key, 0))
-                box.hi = wp.max(box.hi, _box_half_cg(grid.boxes, key, 1))
-                box.world = _worlds(box.world, _box_world_cg(grid.boxes, key))
-                if grid.normals == 1:
-                    nb.lo = wp.min(nb.lo, _nbox_half_cg(grid.nboxes, key, 0))
-                    nb.hi = wp.max(nb.hi, _nbox_half_cg(grid.nboxes, key, 1))
-        if k == 0:
-            j = grid.slots[grid.slot_offsets[1] + j // W]  # (entry j // W of level 1)
-        else:
-            j = grid.up[(grid.offsets[k] + j) // W]
+            box.lo = wp.min(box.lo, _box_half_cg(grid.boxes, W * g + c, 0))
+            box.hi = wp.max(box.hi, _box_half_cg(grid.boxes, W * g + c, 1))
+            box.world = _worlds(box.world, _box_world_cg(grid.boxes, W * g + c))
+            if grid.normals == 1:
+                nb.lo = wp.min(nb.lo, _nbox_half_cg(grid.nboxes, W * g + c, 0))
+                nb.hi = wp.max(nb.hi, _nbox_half_cg(grid.nboxes, W * g + c, 1))
+        j = grid.up[g]
         k += 1
-        write_box(grid, grid.offsets[k] + j, box)
-        if grid.normals == 1:
-            grid.nboxes[grid.offsets[k] + j] = nb
 
 
 def _refit(
     grid: Grid, lay, points, faces, lebesgue, is_faces, world, corners, device, rebuild, normals
 ):
-    """Every level's boxes refitted: one launch on a GPU; on the CPU (whose Warp atomics are
-    not atomic) the items, then a launch a level."""
-    if wp.get_device(device).is_cuda:
-        nlo, nhi = normals if normals is not None else (points, points)
-        args = [grid, points, faces, real(lebesgue), is_faces, world, int(corners), nlo, nhi]
-        wp.launch(_refit_tree, lay.slots[0], inputs=[*args, rebuild], device=device)
-        return
     if is_faces:
         args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
         launch(_face_gather, faces.shape[0], args, [], device, first=0)
     else:
         launch(_gather, grid.n, [0, points, world, 1, grid, rebuild], [], device, first=0)
     _normals(grid, grid.n, normals, device)
-    fill(grid, lay, device)
+    # (One thread on the CPU, whose Warp atomics are plain additions: not in parts.)
+    wp.launch(_refit_up, lay.entries[1], inputs=[grid], device=device)
 
 
 def refit(grid: Grid, lay: Layout, x, faces, world, device, rebuild, normals=None):
@@ -1204,9 +1147,8 @@ def allot(g: Grid, n: int, device, means=(), corners=False) -> Layout:
     g.capacity = wp.array(capacity, dtype=int, device=device)
     g.slots = wp.empty(int(slot_offsets[lay.top + 1]), dtype=int, device=device)
     g.up = wp.empty(max(total // W, 1), dtype=int, device=device)
-    groups = (lay.slots[0] + total) // W  # (`group_of`)
-    g.need = wp.empty(groups, dtype=int, device=device)
-    g.arrived = wp.zeros(groups, dtype=int, device=device)
+    g.need = wp.empty(max(total // W, 1), dtype=int, device=device)
+    g.arrived = wp.zeros(max(total // W, 1), dtype=int, device=device)
     g.centres = wp.full(lay.slots[0], vec3(1.0e30), dtype=vec3, device=device)
     g.boxes = wp.empty(total, dtype=Box, device=device)
     g.items = wp.empty(lay.slots[0], dtype=Item, device=device)
