@@ -92,9 +92,17 @@ def closest_point_edge(element, r, xe, xp=np, steps=12):
     monotone; a piece where f rises through zero holds exactly one local minimum, found by
     Newton's method kept inside the shrinking sign-change bracket (bisection when Newton
     leaves it). The global minimum is the smallest of those minima and the ends: no start can
-    miss it. All edges and pieces run as one batch (one traced loop on JAX)."""
+    miss it. All edges and pieces run as one batch (one traced loop on JAX). Straight edges
+    (tri3, quad4): the projection on the segment."""
     nodes = element.nodes
     a, b = element.edge_nodes[:, 0], element.edge_nodes[:, 1]
+    if element.linear:  # straight edges: f is linear
+        x0, x1 = xe[..., a, :], xe[..., b, :]
+        u = x1 - x0
+        p0 = x0 - r[..., None, :]
+        t = xp.clip(_safe_div(-_dot(p0, u, xp), _dot(u, u, xp), xp), 0, 1)
+        x = p0 + t[..., None] * u
+        return t, _dot(x, x, xp)
     ts = np.array([0.0, 0.5, 1.0])
     samples = nodes[a][:, None] + ts[None, :, None] * (nodes[b] - nodes[a])[:, None]  # [E, 3, 2]
     n = shape_functions(element, samples.reshape(-1, 2)).reshape(len(a), 3, -1)
