@@ -480,9 +480,7 @@ def _edges_kernel(g, real, vec3):
         i = wp.tid()
         xe = g.FaceNodes()
         for k in range(pts.shape[0]):
-            xe.x[k, 0] = pts[k][0]
-            xe.x[k, 1] = pts[k][1]
-            xe.x[k, 2] = pts[k][2]
+            xe = g.set_node(xe, k, pts[k])
         for e in range(el.n_corners):
             t, d = g.closest_point_edge(el, q[i], xe, e)
             t_out[i, e] = t

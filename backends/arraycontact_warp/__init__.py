@@ -13,7 +13,8 @@
         the RCB cuts and halos of a plan per device (`Partition.part(e)`: each part's
         slaves and master, see the README's "Several GPUs")
     closest_point_triangle, closest_point_face, closest_point_edge, start_option_one,
-    face_point: @wp.func (float32; `geometry("float64")` holds their float64 twins)
+    face_point, face_nodes, set_node: @wp.func (float32; `geometry("float64")` holds their
+    float64 twins)
 """
 
 AVAILABLE = True
@@ -39,6 +40,7 @@ from ._geometry import closest_point_triangle as closest_point_triangle  # noqa:
 from ._geometry import element_data as element_data  # noqa: E402
 from ._geometry import face_nodes as face_nodes  # noqa: E402
 from ._geometry import face_point as face_point  # noqa: E402
+from ._geometry import set_node as set_node  # noqa: E402
 from ._geometry import start_option_one as start_option_one  # noqa: E402
 from ._real import precision as _precision  # noqa: E402
 
@@ -69,6 +71,7 @@ __all__ = [
     "plan_self",
     "run_one_shot",
     "run_swept",
+    "set_node",
     "SweptPlan",
     "plan_swept",
     "detect_swept",

@@ -9,7 +9,8 @@ simulator can call them from its own kernels.
     face_point(el, xe, xi) -> x(xi)
 
 Element data travel in an `Element` struct (`element_data(name, device)` builds it); face nodes
-in a `FaceNodes` struct of up to 9 points (`face_nodes(points, faces, f, origin)`).
+in a `FaceNodes` struct of up to 9 points (`face_nodes(points, faces, f, origin)`, or
+`xe = set_node(xe, i, x)` node by node).
 feature: 0 face interior, 1 edge (local = edge id, from corner local to local + 1), 2 vertex
 (local = corner id).
 """
@@ -60,7 +61,18 @@ class Triangles:
 
 @wp.struct
 class FaceNodes:
-    x: wp.types.matrix(shape=(9, 3), dtype=real)  # node coordinates, row per node
+    """Up to 9 node coordinates, one field a node (`_row`, `set_node`): indexed at run time, a
+    matrix lives in a GPU thread's slow local memory; fields stay in registers."""
+
+    x0: vec3
+    x1: vec3
+    x2: vec3
+    x3: vec3
+    x4: vec3
+    x5: vec3
+    x6: vec3
+    x7: vec3
+    x8: vec3
 
 
 def triangle_data(device=None) -> Triangles:
@@ -143,7 +155,40 @@ def shape(el: Element, xi: vec2, i: int):
 
 @wp.func
 def _row(xe: FaceNodes, i: int):
-    return vec3(xe.x[i, 0], xe.x[i, 1], xe.x[i, 2])
+    """Node i (< 9)."""
+    if i < 4:
+        if i < 2:
+            return wp.where(i == 0, xe.x0, xe.x1)
+        return wp.where(i == 2, xe.x2, xe.x3)
+    if i < 6:
+        return wp.where(i == 4, xe.x4, xe.x5)
+    if i < 8:
+        return wp.where(i == 6, xe.x6, xe.x7)
+    return xe.x8
+
+
+@wp.func
+def set_node(x: FaceNodes, i: int, v: vec3):
+    """x with node i (< 9) set to v."""
+    if i == 0:
+        x.x0 = v
+    elif i == 1:
+        x.x1 = v
+    elif i == 2:
+        x.x2 = v
+    elif i == 3:
+        x.x3 = v
+    elif i == 4:
+        x.x4 = v
+    elif i == 5:
+        x.x5 = v
+    elif i == 6:
+        x.x6 = v
+    elif i == 7:
+        x.x7 = v
+    else:
+        x.x8 = v
+    return x
 
 
 @wp.func
@@ -171,10 +216,7 @@ def face_nodes(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: in
     """The nodes of face f relative to `origin` (nearby values subtract exactly)."""
     xe = FaceNodes()
     for i in range(faces.shape[1]):
-        p = points[faces[f, i]] - origin
-        xe.x[i, 0] = p[0]
-        xe.x[i, 1] = p[1]
-        xe.x[i, 2] = p[2]
+        xe = set_node(xe, i, points[faces[f, i]] - origin)
     return xe
 
 

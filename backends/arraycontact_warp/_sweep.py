@@ -15,7 +15,18 @@ import warp as wp
 
 from arraycontact._sweep import CONTRACTIONS, DEPTH, ROUND, VISITS
 
-from ._geometry import EDGE, FACE, VERTEX, Element, FaceNodes, Triangles, _row, face_nodes, shape
+from ._geometry import (
+    EDGE,
+    FACE,
+    VERTEX,
+    Element,
+    FaceNodes,
+    Triangles,
+    _row,
+    face_nodes,
+    set_node,
+    shape,
+)
 from ._grid import (
     Grid,
     Plain,
@@ -72,14 +83,6 @@ def _straddles(q: Any, b: Box6):
 
 
 @wp.func
-def _set(x: FaceNodes, i: int, v: vec3):
-    x.x[i, 0] = v[0]
-    x.x[i, 1] = v[1]
-    x.x[i, 2] = v[2]
-    return x
-
-
-@wp.func
 def _ab(el: Triangles, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):
     """A(xi) = x(xi) at t = 0 less the node, B(xi) = the face point's motion less the node's."""
     n0 = real(1.0) - xi[0] - xi[1]
@@ -118,7 +121,7 @@ def _bernstein(f: FaceNodes, g: int, i0: int, stride: int):
     f0 = _row(f, i0)
     fm = _row(f, i0 + stride)
     f1 = _row(f, i0 + 2 * stride)
-    return _set(f, i0 + stride, real(2.0) * fm - real(0.5) * (f0 + f1))
+    return set_node(f, i0 + stride, real(2.0) * fm - real(0.5) * (f0 + f1))
 
 
 @wp.struct
@@ -209,9 +212,9 @@ def _pair(  # noqa: F811 (a Warp overload)
     for i in range(el.nn):
         a = x0[faces[f, i]] - o
         b = x1[faces[f, i]] - o
-        q.xa = _set(q.xa, i, a)
-        q.va = _set(q.va, i, b - a)
-        xb = _set(xb, i, b)
+        q.xa = set_node(q.xa, i, a)
+        q.va = set_node(q.va, i, b - a)
+        xb = set_node(xb, i, b)
         sc = _scale(a, _scale(b, sc))
     q.p = s0 - o
     q.v = s1 - s0
@@ -351,8 +354,8 @@ def _examine(q: CurvedPair, box: Box6):  # noqa: F811 (a Warp overload)
             s = box[0] + (box[1] - box[0]) * real(i) * h1
             w = box[2] + (box[3] - box[2]) * real(jj) * h1
             ai, bi = _ab(el, q.xa, q.va, q.p, q.v, _natural(el, s, w))
-            a = _set(a, i * g + jj, ai)
-            b = _set(b, i * g + jj, bi)
+            a = set_node(a, i * g + jj, ai)
+            b = set_node(b, i * g + jj, bi)
     if g == 3:
         for jj in range(3):
             a = _bernstein(a, 3, jj, 3)
@@ -815,7 +818,7 @@ def swept_scan(
     xt = FaceNodes()
     vf = vec3(0.0)
     for q in range(nn):
-        xt = _set(xt, q, _row(xa, q) + first * (_row(xb, q) - _row(xa, q)))
+        xt = set_node(xt, q, _row(xa, q) + first * (_row(xb, q) - _row(xa, q)))
         n, d0, d1, h00, h01, h11 = _shape(el, z, q)
         vf += n * (_row(xb, q) - _row(xa, q))
     nrm = _normal(el, xt, z)
