@@ -7,6 +7,8 @@
 
 Scenes (sizes from --log2 k, 2^k nodes per surface where the scene has two surfaces):
 - uniform: two rough surfaces facing each other (the README's scene);
+- quad4: the same nodes, the master in bilinear quads (the peers take each quad as two
+  triangles, whose closest points differ from the bilinear face's where it is not flat);
 - steep: rough surfaces with RMS 4 element sizes (faces much longer than their spacing);
 - graded_r: the grading family, the same node count with element sizes 1 .. r, r = 1, 10,
   100, 1000 (roughness and gap scale with the local size);
@@ -50,6 +52,9 @@ def suite(k: int):
     s = ac.scenes
     out = [
         ("uniform", lambda: s.rough_surfaces(n), 1.0),
+        # The same nodes in bilinear quads (hexahedral meshes' faces); the peers take each quad
+        # as two triangles.
+        ("quad4", lambda: s.rough_surfaces(n, element="quad4"), 1.0),
         ("steep", lambda: s.steep_rough_surfaces(n), 1.0),
     ]
     for r in (1, 10, 100, 1000):
@@ -64,6 +69,14 @@ def suite(k: int):
     for path in sorted(SCENE_DIR.glob("ball_block_*.npz")):
         out.append((path.stem, lambda path=path: load_scene(path), 1.0))
     return out
+
+
+def triangles(surface):
+    """The peers' triangles: tri3 faces, or each quad4 split along its 0-2 diagonal."""
+    f = surface.faces
+    if surface.element.name == "quad4":
+        return np.concatenate([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
+    return f
 
 
 def load_scene(path):
@@ -271,18 +284,19 @@ def run_cpu(a):
         m = scene.master
         d_max = f * m.longest_edge
         q32 = np.ascontiguousarray(scene.slave, np.float32)
+        tris = triangles(m)
 
         def fcpw_run():
             sc = fcpw.scene_3D()
             sc.set_object_count(1)
             sc.set_object_vertices(np.ascontiguousarray(m.points, np.float32), 0)
-            sc.set_object_triangles(np.ascontiguousarray(m.faces, np.int32), 0)
+            sc.set_object_triangles(np.ascontiguousarray(tris, np.int32), 0)
             sc.build(fcpw.aggregate_type.bvh_surface_area, True)
             hits = fcpw.interaction_3D_list()
             sc.find_closest_points(q32, np.full(len(q32), d_max * d_max, np.float32), hits)
 
         def igl_run():
-            igl.point_mesh_squared_distance(scene.slave, m.points, m.faces.astype(np.int64))
+            igl.point_mesh_squared_distance(scene.slave, m.points, tris.astype(np.int64))
 
         t_fcpw = _median_time(fcpw_run, a.repeats)
         t_igl = _median_time(igl_run, max(a.repeats // 2, 1))
