@@ -418,10 +418,10 @@ def test_refit_in_one_launch_equals_a_launch_a_level(name):
         moved = s.master.points + rng.normal(0, 0.3 * L, s.master.points.shape)
         m.points.assign((moved - p.origin).astype(np.float32))
         p.rebuild.zero_()
-        args = (m.points, m.faces)
-        warp_grid.refit(p.node_grid, p.node_layout, *args, m.node_world, DEVICE, p.rebuild, node_n)
-        args = (*args, p.constants.lebesgue, m.face_world, DEVICE, tri3, p.rebuild, face_n)
-        warp_grid.refit_faces(p.face_grid, p.face_layout, *args)
+        args = (m.points, m.node_world, DEVICE, p.rebuild, node_n)
+        warp_grid.refit(p.node_grid, p.node_layout, *args)
+        args = (m.points, m.faces, p.constants.lebesgue, m.face_world, DEVICE, tri3)
+        warp_grid.refit_faces(p.face_grid, p.face_layout, *args, p.rebuild, face_n)
         assert int(p.rebuild.numpy()[0]) == 1  # moved 0.3 edges: past the margin
         one = [_tree_state(p.node_grid), _tree_state(p.face_grid)]
         warp_grid.fill(p.node_grid, p.node_layout, DEVICE)

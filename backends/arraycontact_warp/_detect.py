@@ -751,11 +751,10 @@ def _master_stages(p: Plan, xm, m_origin):
         or (dev.is_capturing and wp.is_conditional_graph_supported())
     ):
         p.rebuild.zero_()
-        args = (m.points, m.faces)
-        _grid.refit(p.node_grid, p.node_layout, *args, m.node_world, dev, p.rebuild, node_n)
+        _grid.refit(p.node_grid, p.node_layout, m.points, m.node_world, dev, p.rebuild, node_n)
         if p.mode == 0:
             tri3 = p.master.element.name == "tri3"
-            args = (*args, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
+            args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
             _grid.refit_faces(p.face_grid, p.face_layout, *args)
         wp.capture_if(p.rebuild, on_true=lambda: _build(p))
     else:

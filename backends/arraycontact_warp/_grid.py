@@ -121,7 +121,7 @@ class Grid:
     # tri3 face trees: the three corners of each face by item slot (the projection's only
     # data, read contiguously); [1, 3] otherwise.
     corners: wp.array2d(dtype=vec3)
-    # Each item's centre (a node: its position) when it was sorted, by item slot.
+    # Each item's centre (a node: its position) when it was sorted, in key order.
     centres: wp.array(dtype=vec3)
     # Self-contact (normals = 1): the normal boxes of the slots (as `boxes`) and of the
     # items (by slot), so that a scan skips what nowhere faces the slave's normal.
@@ -298,8 +298,8 @@ return a.data[k]++;
 """)
 def _arrive(a: wp.array(dtype=int), k: int) -> int:
     """a[k] += 1, returning the count before: on a GPU an atomic that releases this thread's
-    writes and acquires those of the threads that added before it (a __threadfence is a
-    sequentially consistent fence: 0.5 -> ? ms for both trees' refits at 2^20 on an H100)."""
+    writes and acquires those of the threads that added before it (what the climb needs; a
+    __threadfence is a sequentially consistent fence)."""
     ...
 
 
@@ -531,13 +531,12 @@ def _gather(
     previous build's; rebuild[0] is raised when a node moved farther than grid.margin."""
     k = first + wp.tid()
     i = grid.sorted_ids[k]
-    q = slot(grid, k)
     if refit == 1:
-        if wp.length(x[i] - grid.centres[q]) > grid.margin:
+        if wp.length(x[i] - grid.centres[k]) > grid.margin:
             rebuild[0] = 1
     else:
-        grid.centres[q] = x[i]
-    write_item(grid, q, x[i], i, x[i], world[i])
+        grid.centres[k] = x[i]
+    write_item(grid, slot(grid, k), x[i], i, x[i], world[i])
 
 
 @wp.kernel
@@ -557,12 +556,12 @@ def _face_gather(
     k = first + wp.tid()
     i = grid.sorted_ids[k]
     c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
-    q = slot(grid, k)
     if refit == 1:
-        if wp.length(c - grid.centres[q]) > grid.margin:
+        if wp.length(c - grid.centres[k]) > grid.margin:
             rebuild[0] = 1
     else:
-        grid.centres[q] = c
+        grid.centres[k] = c
+    q = slot(grid, k)
     write_item(grid, q, lo, i, hi, world[i])
     if corners == 1:
         for j in range(3):
@@ -1054,37 +1053,23 @@ def _refit_up(grid: Grid):
         k += 1
 
 
-def _refit(
-    grid: Grid, lay, points, faces, lebesgue, is_faces, world, corners, device, rebuild, normals
-):
-    if is_faces:
-        args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
-        launch(_face_gather, faces.shape[0], args, [], device, first=0)
-    else:
-        launch(_gather, grid.n, [0, points, world, 1, grid, rebuild], [], device, first=0)
-    _normals(grid, grid.n, normals, device)
-    # (One thread on the CPU, whose Warp atomics are plain additions: not in parts.)
-    wp.launch(_refit_up, lay.entries[1], inputs=[grid], device=device)
-
-
-def refit(grid: Grid, lay: Layout, x, faces, world, device, rebuild, normals=None):
-    """The node tree's refit (faces: any int array2d, not read)."""
-    _refit(grid, lay, x, faces, 0.0, 0, world, False, device, rebuild, normals)
+def refit(grid: Grid, lay: Layout, x, world, device, rebuild, normals=None):
+    launch(_gather, grid.n, [0, x, world, 1, grid, rebuild], [], device, first=0)
+    _refit_boxes(grid, lay, normals, device)
 
 
 def refit_faces(
-    grid: Grid,
-    lay: Layout,
-    points,
-    faces,
-    lebesgue: float,
-    world,
-    device,
-    corners: bool,
-    rebuild,
-    normals=None,
+    grid: Grid, lay: Layout, points, faces, lebesgue, world, device, corners, rebuild, normals=None
 ):
-    _refit(grid, lay, points, faces, lebesgue, 1, world, corners, device, rebuild, normals)
+    args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
+    launch(_face_gather, faces.shape[0], args, [], device, first=0)
+    _refit_boxes(grid, lay, normals, device)
+
+
+def _refit_boxes(grid: Grid, lay: Layout, normals, device):
+    _normals(grid, grid.n, normals, device)
+    # (One thread on the CPU, whose Warp atomics are plain additions: not in parts.)
+    wp.launch(_refit_up, lay.entries[1], inputs=[grid], device=device)
 
 
 def new_grid(
@@ -1122,6 +1107,7 @@ def new_grid(
     g.margin = real(margin)
     g.sorted_ids = wp.empty(2 * m, dtype=int, device=device)
     g.keys = wp.empty(2 * m, dtype=wp.int64, device=device)
+    g.centres = wp.full(m, vec3(1.0e30), dtype=vec3, device=device)
     g.normals = int(normals)
     return g, world_bits
 
@@ -1149,7 +1135,6 @@ def allot(g: Grid, n: int, device, means=(), corners=False) -> Layout:
     g.up = wp.empty(max(total // W, 1), dtype=int, device=device)
     g.need = wp.empty(max(total // W, 1), dtype=int, device=device)
     g.arrived = wp.zeros(max(total // W, 1), dtype=int, device=device)
-    g.centres = wp.full(lay.slots[0], vec3(1.0e30), dtype=vec3, device=device)
     g.boxes = wp.empty(total, dtype=Box, device=device)
     g.items = wp.empty(lay.slots[0], dtype=Item, device=device)
     g.corners = wp.empty((lay.slots[0] if corners else 1, 3), dtype=vec3, device=device)
