@@ -42,7 +42,16 @@ from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
 from ._parts import launch as _slave_launch
-from ._projection import Master, project, scan_attached, scan_faces
+from ._projection import (
+    FACING_TOL,
+    Master,
+    face_normal_dot,
+    holds,
+    project,
+    project_face,
+    scan_attached,
+    scan_faces,
+)
 from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal, self_face_geometry, self_node_geometry
 
@@ -71,15 +80,49 @@ def _own(  # noqa: F811 (a Warp overload)
 
 
 @wp.func
-def _reach(kind: _grid.Plain, dn: real, d_max: real):
+def _reach(
+    kind: _grid.Plain,
+    el: Any,
+    m: Master,
+    grid: _grid.Grid,
+    s: vec3,
+    node: int,
+    dn: real,
+    d_max: real,
+    iterations: int,
+    tol: real,
+):
     """The face scan's first reach: the closest node's distance bounds the answer, or (Own)
-    not: it need not lie on an admissible face."""
+    not: it need not lie on an admissible face (arraycontact._detect.self_reach)."""
     return wp.min(dn, d_max)
 
 
 @wp.func
-def _reach(kind: _grid.Own, dn: real, d_max: real):  # noqa: F811 (a Warp overload)
-    return d_max
+def _reach(  # noqa: F811 (a Warp overload)
+    kind: _grid.Own,
+    el: Any,
+    m: Master,
+    grid: _grid.Grid,
+    s: vec3,
+    node: int,
+    dn: real,
+    d_max: real,
+    iterations: int,
+    tol: real,
+):
+    # Any admissible face bounds the answer: those around the closest obtuse node, projected
+    # and tested exactly as the scan will (the same functions, so the same verdicts). On a
+    # thin body most nodes face the other side within d_max: the scan then starts at its
+    # distance instead of d_max.
+    best = d_max
+    if node >= 0:
+        for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
+            f = m.nf_ids[j]
+            if not holds(m, f, kind.node):
+                xi, feature, local, conv, diff = project_face(el, m, grid, s, f, iterations, tol)
+                if face_normal_dot(el, m, f, xi, kind.normal) < -real(FACING_TOL):
+                    best = wp.min(best, wp.length(diff))
+    return best
 
 
 @wp.kernel
@@ -131,6 +174,7 @@ def _face_kernel(
     kind: Any,
     own_nodes: wp.array(dtype=int),
     normals: wp.array(dtype=vec3),
+    nodes: wp.array(dtype=int),
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
@@ -145,7 +189,7 @@ def _face_kernel(
     if shared == 1:
         w = 0
     o = _own(kind, own_nodes, normals, i)
-    rho = _reach(kind, dist[i], d_max) + slack
+    rho = _reach(o, el, m, face_grid, s, nodes[i], dist[i], d_max, iterations, tol) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
     # unsure. One call site in a loop keeps the generated code small.
@@ -827,6 +871,7 @@ def _launch(p: Plan, xs, s_origin, master):
                 _self_kind(p),
                 p.own_nodes,
                 p.normals,
+                o["master_node"],
             ],
             [p.dist, o["face"], p.item],
             dev,

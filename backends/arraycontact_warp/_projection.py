@@ -221,6 +221,21 @@ def _unit_cross(a: vec3, b: vec3):
 
 
 @wp.func
+def face_normal_dot(el: Triangles, m: Master, f: int, xi: vec2, n: vec3):
+    """normal_dot by face id alone (its tree item not known): the same values, so the same
+    verdict."""
+    c0 = m.points[m.faces[f, 0]]
+    return wp.dot(n, _unit_cross(m.points[m.faces[f, 1]] - c0, m.points[m.faces[f, 2]] - c0))
+
+
+@wp.func
+def face_normal_dot(el: Element, m: Master, f: int, xi: vec2, n: vec3):  # noqa: F811
+    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
+    t0, t1 = face_tangents(el, xe, xi)
+    return wp.dot(n, _unit_cross(t0, t1))
+
+
+@wp.func
 def normal_dot(el: Triangles, m: Master, grid: Grid, k: int, f: int, xi: vec2, n: vec3):
     """n . the unit normal of face f (tree item k) at xi."""
     c0 = grid.corners[k, 0]
@@ -231,9 +246,7 @@ def normal_dot(el: Triangles, m: Master, grid: Grid, k: int, f: int, xi: vec2, n
 def normal_dot(  # noqa: F811 (a Warp overload)
     el: Element, m: Master, grid: Grid, k: int, f: int, xi: vec2, n: vec3
 ):
-    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
-    t0, t1 = face_tangents(el, xe, xi)
-    return wp.dot(n, _unit_cross(t0, t1))
+    return face_normal_dot(el, m, f, xi, n)
 
 
 @wp.func
@@ -435,4 +448,13 @@ def scan_attached(
     return d_face, d_any, best, b_xi, b_feature, b_local, b_conv, b_diff
 
 
-__all__ = ["Master", "project", "scan_attached", "scan_faces"]
+__all__ = [
+    "FACING_TOL",
+    "Master",
+    "face_normal_dot",
+    "holds",
+    "project",
+    "project_face",
+    "scan_attached",
+    "scan_faces",
+]
