@@ -4,6 +4,7 @@ timing after warm-up calls, on the path a graph replays (the trees refitted: eac
 made a plan's first, whose refit check the host reads); "launches" counts them.
 
     python benchmarks/gpu_stages.py --log2 20 --only uniform graded_1000
+    python benchmarks/gpu_stages.py --log2 17 --self spiral_strip crumpled_sheet
 """
 
 import argparse
@@ -23,45 +24,68 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--only", nargs="*")
+    ap.add_argument("--self", nargs="*", help="self-contact scenes (arraycontact.scenes, quad4)")
     a = ap.parse_args()
     import arraycontact_warp as acw
     import warp as wp
 
     quiet_warp()
-    for label, make, f in suite(a.log2):
-        if a.only and not any(label.startswith(o) for o in a.only):
-            continue
-        scene = make()
-        p = acw.plan(
-            scene.master,
-            scene.slave,
-            d_max=f * scene.master.longest_edge,
-            device="cuda",
-            graphs=False,
-        )
-        xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3)
-        xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3)
-        p.origin = np.zeros(3)
+    for label, detect, slaves in _cases(a, acw, wp):
         for _ in range(3):
-            acw.detect(p, xs, xm)
+            detect()
         wp.synchronize()
         totals, counts = defaultdict(float), defaultdict(int)
         runs = 5
         for _ in range(runs):
-            p.master_ready = False
             with wp.ScopedTimer(
                 "detect", print=False, synchronize=True, cuda_filter=wp.TIMING_ALL
             ) as t:
-                acw.detect(p, xs, xm)
+                detect()
             for r in t.timing_results:
                 totals[r.name] += r.elapsed / runs
                 counts[r.name] += 1
         print(
-            f"{label}: {scene.master.n_faces} faces, {len(scene.slave)} slaves; "
+            f"{label}: {slaves}; "
             f"total {sum(totals.values()):.3f} ms in {sum(counts.values()) // runs} launches"
         )
         for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:12]:
             print(f"   {ms:8.3f} ms  {counts[name] // runs:3d}x  {name}")
+
+
+def _cases(a, acw, wp):
+    """(label, a detection on the path a graph replays, counts) per scene asked for."""
+    if a.self is not None:
+        import arraycontact as ac
+
+        for name in a.self:
+            sc = getattr(ac.scenes, name)(2**a.log2, element="quad4")
+            s = sc.master
+            p = acw.plan_self(s, d_max=sc.params["d_max"], device="cuda", graphs=False)
+            x = wp.array((s.points - p.origin).astype(np.float32), dtype=wp.vec3)
+            p.origin = np.zeros(3)
+            yield name, _first(p, lambda p=p, x=x: acw.detect_self(p, x)), f"{len(s.nodes)} nodes"
+        return
+    for label, make, f in suite(a.log2):
+        if a.only and not any(label.startswith(o) for o in a.only):
+            continue
+        scene = make()
+        d_max = f * scene.master.longest_edge
+        p = acw.plan(scene.master, scene.slave, d_max=d_max, device="cuda", graphs=False)
+        xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3)
+        xm = wp.array((scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3)
+        p.origin = np.zeros(3)
+        counts = f"{scene.master.n_faces} faces, {len(scene.slave)} slaves"
+        yield label, _first(p, lambda p=p, xs=xs, xm=xm: acw.detect(p, xs, xm)), counts
+
+
+def _first(p, call):
+    """call, made a plan's first each time: the refit a graph replays, its check on the host."""
+
+    def detect():
+        p.master_ready = False
+        call()
+
+    return detect
 
 
 if __name__ == "__main__":
