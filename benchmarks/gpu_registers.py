@@ -4,6 +4,9 @@ compiled with cuda_max_registers = each value given (0: no cap) and launched thr
 median of the repeats, outputs checked equal to the shipped kernel's.
 
     python benchmarks/gpu_registers.py --log2 20 --caps 0 56 64 72 96 128
+    python benchmarks/gpu_registers.py --log2 17 --self spiral_strip --caps 0 128 168
+
+--self: self-contact's face-scan kernel on that scene (arraycontact.scenes, quad4).
 """
 
 import argparse
@@ -25,6 +28,7 @@ def main():
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--caps", type=int, nargs="*", default=[0, 56, 64, 72, 96, 128])
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--self", help="a self-contact scene")
     a = ap.parse_args()
     import arraycontact_warp as acw
     import warp as wp
@@ -32,26 +36,41 @@ def main():
 
     quiet_warp()
     wp.init()
-    p, xs, xm = warp_plan(make_scene("rough_close", a.log2))
+    name = "_self_face_kernel" if a.self else "_face_kernel"
+    if a.self:
+        import arraycontact as ac
+
+        sc = getattr(ac.scenes, a.self)(2**a.log2, element="quad4")
+        p = acw.plan_self(sc.master, d_max=sc.params["d_max"], device="cuda")
+        x = wp.array((sc.master.points - p.origin).astype(np.float32), dtype=wp.vec3)
+        p.origin = np.zeros(3)
+
+        def detect():
+            acw.detect_self(p, x)
+    else:
+        p, xs, xm = warp_plan(make_scene("rough_close", a.log2))
+
+        def detect():
+            acw.detect(p, xs, xm)
+
     p.graphs = False  # launches one by one: each call runs the kernels it names
-    acw.detect(p, xs, xm)
+    detect()
     shipped = {k: v.numpy().copy() for k, v in p.out.items()}
-    base = _detect._face_kernel
+    base = getattr(_detect, name)
     # The shipped module's options; a module of its own per variant.
     options = {"enable_backward": False, "max_unroll": 1}
     try:
         for cap in a.caps:
             extra = {"cuda_max_registers": cap} if cap else {}
-            _detect._face_kernel = wp.kernel(module="unique", module_options=options, **extra)(
-                base.func
-            )
-            acw.detect(p, xs, xm)
+            variant = wp.kernel(module="unique", module_options=options, **extra)(base.func)
+            setattr(_detect, name, variant)
+            detect()
             times = []
             for _ in range(a.repeats):
                 with wp.ScopedTimer(
                     "k", cuda_filter=wp.TIMING_KERNEL, synchronize=True, print=False
                 ) as t:
-                    acw.detect(p, xs, xm)
+                    detect()
                 times.append(sum(r.elapsed for r in t.timing_results if "_face_kernel" in r.name))
             same = all(
                 np.array_equal(v.numpy(), shipped[k], equal_nan=True) for k, v in p.out.items()
@@ -62,7 +81,7 @@ def main():
                 flush=True,
             )
     finally:
-        _detect._face_kernel = base
+        setattr(_detect, name, base)
     for name, v in kernel_resources("cuda").items():
         if "_face_kernel" in name:
             print(f"{name}: {v['registers']} registers, {v['local_bytes']} local bytes")
