@@ -63,14 +63,19 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
 
 def _best_of_starts(xp, element, r, xe, iterations, tol):
     """Active-set Newton from start option I and, on curved faces, also from the centre
-    (option II) and each mid-edge node; the closest result wins (the first on a tie), unless
-    the exact minimum over the edges (`_edges`) is at most as far.
+    (option II) and each mid-edge node and the lattice start, on bilinear faces (quad4) from
+    the lattice start; the closest result wins (the first on a tie), unless the exact minimum
+    over the edges (`_edges`) is at most as far.
 
     The distance to a curved face can have several local minima; these starts sit in the
     basins that matter for points within an element size of the face (see
-    benchmarks/seed003_study.py for how often one start alone is not enough)."""
+    benchmarks/seed003_study.py for how often one start alone is not enough). A warped
+    bilinear quad can have two (tests/test_self_contact.py's crumpled quad4 sheet); the Warp
+    back end skips its second start where it proves one minimum (surely_convex)."""
     starts = [start_option_one(element, r, xe, xp)]
-    if not element.linear:
+    if element.linear:
+        starts.append(_lattice_start(xp, element, r, xe))
+    else:
         starts.append(start_option_two(element, r, xe, xp))
         k = element.n_corners
         starts += [

@@ -197,6 +197,18 @@ def test_backends_against_reference(backend, dtype):
     np.testing.assert_array_equal(c.finer, a.finer)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
+def test_warped_quad4_faces(backend):
+    """A coarse crumpled quad4 sheet: node 55's distance to face 58 has two local minima, the
+    farther one (the answer of a single Newton start) on a part of the face that does not
+    face the node, the nearer one 0.249 (facing) inside it; and (Warp) a node whose closest
+    obtuse node has no face that surely faces it, where the scan must not start at that
+    node's distance."""
+    sc = scenes.crumpled_sheet(300, element="quad4")
+    d = sc.params["d_max"]
+    assert_self_matches(ac.detect_self(sc.master, backend=backend, d_max=d), sc.master, d)
+
+
 @pytest.mark.parametrize("backend", ["jax", "warp"])
 def test_backends_quad4_and_node_mode(backend):
     """quad4 exact against the reference; node mode equal to NumPy's row for row (on a

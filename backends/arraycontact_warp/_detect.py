@@ -42,16 +42,7 @@ from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, element_data, triangle_data
 from ._parts import launch as _slave_launch
-from ._projection import (
-    FACING_TOL,
-    Master,
-    face_normal_dot,
-    holds,
-    project,
-    project_face,
-    scan_attached,
-    scan_faces,
-)
+from ._projection import Master, holds, project, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal, self_face_geometry, self_node_geometry
 
@@ -84,17 +75,20 @@ def _reach(
     kind: _grid.Plain,
     el: Any,
     m: Master,
-    grid: _grid.Grid,
-    s: vec3,
     node: int,
     dn: real,
     d_max: real,
-    iterations: int,
-    tol: real,
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
 ):
-    """The face scan's first reach: the closest node's distance bounds the answer, or (Own)
-    not: it need not lie on an admissible face (arraycontact._detect.self_reach)."""
+    """The face scan's first reach: the closest node's distance bounds the answer."""
     return wp.min(dn, d_max)
+
+
+#: A face surely counts for a self-contact slave of normal n when n . n_f stays below this
+#: over its normal box: far below the scan's own threshold (-FACING_TOL), whatever the
+#: rounding of the normal the scan computes at the face's closest point.
+SURELY_FACING = -0.01
 
 
 @wp.func
@@ -102,26 +96,31 @@ def _reach(  # noqa: F811 (a Warp overload)
     kind: _grid.Own,
     el: Any,
     m: Master,
-    grid: _grid.Grid,
-    s: vec3,
     node: int,
     dn: real,
     d_max: real,
-    iterations: int,
-    tol: real,
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
 ):
-    # Any admissible face bounds the answer: those around the closest obtuse node, projected
-    # and tested exactly as the scan will (the same functions, so the same verdicts). On a
-    # thin body most nodes face the other side within d_max: the scan then starts at its
-    # distance instead of d_max.
+    # Self-contact: the closest (obtuse) node bounds the answer only through a face of its
+    # own that counts (arraycontact._detect.self_reach, which projects on them): the node is
+    # a point of that face. A face of straight edges (tri3, quad4) whose corner normals all
+    # face the slave's counts wherever its closest point is (its normal x_xi x x_eta is an
+    # affine mix of the corner ones), so no projection is needed. On a thin body most nodes
+    # have such a face across the gap: their scan starts near the gap, not at d_max.
     best = d_max
-    if node >= 0:
+    if node >= 0 and m.faces.shape[1] == el.n_corners:
         for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
             f = m.nf_ids[j]
             if not holds(m, f, kind.node):
-                xi, feature, local, conv, diff = project_face(el, m, grid, s, f, iterations, tol)
-                if face_normal_dot(el, m, f, xi, kind.normal) < -real(FACING_TOL):
-                    best = wp.min(best, wp.length(diff))
+                lo = nlo[f]
+                hi = nhi[f]
+                n = kind.normal
+                high = real(0.0)
+                for a in range(3):
+                    high += real(0.5) * (n[a] * (lo[a] + hi[a]) + wp.abs(n[a]) * (hi[a] - lo[a]))
+                if high < real(SURELY_FACING):
+                    best = wp.min(best, dn)
     return best
 
 
@@ -175,6 +174,8 @@ def _face_kernel(
     own_nodes: wp.array(dtype=int),
     normals: wp.array(dtype=vec3),
     nodes: wp.array(dtype=int),
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
@@ -189,7 +190,7 @@ def _face_kernel(
     if shared == 1:
         w = 0
     o = _own(kind, own_nodes, normals, i)
-    rho = _reach(o, el, m, face_grid, s, nodes[i], dist[i], d_max, iterations, tol) + slack
+    rho = _reach(o, el, m, nodes[i], dist[i], d_max, nlo, nhi) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
     # unsure. One call site in a loop keeps the generated code small.
@@ -872,6 +873,8 @@ def _launch(p: Plan, xs, s_origin, master):
                 p.own_nodes,
                 p.normals,
                 o["master_node"],
+                p.face_nlo,
+                p.face_nhi,
             ],
             [p.dist, o["face"], p.item],
             dev,

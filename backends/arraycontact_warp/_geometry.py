@@ -548,6 +548,38 @@ def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iteration
 
 
 @wp.func
+def surely_convex(el: Element, r: vec3, xe: FaceNodes):
+    """Whether |x(xi) - r|^2 is strictly convex over a bilinear face (quad4): then its one
+    stationary point is the closest point, which one Newton start finds; where this is not
+    proven (a warped quad, a point far off it) `project` adds the lattice start, as NumPy
+    always does (a warped quad can hold a second, farther local minimum: the crumpled sheet
+    of tests/test_self_contact.py).
+
+    x = a0 + a1 xi + a2 eta + a3 xi eta. The Hessian J^T J + [[0, c], [c, 0]], c = (x - r) .
+    a3, is positive definite where lambda_min(J^T J) >= det / trace exceeds |c|; over the
+    square |x_xi x x_eta| >= |a1 x a2| - |a1 x a3| - |a3 x a2| (the normal is affine), the
+    trace <= (|a1| + |a3|)^2 + (|a2| + |a3|)^2 and |c| <= |a3| (|a0 - r| + |a1| + |a2| +
+    |a3|). 1% spare covers the rounding."""
+    a0 = vec3(0.0)
+    a1 = vec3(0.0)
+    a2 = vec3(0.0)
+    a3 = vec3(0.0)
+    for i in range(4):
+        z = el.nodes[i]
+        x = real(0.25) * _row(xe, i)
+        a0 += x
+        a1 += z[0] * x
+        a2 += z[1] * x
+        a3 += z[0] * z[1] * x
+    w = wp.length(a3)
+    low = wp.length(wp.cross(a1, a2)) - wp.length(wp.cross(a1, a3)) - wp.length(wp.cross(a3, a2))
+    t1 = wp.length(a1) + w
+    t2 = wp.length(a2) + w
+    far = wp.length(a0 - r) + wp.length(a1) + wp.length(a2) + w
+    return low > real(0.0) and low * low > real(1.01) * (t1 * t1 + t2 * t2) * w * far
+
+
+@wp.func
 def start_option_one(el: Element, r: vec3, xe: FaceNodes):
     """Seed 003 start (I): the closest of the corners and the centre."""
     best = el.nodes[0]

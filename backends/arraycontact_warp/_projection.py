@@ -27,6 +27,7 @@ from ._geometry import (
     face_point,
     face_tangents,
     start_option_one,
+    surely_convex,
 )
 from ._grid import (
     Grid,
@@ -169,17 +170,21 @@ def project(  # noqa: F811 (a Warp overload)
     feature = int(0)
     local = int(-1)
     conv = int(1)
-    # Start I, then on curved faces the centre, each mid-edge node and the lattice start; the
-    # closest result wins, the first on a tie. One call site keeps the generated code small.
+    # Start I, then on curved faces the centre, each mid-edge node and the lattice start, on
+    # a bilinear face the lattice start unless one start surely suffices; the closest result
+    # wins, the first on a tie. One call site keeps the generated code small.
     n_starts = 1
     if el.nn > el.n_corners:
         n_starts = el.n_corners + 3
+    elif el.n_corners == 4:
+        if not surely_convex(el, r, xe):
+            n_starts = 2
     best = real(3.0e38)
     for k in range(n_starts):
         start = el.centre
         if k == 0:
             start = start_option_one(el, r, xe)
-        elif k == el.n_corners + 2:
+        elif k == el.n_corners + 2 or el.nn == el.n_corners:
             start = lattice_start(el, r, xe)
         elif k > 1:
             start = el.nodes[el.n_corners + k - 2]
@@ -221,21 +226,6 @@ def _unit_cross(a: vec3, b: vec3):
 
 
 @wp.func
-def face_normal_dot(el: Triangles, m: Master, f: int, xi: vec2, n: vec3):
-    """normal_dot by face id alone (its tree item not known): the same values, so the same
-    verdict."""
-    c0 = m.points[m.faces[f, 0]]
-    return wp.dot(n, _unit_cross(m.points[m.faces[f, 1]] - c0, m.points[m.faces[f, 2]] - c0))
-
-
-@wp.func
-def face_normal_dot(el: Element, m: Master, f: int, xi: vec2, n: vec3):  # noqa: F811
-    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
-    t0, t1 = face_tangents(el, xe, xi)
-    return wp.dot(n, _unit_cross(t0, t1))
-
-
-@wp.func
 def normal_dot(el: Triangles, m: Master, grid: Grid, k: int, f: int, xi: vec2, n: vec3):
     """n . the unit normal of face f (tree item k) at xi."""
     c0 = grid.corners[k, 0]
@@ -246,7 +236,9 @@ def normal_dot(el: Triangles, m: Master, grid: Grid, k: int, f: int, xi: vec2, n
 def normal_dot(  # noqa: F811 (a Warp overload)
     el: Element, m: Master, grid: Grid, k: int, f: int, xi: vec2, n: vec3
 ):
-    return face_normal_dot(el, m, f, xi, n)
+    xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
+    t0, t1 = face_tangents(el, xe, xi)
+    return wp.dot(n, _unit_cross(t0, t1))
 
 
 @wp.func
@@ -448,13 +440,4 @@ def scan_attached(
     return d_face, d_any, best, b_xi, b_feature, b_local, b_conv, b_diff
 
 
-__all__ = [
-    "FACING_TOL",
-    "Master",
-    "face_normal_dot",
-    "holds",
-    "project",
-    "project_face",
-    "scan_attached",
-    "scan_faces",
-]
+__all__ = ["Master", "holds", "project", "scan_attached", "scan_faces"]
