@@ -537,6 +537,65 @@ def test_exported_closest_point_edge(element, dtype):
         assert np.allclose(((xt @ pts - q) ** 2).sum(-1), d.numpy()[:, k], rtol=tol, atol=tol)
 
 
+def test_surely_convex_bilinear_faces():
+    """`surely_convex` (one Newton start suffices on a bilinear face) only where the Hessian
+    of |x(xi) - r|^2 is positive definite over the whole square (checked on a 41 x 41 grid
+    from its closed form), and not vacuous: it holds for near-flat quads and points near
+    them, fails for strongly warped ones."""
+    from arraycontact._elements import get_element, shape_functions
+
+    g = acw.geometry("float64")
+
+    # fmt: off
+    @wp.kernel(module="unique")
+    def convex(el: g.Element, xs: wp.array2d(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d),
+               out: wp.array(dtype=int)):
+        i = wp.tid()
+        xe = g.FaceNodes()
+        for k in range(4):
+            xe = g.set_node(xe, k, xs[i, k])
+        out[i] = int(g.surely_convex(el, r[i], xe))
+    # fmt: on
+
+    e = get_element("quad4")
+    rng = np.random.default_rng(11)
+    n = 2000
+    warp = rng.uniform(0.0, 0.6, n)[:, None, None]
+    xs = np.c_[e.nodes, np.zeros(4)][None] + warp * rng.normal(size=(n, 4, 3))
+    r = rng.normal(size=(n, 3)) * rng.uniform(0.1, 2.0, n)[:, None]
+    out = wp.zeros(n, dtype=int, device=DEVICE)
+    arr = wp.array(xs, dtype=wp.vec3d, device=DEVICE)
+    wp.launch(
+        convex,
+        n,
+        inputs=[g.element_data("quad4", DEVICE), arr, wp.array(r, dtype=wp.vec3d, device=DEVICE)],
+        outputs=[out],
+        device=DEVICE,
+    )
+    ok = out.numpy().astype(bool)
+    assert 0.2 < ok.mean() < 0.9
+    t = np.linspace(-1, 1, 41)
+    xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
+    n_x = shape_functions(e, xi)  # [G, 4]
+    a3 = 0.25 * np.einsum("c,pck->pk", e.nodes[:, 0] * e.nodes[:, 1], xs)
+    x = np.einsum("gc,pck->pgk", n_x, xs)
+    z = e.nodes
+    # x_xi = sum_c z_c0 (1 + z_c1 eta) / 4 x_c, x_eta likewise.
+    d_xi = np.einsum("gc,pck->pgk", z[None, :, 0] * (1 + z[None, :, 1] * xi[:, 1:]) / 4, xs)
+    d_eta = np.einsum("gc,pck->pgk", z[None, :, 1] * (1 + z[None, :, 0] * xi[:, :1]) / 4, xs)
+    c = np.einsum("pgk,pk->pg", x - r[:, None], a3)
+    h = np.stack(
+        [
+            np.stack([(d_xi * d_xi).sum(-1), (d_xi * d_eta).sum(-1) + c], -1),
+            np.stack([(d_xi * d_eta).sum(-1) + c, (d_eta * d_eta).sum(-1)], -1),
+        ],
+        -2,
+    )
+    least = np.linalg.eigvalsh(h)[..., 0].min(1)
+    assert (least[ok] > 0).all()
+    assert (least[~ok] <= 0).any()  # the certificate is needed: some are not convex
+
+
 def test_jax_arrays_in_and_out():
     import jax.numpy as jnp  # a core dependency: never skipped
 

@@ -556,27 +556,26 @@ def surely_convex(el: Element, r: vec3, xe: FaceNodes):
     of tests/test_self_contact.py).
 
     x = a0 + a1 xi + a2 eta + a3 xi eta. The Hessian J^T J + [[0, c], [c, 0]], c = (x - r) .
-    a3, is positive definite where lambda_min(J^T J) >= det / trace exceeds |c|; over the
-    square |x_xi x x_eta| >= |a1 x a2| - |a1 x a3| - |a3 x a2| (the normal is affine), the
-    trace <= (|a1| + |a3|)^2 + (|a2| + |a3|)^2 and |c| <= |a3| (|a0 - r| + |a1| + |a2| +
-    |a3|). 1% spare covers the rounding."""
-    a0 = vec3(0.0)
+    a3, is positive definite where lambda_min(J^T J) >= det / trace exceeds |c|. Over the
+    square: |x_xi x x_eta| >= |a1 x a2| - |a1 x a3| - |a3 x a2| (the normal is affine in xi),
+    the trace is at most its largest value at a corner, and so is |c| (c is bilinear).
+    1% spare covers the rounding."""
     a1 = vec3(0.0)
     a2 = vec3(0.0)
     a3 = vec3(0.0)
     for i in range(4):
         z = el.nodes[i]
         x = real(0.25) * _row(xe, i)
-        a0 += x
         a1 += z[0] * x
         a2 += z[1] * x
         a3 += z[0] * z[1] * x
-    w = wp.length(a3)
     low = wp.length(wp.cross(a1, a2)) - wp.length(wp.cross(a1, a3)) - wp.length(wp.cross(a3, a2))
-    t1 = wp.length(a1) + w
-    t2 = wp.length(a2) + w
-    far = wp.length(a0 - r) + wp.length(a1) + wp.length(a2) + w
-    return low > real(0.0) and low * low > real(1.01) * (t1 * t1 + t2 * t2) * w * far
+    trace = wp.max(wp.length_sq(a1 + a3), wp.length_sq(a1 - a3))
+    trace += wp.max(wp.length_sq(a2 + a3), wp.length_sq(a2 - a3))
+    c = real(0.0)
+    for i in range(4):
+        c = wp.max(c, wp.abs(wp.dot(_row(xe, i) - r, a3)))
+    return low > real(0.0) and low * low > real(1.01) * trace * c
 
 
 @wp.func
