@@ -25,6 +25,7 @@ from ._geometry import (
     closest_point_triangle,
     start_option_one,
     start_option_two,
+    surely_convex,
 )
 from ._xp import lead
 
@@ -70,8 +71,9 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     The distance to a curved face can have several local minima; these starts sit in the
     basins that matter for points within an element size of the face (see
     benchmarks/seed003_study.py for how often one start alone is not enough). A warped
-    bilinear quad can have two (tests/test_self_contact.py's crumpled quad4 sheet); the Warp
-    back end skips its second start where it proves one minimum (surely_convex)."""
+    bilinear quad can have two (tests/test_self_contact.py's crumpled quad4 sheet): its
+    lattice start counts only where `surely_convex` does not prove one minimum (the Warp
+    kernels skip it there, and every back end gives the same answer)."""
     starts = [start_option_one(element, r, xe, xp)]
     if element.linear:
         starts.append(_lattice_start(xp, element, r, xe))
@@ -92,6 +94,8 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     )
     x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xes)
     d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
+    if element.linear:  # the lattice start only where one start is not proven enough (as Warp)
+        d = xp.stack([d[0], xp.where(surely_convex(element, r, xe, xp), xp.inf, d[1])])
     best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)  # the first start on a tie
     return _edges(xp, element, r, xe, *(v[best] for v in res[:4]))
 

@@ -543,6 +543,7 @@ def test_surely_convex_bilinear_faces():
     from its closed form), and not vacuous: it holds for near-flat quads and points near
     them, fails for strongly warped ones."""
     from arraycontact._elements import get_element, shape_functions
+    from arraycontact._geometry import surely_convex
 
     g = acw.geometry("float64")
 
@@ -574,6 +575,8 @@ def test_surely_convex_bilinear_faces():
     )
     ok = out.numpy().astype(bool)
     assert 0.2 < ok.mean() < 0.9
+    # NumPy's twin (arraycontact._geometry) decides alike, so the back ends agree.
+    np.testing.assert_array_equal(ok, surely_convex(e, r, xs))
     t = np.linspace(-1, 1, 41)
     xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
     n_x = shape_functions(e, xi)  # [G, 4]
