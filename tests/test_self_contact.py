@@ -209,6 +209,64 @@ def test_warped_quad4_faces(backend):
     assert_self_matches(ac.detect_self(sc.master, backend=backend, d_max=d), sc.master, d)
 
 
+def test_warp_first_reach_needs_a_surely_facing_face():
+    """Warp self-contact's first reach (`_detect._reach` for `Own`): the closest obtuse
+    node's distance (0.25 here) only through a face of that node that does not hold the
+    slave's node and whose whole normal box faces the slave's normal (n . n_f < -0.01 over
+    it); else d_max (1.0). Node 5 of a flat 4 x 4 quad4 grid holds faces 0, 1, 3, 4; node 0
+    only face 0, node 15 only face 8."""
+    import warp as wp
+    from arraycontact_warp import _detect, _geometry, _grid
+
+    u = np.arange(4.0)
+    x, y = np.meshgrid(u, u, indexing="xy")
+    pts = np.c_[x.ravel(), y.ravel(), np.zeros(16)]
+    faces = np.array([[r * 4 + c, r * 4 + c + 1, r * 4 + c + 5, r * 4 + c + 4]
+                      for r in range(3) for c in range(3)])  # fmt: skip
+    surface = ac.Surface(pts, faces)
+    p = _detect.plan_self(surface, d_max=1.0, device="cpu")
+
+    @wp.kernel(module="unique")
+    def reach(
+        el: _geometry.Element,
+        m: _detect.Master,
+        own: wp.array(dtype=int),
+        normal: wp.array(dtype=wp.vec3),
+        node: wp.array(dtype=int),
+        nlo: wp.array(dtype=wp.vec3),
+        nhi: wp.array(dtype=wp.vec3),
+        out: wp.array(dtype=float),
+    ):
+        i = wp.tid()
+        o = _grid.Own()
+        o.node = own[i]
+        o.normal = normal[i]
+        out[i] = _detect._reach(o, el, m, node[i], 0.25, 1.0, nlo, nhi)
+
+    def first_reach(own, normal, node, lo, hi):
+        out = wp.zeros(1, dtype=float, device="cpu")
+        n = np.asarray(normal, float) / np.linalg.norm(normal)
+        ints = [wp.array([v], dtype=int, device="cpu") for v in (own, node)]
+        vecs = [wp.array(np.asarray(v, float), dtype=wp.vec3, device="cpu") for v in ([n], lo, hi)]
+        args = [p.kernel_element, p.m, ints[0], vecs[0], ints[1], vecs[1], vecs[2]]
+        wp.launch(reach, 1, inputs=args, outputs=[out], device="cpu")
+        return float(out.numpy()[0])
+
+    up = np.tile([0.0, 0.0, 1.0], (9, 1))  # every face's normal +z
+    assert first_reach(15, [0, 0, -1], 5, up, up) == 0.25  # all face the slave
+    assert first_reach(15, [0, 0, 1], 5, up, up) == 1.0  # none does
+    assert first_reach(15, [0, 0, -1], -1, up, up) == 1.0  # no obtuse node
+    assert first_reach(15, [1, 0, -0.005], 5, up, up) == 1.0  # facing, not surely
+    assert first_reach(15, [1, 0, -0.02], 5, up, up) == 0.25
+    wide = np.tile([1.0, 1.0, 1.0], (9, 1))
+    assert first_reach(15, [0, 0, -1], 5, -wide, wide) == 1.0  # a box that faces every way
+    # Only face 0 faces the slave: it counts unless it holds the slave's node (node 0).
+    side = np.tile([1.0, 0.0, 0.0], (9, 1))
+    side[0] = [0.0, 0.0, 1.0]
+    assert first_reach(15, [0, 0, -1], 5, side, side) == 0.25
+    assert first_reach(0, [0, 0, -1], 5, side, side) == 1.0
+
+
 @pytest.mark.parametrize("backend", ["jax", "warp"])
 def test_backends_quad4_and_node_mode(backend):
     """quad4 exact against the reference; node mode equal to NumPy's row for row (on a
