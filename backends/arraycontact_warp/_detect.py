@@ -85,12 +85,6 @@ def _reach(
     return wp.min(dn, d_max)
 
 
-#: A face surely counts for a self-contact slave of normal n when n . n_f stays below this
-#: over its normal box: far below the scan's own threshold (-FACING_TOL), whatever the
-#: rounding of the normal the scan computes at the face's closest point.
-SURELY_FACING = -0.01
-
-
 @wp.func
 def _reach(  # noqa: F811 (a Warp overload)
     kind: _grid.Own,
@@ -113,13 +107,7 @@ def _reach(  # noqa: F811 (a Warp overload)
         for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
             f = m.nf_ids[j]
             if not holds(m, f, kind.node):
-                lo = nlo[f]
-                hi = nhi[f]
-                n = kind.normal
-                high = real(0.0)
-                for a in range(3):
-                    high += real(0.5) * (n[a] * (lo[a] + hi[a]) + wp.abs(n[a]) * (hi[a] - lo[a]))
-                if high < real(SURELY_FACING):
+                if _grid.surely_facing(kind.normal, nlo[f], nhi[f]):
                     best = wp.min(best, dn)
     return best
 

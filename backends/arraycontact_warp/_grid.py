@@ -335,6 +335,21 @@ def facing(n: vec3, b: NBox):
     return low < real(FACING_MARGIN)
 
 
+#: A face surely counts for a self-contact slave of normal n when n . n_f stays below this
+#: over its normal box: far below the scans' own threshold (-FACING_TOL), whatever the
+#: rounding of the normal a scan computes at the face's closest point.
+SURELY_FACING = -0.01
+
+
+@wp.func
+def surely_facing(n: vec3, lo: vec3, hi: vec3):
+    """Whether every normal in the box [lo, hi] faces n (facing's other side)."""
+    high = real(0.0)
+    for a in range(3):
+        high += real(0.5) * (n[a] * (lo[a] + hi[a]) + wp.abs(n[a]) * (hi[a] - lo[a]))
+    return high < real(SURELY_FACING)
+
+
 # Self-contact's tests specialise the scans by type: `Plain` (two bodies) compiles them away,
 # `Own` (the slave's node and normal) makes them. A runtime flag kept the normal live in
 # registers in every two-body scan too (uniform 2^20 on an H100: 2.55 -> 3.0 ms).
