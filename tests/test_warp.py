@@ -599,6 +599,72 @@ def test_surely_convex_bilinear_faces():
     assert (least[~ok] <= 0).any()  # the certificate is needed: some are not convex
 
 
+def test_beyond_an_edge_bilinear_faces():
+    """`beyond_an_edge` (the Warp projection then takes the closest point on the edges
+    alone) only where |x(xi) - r|^2 has no stationary point in the square: one of its
+    gradient's components, (x - r) . x_xi or (x - r) . x_eta, keeps one sign over a 41 x 41
+    grid of it; and wherever that component is clearly negative all along an edge xi = 1 or
+    eta = 1 (positive along xi = -1, eta = -1) on the grid, it says so (each edge's case is
+    met)."""
+    from arraycontact._elements import get_element, shape_functions
+
+    g = acw.geometry("float64")
+
+    # fmt: off
+    @wp.kernel(module="unique")
+    def beyond(xs: wp.array2d(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d),
+               out: wp.array(dtype=int)):
+        i = wp.tid()
+        xe = g.FaceNodes()
+        for k in range(4):
+            xe = g.set_node(xe, k, xs[i, k] - xs[i, 0])
+        out[i] = int(g.beyond_an_edge(r[i] - xs[i, 0], xe))
+    # fmt: on
+
+    e = get_element("quad4")
+    rng = np.random.default_rng(12)
+    n = 4000
+    warp = rng.uniform(0.0, 0.6, n)[:, None, None]
+    xs = np.c_[e.nodes, np.zeros(4)][None] + warp * rng.normal(size=(n, 4, 3))
+    r = rng.normal(size=(n, 3)) * rng.uniform(0.1, 2.0, n)[:, None]
+    out = wp.zeros(n, dtype=int, device=DEVICE)
+    wp.launch(
+        beyond,
+        n,
+        inputs=[
+            wp.array(xs, dtype=wp.vec3d, device=DEVICE),
+            wp.array(r, dtype=wp.vec3d, device=DEVICE),
+        ],
+        outputs=[out],
+        device=DEVICE,
+    )
+    ok = out.numpy().astype(bool)
+    assert 0.2 < ok.mean() < 0.9
+    t = np.linspace(-1, 1, 41)
+    xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)  # xi major
+    z = e.nodes
+    x = np.einsum("gc,pck->pgk", shape_functions(e, xi), xs) - r[:, None]
+    d_xi = np.einsum("gc,pck->pgk", z[None, :, 0] * (1 + z[None, :, 1] * xi[:, 1:]) / 4, xs)
+    d_eta = np.einsum("gc,pck->pgk", z[None, :, 1] * (1 + z[None, :, 0] * xi[:, :1]) / 4, xs)
+    g1 = (x * d_xi).sum(-1).reshape(n, 41, 41)  # [p, xi, eta]
+    g2 = (x * d_eta).sum(-1).reshape(n, 41, 41)
+    one_sign = (
+        (g1 < 0).all((1, 2)) | (g1 > 0).all((1, 2)) | (g2 < 0).all((1, 2)) | (g2 > 0).all((1, 2))
+    )
+    assert one_sign[ok].all()
+    scale = np.abs(g1).max((1, 2)) + np.abs(g2).max((1, 2))
+    clear = {
+        "xi = 1": g1[:, -1, :].max(1) < -0.05 * scale,
+        "xi = -1": g1[:, 0, :].min(1) > 0.05 * scale,
+        "eta = 1": g2[:, :, -1].max(1) < -0.05 * scale,
+        "eta = -1": g2[:, :, 0].min(1) > 0.05 * scale,
+    }
+    for edge, c in clear.items():
+        alone = c & ~np.any([v for k, v in clear.items() if k != edge], 0)
+        assert alone.sum() > 20, edge
+        assert ok[alone].all(), edge
+
+
 def test_jax_arrays_in_and_out():
     import jax.numpy as jnp  # a core dependency: never skipped
 

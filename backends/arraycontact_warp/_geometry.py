@@ -192,7 +192,23 @@ def set_node(x: FaceNodes, i: int, v: vec3):
 
 
 @wp.func
+def _corner_weights(xi: vec2):
+    """quad4's four shape functions (corners (-1, -1), (1, -1), (1, 1), (-1, 1)), as `shape`
+    computes them: unrolled on the node fields, a bilinear face skips the loop over nodes and
+    the run-time node selection (quad4 detection 1.5-2x faster, CPU and GPU)."""
+    u0 = real(1.0) - xi[0]
+    u1 = real(1.0) + xi[0]
+    v0 = real(1.0) - xi[1]
+    v1 = real(1.0) + xi[1]
+    w = real(0.25)
+    return w * u0 * v0, w * u1 * v0, w * u1 * v1, w * u0 * v1
+
+
+@wp.func
 def face_point(el: Element, xe: FaceNodes, xi: vec2):
+    if el.bilinear == 1:
+        n0, n1, n2, n3 = _corner_weights(xi)
+        return n0 * xe.x0 + n1 * xe.x1 + n2 * xe.x2 + n3 * xe.x3
     x = vec3(0.0)
     for i in range(el.nn):
         n, d0, d1, h00, h01, h11 = shape(el, xi, i)
@@ -202,12 +218,26 @@ def face_point(el: Element, xe: FaceNodes, xi: vec2):
 
 @wp.func
 def face_tangents(el: Element, xe: FaceNodes, xi: vec2):
+    if el.bilinear == 1:
+        return _bilinear_tangents(xe, xi)
     t0 = vec3(0.0)
     t1 = vec3(0.0)
     for i in range(el.nn):
         n, d0, d1, h00, h01, h11 = shape(el, xi, i)
         t0 += d0 * _row(xe, i)
         t1 += d1 * _row(xe, i)
+    return t0, t1
+
+
+@wp.func
+def _bilinear_tangents(xe: FaceNodes, xi: vec2):
+    """dx/dxi and dx/deta of a quad4 (`shape`'s derivatives, unrolled)."""
+    u0 = real(0.25) * (real(1.0) - xi[0])
+    u1 = real(0.25) * (real(1.0) + xi[0])
+    v0 = real(0.25) * (real(1.0) - xi[1])
+    v1 = real(0.25) * (real(1.0) + xi[1])
+    t0 = v0 * (xe.x1 - xe.x0) + v1 * (xe.x2 - xe.x3)
+    t1 = u0 * (xe.x3 - xe.x0) + u1 * (xe.x2 - xe.x1)
     return t0, t1
 
 
@@ -437,15 +467,20 @@ def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iteration
         s00 = vec3(0.0)
         s01 = vec3(0.0)
         s11 = vec3(0.0)
-        for i in range(el.nn):
-            n, d0, d1, h00, h01, h11 = shape(el, xi, i)
-            xr = _row(xe, i)
-            x += n * xr
-            t0 += d0 * xr
-            t1 += d1 * xr
-            s00 += h00 * xr
-            s01 += h01 * xr
-            s11 += h11 * xr
+        if el.bilinear == 1:
+            x = face_point(el, xe, xi)
+            t0, t1 = _bilinear_tangents(xe, xi)
+            s01 = real(0.25) * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
+        else:
+            for i in range(el.nn):
+                n, d0, d1, h00, h01, h11 = shape(el, xi, i)
+                xr = _row(xe, i)
+                x += n * xr
+                t0 += d0 * xr
+                t1 += d1 * xr
+                s00 += h00 * xr
+                s01 += h01 * xr
+                s11 += h11 * xr
         d = r - x
         g = vec2(-wp.dot(t0, d), -wp.dot(t1, d))
         gn = mat22(wp.dot(t0, t0), wp.dot(t0, t1), wp.dot(t0, t1), wp.dot(t1, t1))
@@ -560,27 +595,84 @@ def surely_convex(el: Element, r: vec3, xe: FaceNodes):
     square: |x_xi x x_eta| >= |a1 x a2| - |a1 x a3| - |a3 x a2| (the normal is affine in xi),
     the trace is at most its largest value at a corner, and so is |c| (c is bilinear).
     1% spare covers the rounding."""
-    a1 = vec3(0.0)
-    a2 = vec3(0.0)
-    a3 = vec3(0.0)
-    for i in range(4):
-        z = el.nodes[i]
-        x = real(0.25) * _row(xe, i)
-        a1 += z[0] * x
-        a2 += z[1] * x
-        a3 += z[0] * z[1] * x
+    q = real(0.25)
+    a1 = q * ((xe.x1 + xe.x2) - (xe.x0 + xe.x3))
+    a2 = q * ((xe.x2 + xe.x3) - (xe.x0 + xe.x1))
+    a3 = q * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
     low = wp.length(wp.cross(a1, a2)) - wp.length(wp.cross(a1, a3)) - wp.length(wp.cross(a3, a2))
     trace = wp.max(wp.length_sq(a1 + a3), wp.length_sq(a1 - a3))
     trace += wp.max(wp.length_sq(a2 + a3), wp.length_sq(a2 - a3))
-    c = real(0.0)
-    for i in range(4):
-        c = wp.max(c, wp.abs(wp.dot(_row(xe, i) - r, a3)))
+    c = wp.max(wp.abs(wp.dot(xe.x0 - r, a3)), wp.abs(wp.dot(xe.x1 - r, a3)))
+    c = wp.max(c, wp.max(wp.abs(wp.dot(xe.x2 - r, a3)), wp.abs(wp.dot(xe.x3 - r, a3))))
     return low > real(0.0) and low * low > real(1.01) * trace * c
+
+
+@wp.func
+def _range_on_edge(p: vec3, q: vec3, u: vec3, w: vec3):
+    """The least and greatest of (p + q t) . (u + w t) over t in [-1, 1] (a quadratic)."""
+    a = wp.dot(p, u)
+    b = wp.dot(p, w) + wp.dot(q, u)
+    c = wp.dot(q, w)
+    lo = wp.min(a - b + c, a + b + c)
+    hi = wp.max(a - b + c, a + b + c)
+    if c != real(0.0):
+        t = -b / (real(2.0) * c)
+        if t > real(-1.0) and t < real(1.0):
+            v = a + real(0.5) * b * t
+            lo = wp.min(lo, v)
+            hi = wp.max(hi, v)
+    return lo, hi
+
+
+@wp.func
+def beyond_an_edge(r: vec3, xe: FaceNodes):
+    """Whether r lies beyond an edge of a bilinear face (quad4) all along it, so that
+    |x(xi) - r|^2 has no stationary point inside the square and its minimum lies on the edges
+    (`exact_edges` alone gives the closest point: no Newton start is needed).
+
+    With x = a0 + a1 xi + a2 eta + a3 xi eta, g = (x - r) . x_xi is affine in xi with slope
+    |x_xi|^2 >= 0 (x_xi = a1 + a3 eta does not depend on xi); g < 0 all along the edge xi = 1
+    makes it negative over the whole square (and g > 0 along xi = -1 positive), so no
+    stationary point; the same with x_eta on the edges eta = +-1. Along an edge g is a
+    quadratic whose range is exact; the margin covers rounding. Nodes relative to node 0."""
+    q = real(0.25)
+    a0 = q * ((xe.x0 + xe.x2) + (xe.x1 + xe.x3)) - r
+    a1 = q * ((xe.x1 + xe.x2) - (xe.x0 + xe.x3))
+    a2 = q * ((xe.x2 + xe.x3) - (xe.x0 + xe.x1))
+    a3 = q * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
+    tol = real(64.0) * EPS * (wp.length(a0) + wp.length(a1) + wp.length(a2) + wp.length(a3))
+    tol = tol * (wp.length(a1) + wp.length(a2) + wp.length(a3))
+    lo, hi = _range_on_edge(a0 + a1, a2 + a3, a1, a3)  # xi = 1
+    out = hi < -tol
+    lo, hi = _range_on_edge(a0 - a1, a2 - a3, a1, a3)  # xi = -1
+    out = out or lo > tol
+    lo, hi = _range_on_edge(a0 + a2, a1 + a3, a2, a3)  # eta = 1
+    out = out or hi < -tol
+    lo, hi = _range_on_edge(a0 - a2, a1 - a3, a2, a3)  # eta = -1
+    return out or lo > tol
 
 
 @wp.func
 def start_option_one(el: Element, r: vec3, xe: FaceNodes):
     """Seed 003 start (I): the closest of the corners and the centre."""
+    if el.bilinear == 1:  # the corners are the nodes (face_point there is exact)
+        best = vec2(-1.0, -1.0)
+        best_d = wp.length_sq(r - xe.x0)
+        d = wp.length_sq(r - xe.x1)
+        if d < best_d:
+            best_d = d
+            best = vec2(1.0, -1.0)
+        d = wp.length_sq(r - xe.x2)
+        if d < best_d:
+            best_d = d
+            best = vec2(1.0, 1.0)
+        d = wp.length_sq(r - xe.x3)
+        if d < best_d:
+            best_d = d
+            best = vec2(-1.0, 1.0)
+        if _objective(el, xe, r, el.centre) < best_d:
+            best = el.centre
+        return best
     best = el.nodes[0]
     best_d = _objective(el, xe, r, best)
     for c in range(1, el.n_corners):

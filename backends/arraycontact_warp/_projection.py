@@ -19,6 +19,7 @@ from ._geometry import (
     Element,
     FaceNodes,
     Triangles,
+    beyond_an_edge,
     closest_point_edge,
     closest_point_face,
     closest_point_triangle,
@@ -71,11 +72,13 @@ class Master:
 
 
 @wp.func
-def exact_edges(el: Element, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int, conv: int):
+def exact_edges(
+    el: Element, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int, conv: int, best: real
+):
     """The exact closest point over the face's edges (closest_point_edge) replaces Newton's
-    answer when at most as far: no start can miss a minimum on an edge, and on a degenerate
-    quad4 Newton can stop at a stationary corner. The first edge wins a tie."""
-    best = wp.length_sq(r - face_point(el, xe, xi))
+    answer xi (at squared distance `best`) when at most as far: no start can miss a minimum
+    on an edge, and on a degenerate quad4 Newton can stop at a stationary corner. The first
+    edge wins a tie."""
     e_d = real(3.0e38)
     e_xi = xi
     e_f = feature
@@ -177,7 +180,9 @@ def project(  # noqa: F811 (a Warp overload)
     if el.nn > el.n_corners:
         n_starts = el.n_corners + 3
     elif el.n_corners == 4:
-        if not surely_convex(el, r, xe):
+        if beyond_an_edge(r, xe):
+            n_starts = 0  # the closest point is on the edges
+        elif not surely_convex(el, r, xe):
             n_starts = 2
     best = real(3.0e38)
     for k in range(n_starts):
@@ -196,7 +201,7 @@ def project(  # noqa: F811 (a Warp overload)
             feature = f2
             local = l2
             conv = c2
-    xi, feature, local, conv = exact_edges(el, r, xe, xi, feature, local, conv)
+    xi, feature, local, conv = exact_edges(el, r, xe, xi, feature, local, conv, best)
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
