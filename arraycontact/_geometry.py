@@ -180,7 +180,8 @@ def surely_convex(element, r, xe, xp=np):
     where lambda_min(J^T J) >= det / trace exceeds |c|. Over the square |x_xi x x_eta| >=
     |a1 x a2| - |a1 x a3| - |a3 x a2| (the normal is affine in xi), and the trace and |c| are
     at most their largest values at a corner (c is bilinear). 1% spare covers the rounding.
-    (The Warp kernels' twin: arraycontact_warp._geometry.surely_convex.)"""
+    Where that fails, det H > 0 over the square by its Bernstein coefficients (see the Warp
+    kernels' twin, arraycontact_warp._geometry.surely_convex, for both bounds)."""
     z = np.asarray(element.corners, np.float64)
     w = [np.full(4, 0.25), 0.25 * z[:, 0], 0.25 * z[:, 1], 0.25 * z[:, 0] * z[:, 1]]
     _, a1, a2, a3 = (xp.einsum("c,...ck->...k", xp.asarray(v, xe.dtype), xe) for v in w)
@@ -192,7 +193,33 @@ def surely_convex(element, r, xe, xp=np):
     trace = xp.maximum(xp.sum((a1 + a3) ** 2, -1), xp.sum((a1 - a3) ** 2, -1))
     trace = trace + xp.maximum(xp.sum((a2 + a3) ** 2, -1), xp.sum((a2 - a3) ** 2, -1))
     c = xp.max(xp.abs(xp.einsum("...ck,...k->...c", xe - r[..., None, :], a3)), -1)
-    return (low > 0) & (low * low > 1.01 * trace * c)
+    cheap = (low > 0) & (low * low > 1.01 * trace * c)
+    # det H = |x_xi x x_eta|^2 - 2 (x_xi . x_eta) c - c^2, of degree 2 in xi and in eta:
+    # positive over the square where its Bernstein coefficients are (values on a 3 x 3 grid).
+    b0 = xp.mean(xe, -2) - r
+    g = (-1.0, 0.0, 1.0)
+    f, size = [], 0
+    for s in g:
+        row = []
+        for t in g:
+            xs, xt = a1 + t * a3, a2 + s * a3
+            nn = xp.sum(xp.cross(xs, xt) ** 2, -1)
+            b = xp.sum(xs * xt, -1)
+            cc = xp.sum((b0 + s * a1 + t * a2 + (s * t) * a3) * a3, -1)
+            row.append(nn - 2 * b * cc - cc * cc)
+            size = xp.maximum(size, nn + 2 * xp.abs(b * cc) + cc * cc)
+        f.append(row)
+
+    def mid(f0, fm, f1):
+        return 2 * fm - 0.5 * (f0 + f1)
+
+    c = [mid(*row) for row in f]
+    coefs = [f[0][0], f[0][2], f[2][0], f[2][2], c[0], c[2], mid(*c)]
+    coefs += [mid(f[0][0], f[1][0], f[2][0]), mid(f[0][2], f[1][2], f[2][2])]
+    least = coefs[0]
+    for v in coefs[1:]:
+        least = xp.minimum(least, v)
+    return cheap | (least > 0.01 * size)
 
 
 def start_option_one(element, r, xe, xp=np):
