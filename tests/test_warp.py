@@ -932,3 +932,34 @@ def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
     np.testing.assert_allclose(dist.numpy(), d.min(1), rtol=1e-6, atol=1e-7)
     hit = d[np.arange(300), node.numpy()]
     np.testing.assert_allclose(hit, d.min(1), rtol=1e-6, atol=1e-7)
+
+
+def test_plan_declares_the_overloads_its_detect_launches():
+    """A Warp plan adds every scan-kernel overload its detections launch, so the first detect
+    does not add one (each added overload rebuilds the whole module: three compilations of
+    the scans on a first call). In a fresh process, each case's types are new there."""
+    code = """
+import arraycontact as ac, arraycontact_warp as acw
+from arraycontact import scenes
+from arraycontact_warp import _detect as d
+kernels = [d._node_kernel, d._face_kernel, d._self_face_kernel, d._finish_kernel]
+def sigs():
+    return [set(k.overloads) for k in kernels]
+for element, mode, self_contact in [("tri3", "exact", False), ("quad4", "exact", True)]:
+    s = scenes.two_bodies(200, element=element)
+    if self_contact:
+        p = acw.plan_self(s.master, d_max=0.65, device="cpu", mode=mode)
+    else:
+        p = acw.plan(s.master, s.master.points[:50], d_max=0.65, device="cpu", mode=mode)
+    before = sigs()
+    x = s.master.points
+    acw.detect_self(p, x) if self_contact else acw.detect(p, x[:50], x)
+    assert sigs() == before, (element, mode, self_contact)
+    assert sum(map(len, before)) > 0
+print("ok")
+"""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]

@@ -40,7 +40,7 @@ from arraycontact_warp import _surface  # one set of its (precision-free) kernel
 
 from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
-from ._geometry import Element, element_data, triangle_data
+from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import launch as _slave_launch
 from ._projection import Master, holds, project, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
@@ -663,6 +663,7 @@ def plan(
     p.finer = wp.zeros(n_self, dtype=wp.int32, device=device)
     if self_contact:
         out["finer"] = p.finer
+    _declare(p, tri3)
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
         wp.launch(_prepare.localise64, n, inputs=[xd, o64], outputs=[p.slave_in], device=device)
         _grid.spatial_order(
@@ -675,6 +676,19 @@ def plan(
             device,
         )
     return p
+
+
+def _declare(p: Plan, tri3: bool):
+    """Adds the overloads of the scan kernels that the plan's detections launch before the
+    first launch. Warp rebuilds a module whenever a launch adds an overload, so a first detect
+    compiled this module three times, the scans again each time (cold kernel cache, quad4,
+    CPU: first call 10.5 -> 7.9 s; tri3 8.6 -> 6.9 s). Now it compiles once."""
+    el = Triangles if tri3 else Element
+    kind = _grid.Own if p.self_contact else _grid.Plain
+    wp.overload(_node_kernel, {"kind": kind})
+    if p.mode == 0:
+        wp.overload(_self_face_kernel if p.self_contact else _face_kernel, {"el": el, "kind": kind})
+    wp.overload(_finish_kernel, {"el": el})
 
 
 def _kind(a):
