@@ -46,6 +46,23 @@ def _cheap_xla_flags():
 _cheap_xla_flags()
 
 
+def _declare_warp_kernels():
+    """Every Warp kernel overload declared before any launch, as the warm-up does
+    (tests/warp_warmup.py): a worker's modules are then the ones the warm-up compiled, whatever
+    mix of elements and precisions its tests launch (else each new mix compiles a module
+    again)."""
+    from arraycontact._backends import quiet_warp
+
+    quiet_warp()  # before arraycontact_warp imports Warp
+    from arraycontact_warp._real import precision
+
+    for dtype in ("float32", "float64"):
+        precision(dtype).declare_all()
+
+
+_declare_warp_kernels()
+
+
 def _maps():
     with open("/proc/self/maps") as f:
         return sum(1 for _ in f)

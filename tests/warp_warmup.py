@@ -5,12 +5,16 @@ modules are apart: conftest runs both precisions at once, one process a core).""
 
 import sys
 
+from arraycontact_warp._real import precision
+
 import arraycontact as ac
 from arraycontact import scenes
 from arraycontact._backends import quiet_warp
 
 quiet_warp()
 dtypes = sys.argv[1:] or ["float32", "float64"]
+for dtype in dtypes:  # every kernel overload first: each module compiles once (conftest too)
+    precision(dtype).declare_all()
 cases = [
     scenes.rough_surfaces(2**6),
     scenes.rough_surfaces(2**6, element="quad4"),

@@ -683,12 +683,31 @@ def _declare(p: Plan, tri3: bool):
     first launch. Warp rebuilds a module whenever a launch adds an overload, so a first detect
     compiled this module three times, the scans again each time (cold kernel cache, quad4,
     CPU: first call 10.5 -> 7.9 s; tri3 8.6 -> 6.9 s). Now it compiles once."""
-    el = Triangles if tri3 else Element
-    kind = _grid.Own if p.self_contact else _grid.Plain
+    _declare_kernels(Triangles if tri3 else Element, bool(p.self_contact), p.mode == 0)
+
+
+def _declare_kernels(el, self_contact: bool, exact: bool):
+    kind = _grid.Own if self_contact else _grid.Plain
     wp.overload(_node_kernel, {"kind": kind})
-    if p.mode == 0:
-        wp.overload(_self_face_kernel if p.self_contact else _face_kernel, {"el": el, "kind": kind})
+    if exact:
+        wp.overload(_self_face_kernel if self_contact else _face_kernel, {"el": el, "kind": kind})
     wp.overload(_finish_kernel, {"el": el})
+    if self_contact:
+        wp.overload(self_face_geometry, {"el": el})
+        wp.overload(self_node_geometry, {"el": el})
+
+
+def declare_all():
+    """Every overload of the generic kernels (both element structs, both scan kinds, swept),
+    before any launch, so that each module compiles once whatever the process detects next.
+    For the test suite: its Warp warm-up and its workers call it, so the workers load what the
+    warm-up compiled instead of compiling each new mix of overloads again. (A plan declares
+    only what its detections launch: on a GPU the scans of an unused element type would add
+    their compile time.)"""
+    for el in (Triangles, Element):
+        wp.overload(_sweep.swept_scan, {"el": el})
+        for self_contact in (False, True):
+            _declare_kernels(el, self_contact, True)
 
 
 def _kind(a):

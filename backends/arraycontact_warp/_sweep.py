@@ -22,6 +22,7 @@ from ._geometry import (
     Element,
     FaceNodes,
     Triangles,
+    _corner_weights,
     _row,
     face_nodes,
     set_node,
@@ -95,6 +96,11 @@ def _ab(el: Triangles, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2)
 def _ab(el: Element, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):  # noqa: F811
     a = -p
     b = -v
+    if el.bilinear == 1:  # the loop below written out (_geometry._corner_weights)
+        n0, n1, n2, n3 = _corner_weights(xi)
+        a = a + n0 * xa.x0 + n1 * xa.x1 + n2 * xa.x2 + n3 * xa.x3
+        b = b + n0 * va.x0 + n1 * va.x1 + n2 * va.x2 + n3 * va.x3
+        return a, b
     for i in range(el.nn):
         n, d0, d1, h00, h01, h11 = shape(el, xi, i)
         a += n * _row(xa, i)
