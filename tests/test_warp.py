@@ -537,12 +537,39 @@ def test_exported_closest_point_edge(element, dtype):
         assert np.allclose(((xt @ pts - q) ** 2).sum(-1), d.numpy()[:, k], rtol=tol, atol=tol)
 
 
+def _warped_quads(seed, n):
+    """n random warped quad4 faces about the square [-1, 1]^2 and a point each: (xs [n, 4, 3],
+    r [n, 3]); and, on a 41 x 41 grid of the square (xi major), x - r, x_xi and x_eta in
+    closed form [n, 41 * 41, 3]."""
+    from arraycontact._elements import get_element, shape_functions
+
+    e = get_element("quad4")
+    rng = np.random.default_rng(seed)
+    warp = rng.uniform(0.0, 0.6, n)[:, None, None]
+    xs = np.c_[e.nodes, np.zeros(4)][None] + warp * rng.normal(size=(n, 4, 3))
+    r = rng.normal(size=(n, 3)) * rng.uniform(0.1, 2.0, n)[:, None]
+    t = np.linspace(-1, 1, 41)
+    xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
+    z = e.nodes
+    x = np.einsum("gc,pck->pgk", shape_functions(e, xi), xs) - r[:, None]
+    # x_xi = sum_c z_c0 (1 + z_c1 eta) / 4 x_c, x_eta likewise.
+    d_xi = np.einsum("gc,pck->pgk", z[None, :, 0] * (1 + z[None, :, 1] * xi[:, 1:]) / 4, xs)
+    d_eta = np.einsum("gc,pck->pgk", z[None, :, 1] * (1 + z[None, :, 0] * xi[:, :1]) / 4, xs)
+    return xs, r, x, d_xi, d_eta
+
+
+def _launch_flags(kernel, n, inputs):
+    out = wp.zeros(n, dtype=int, device=DEVICE)
+    wp.launch(kernel, n, inputs=inputs, outputs=[out], device=DEVICE)
+    return out.numpy().astype(bool)
+
+
 def test_surely_convex_bilinear_faces():
     """`surely_convex` (one Newton start suffices on a bilinear face) only where the Hessian
     of |x(xi) - r|^2 is positive definite over the whole square (checked on a 41 x 41 grid
     from its closed form), and everywhere it clearly is: it holds for near-flat quads and
     points near them, fails for strongly warped ones."""
-    from arraycontact._elements import get_element, shape_functions
+    from arraycontact._elements import get_element
     from arraycontact._geometry import surely_convex
 
     g = acw.geometry("float64")
@@ -559,34 +586,15 @@ def test_surely_convex_bilinear_faces():
     # fmt: on
 
     e = get_element("quad4")
-    rng = np.random.default_rng(11)
     n = 2000
-    warp = rng.uniform(0.0, 0.6, n)[:, None, None]
-    xs = np.c_[e.nodes, np.zeros(4)][None] + warp * rng.normal(size=(n, 4, 3))
-    r = rng.normal(size=(n, 3)) * rng.uniform(0.1, 2.0, n)[:, None]
-    out = wp.zeros(n, dtype=int, device=DEVICE)
-    arr = wp.array(xs, dtype=wp.vec3d, device=DEVICE)
-    wp.launch(
-        convex,
-        n,
-        inputs=[g.element_data("quad4", DEVICE), arr, wp.array(r, dtype=wp.vec3d, device=DEVICE)],
-        outputs=[out],
-        device=DEVICE,
-    )
-    ok = out.numpy().astype(bool)
+    xs, r, x, d_xi, d_eta = _warped_quads(11, n)
+    vec = {k: wp.array(v, dtype=wp.vec3d, device=DEVICE) for k, v in (("xs", xs), ("r", r))}
+    ok = _launch_flags(convex, n, [g.element_data("quad4", DEVICE), vec["xs"], vec["r"]])
     assert 0.2 < ok.mean() < 0.9
     # NumPy's twin (arraycontact._geometry) decides alike, so the back ends agree.
     np.testing.assert_array_equal(ok, surely_convex(e, r, xs))
-    t = np.linspace(-1, 1, 41)
-    xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
-    n_x = shape_functions(e, xi)  # [G, 4]
     a3 = 0.25 * np.einsum("c,pck->pk", e.nodes[:, 0] * e.nodes[:, 1], xs)
-    x = np.einsum("gc,pck->pgk", n_x, xs)
-    z = e.nodes
-    # x_xi = sum_c z_c0 (1 + z_c1 eta) / 4 x_c, x_eta likewise.
-    d_xi = np.einsum("gc,pck->pgk", z[None, :, 0] * (1 + z[None, :, 1] * xi[:, 1:]) / 4, xs)
-    d_eta = np.einsum("gc,pck->pgk", z[None, :, 1] * (1 + z[None, :, 0] * xi[:, :1]) / 4, xs)
-    c = np.einsum("pgk,pk->pg", x - r[:, None], a3)
+    c = np.einsum("pgk,pk->pg", x, a3)
     h = np.stack(
         [
             np.stack([(d_xi * d_xi).sum(-1), (d_xi * d_eta).sum(-1) + c], -1),
@@ -610,7 +618,6 @@ def test_beyond_an_edge_bilinear_faces():
     grid of it; and wherever that component is clearly negative all along an edge xi = 1 or
     eta = 1 (positive along xi = -1, eta = -1) on the grid, it says so (each edge's case is
     met)."""
-    from arraycontact._elements import get_element, shape_functions
 
     g = acw.geometry("float64")
 
@@ -625,31 +632,11 @@ def test_beyond_an_edge_bilinear_faces():
         out[i] = int(g.beyond_an_edge(r[i] - xs[i, 0], xe))
     # fmt: on
 
-    e = get_element("quad4")
-    rng = np.random.default_rng(12)
     n = 4000
-    warp = rng.uniform(0.0, 0.6, n)[:, None, None]
-    xs = np.c_[e.nodes, np.zeros(4)][None] + warp * rng.normal(size=(n, 4, 3))
-    r = rng.normal(size=(n, 3)) * rng.uniform(0.1, 2.0, n)[:, None]
-    out = wp.zeros(n, dtype=int, device=DEVICE)
-    wp.launch(
-        beyond,
-        n,
-        inputs=[
-            wp.array(xs, dtype=wp.vec3d, device=DEVICE),
-            wp.array(r, dtype=wp.vec3d, device=DEVICE),
-        ],
-        outputs=[out],
-        device=DEVICE,
-    )
-    ok = out.numpy().astype(bool)
+    xs, r, x, d_xi, d_eta = _warped_quads(12, n)
+    vec = [wp.array(v, dtype=wp.vec3d, device=DEVICE) for v in (xs, r)]
+    ok = _launch_flags(beyond, n, vec)
     assert 0.2 < ok.mean() < 0.9
-    t = np.linspace(-1, 1, 41)
-    xi = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)  # xi major
-    z = e.nodes
-    x = np.einsum("gc,pck->pgk", shape_functions(e, xi), xs) - r[:, None]
-    d_xi = np.einsum("gc,pck->pgk", z[None, :, 0] * (1 + z[None, :, 1] * xi[:, 1:]) / 4, xs)
-    d_eta = np.einsum("gc,pck->pgk", z[None, :, 1] * (1 + z[None, :, 0] * xi[:, :1]) / 4, xs)
     g1 = (x * d_xi).sum(-1).reshape(n, 41, 41)  # [p, xi, eta]
     g2 = (x * d_eta).sum(-1).reshape(n, 41, 41)
     one_sign = (

@@ -242,6 +242,17 @@ def _bilinear_tangents(xe: FaceNodes, xi: vec2):
 
 
 @wp.func
+def _bilinear(xe: FaceNodes):
+    """A quad4 as x = a0 + a1 xi + a2 eta + a3 xi eta: (a0, a1, a2, a3)."""
+    q = real(0.25)
+    a0 = q * ((xe.x0 + xe.x2) + (xe.x1 + xe.x3))
+    a1 = q * ((xe.x1 + xe.x2) - (xe.x0 + xe.x3))
+    a2 = q * ((xe.x2 + xe.x3) - (xe.x0 + xe.x1))
+    a3 = q * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
+    return a0, a1, a2, a3
+
+
+@wp.func
 def face_nodes(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, origin: vec3):
     """The nodes of face f relative to `origin` (nearby values subtract exactly)."""
     xe = FaceNodes()
@@ -470,7 +481,7 @@ def closest_point_face(el: Element, r: vec3, xe: FaceNodes, xi0: vec2, iteration
         if el.bilinear == 1:
             x = face_point(el, xe, xi)
             t0, t1 = _bilinear_tangents(xe, xi)
-            s01 = real(0.25) * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
+            bl0, bl1, bl2, s01 = _bilinear(xe)  # (s01: a3, the others unused)
         else:
             for i in range(el.nn):
                 n, d0, d1, h00, h01, h11 = shape(el, xi, i)
@@ -617,10 +628,7 @@ def surely_convex(el: Element, r: vec3, xe: FaceNodes):
     degree 2 in xi and in eta, so positive over the square when its 9 Bernstein coefficients
     are (from its values on a 3 x 3 grid), 1% of its terms' size spare (crumpled sheet: 54%
     of candidate pairs proven by the first bound, 85% with the second)."""
-    q = real(0.25)
-    a1 = q * ((xe.x1 + xe.x2) - (xe.x0 + xe.x3))
-    a2 = q * ((xe.x2 + xe.x3) - (xe.x0 + xe.x1))
-    a3 = q * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
+    a0, a1, a2, a3 = _bilinear(xe)
     low = wp.length(wp.cross(a1, a2)) - wp.length(wp.cross(a1, a3)) - wp.length(wp.cross(a3, a2))
     trace = wp.max(wp.length_sq(a1 + a3), wp.length_sq(a1 - a3))
     trace += wp.max(wp.length_sq(a2 + a3), wp.length_sq(a2 - a3))
@@ -628,7 +636,7 @@ def surely_convex(el: Element, r: vec3, xe: FaceNodes):
     c = wp.max(c, wp.max(wp.abs(wp.dot(xe.x2 - r, a3)), wp.abs(wp.dot(xe.x3 - r, a3))))
     if low > real(0.0) and low * low > real(1.01) * trace * c:
         return True
-    b0 = q * ((xe.x0 + xe.x2) + (xe.x1 + xe.x3)) - r
+    b0 = a0 - r
     m = real(-1.0)
     p = real(1.0)
     z = real(0.0)
@@ -680,11 +688,8 @@ def beyond_an_edge(r: vec3, xe: FaceNodes):
     makes it negative over the whole square (and g > 0 along xi = -1 positive), so no
     stationary point; the same with x_eta on the edges eta = +-1. Along an edge g is a
     quadratic whose range is exact; the margin covers rounding. Nodes relative to node 0."""
-    q = real(0.25)
-    a0 = q * ((xe.x0 + xe.x2) + (xe.x1 + xe.x3)) - r
-    a1 = q * ((xe.x1 + xe.x2) - (xe.x0 + xe.x3))
-    a2 = q * ((xe.x2 + xe.x3) - (xe.x0 + xe.x1))
-    a3 = q * ((xe.x0 + xe.x2) - (xe.x1 + xe.x3))
+    a0, a1, a2, a3 = _bilinear(xe)
+    a0 = a0 - r
     tol = real(64.0) * EPS * (wp.length(a0) + wp.length(a1) + wp.length(a2) + wp.length(a3))
     tol = tol * (wp.length(a1) + wp.length(a2) + wp.length(a3))
     lo, hi = _range_on_edge(a0 + a1, a2 + a3, a1, a3)  # xi = 1
