@@ -3,9 +3,10 @@ the method and its guarantee) as `@wp.func`s, the faces' capture boxes in the si
 tree (_grid), and one kernel a slave that walks the tree with the ball around its segment and
 searches every face it meets, keeping the earliest contact.
 
-The search of a pair is depth first over boxes of (s, w, t) with a stack of pending boxes in
-the thread's local memory; faces are searched one after the other, each bounded by the
-earliest contact found so far plus the tie band (boxes that start later cannot matter)."""
+The search of a pair is depth first over boxes of (s, w, t), stepping to the next pending box
+by the path's split axes (no stack in local memory); faces are searched one after the other,
+each bounded by the earliest contact found so far plus the tie band (boxes that start later
+cannot matter)."""
 
 from __future__ import annotations
 
@@ -51,7 +52,6 @@ from ._real import EPS, real, vec2, vec3
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
-Stack = wp.types.matrix(shape=(DEPTH, 6), dtype=real)
 #: The tie band's faces a slave keeps (faces within t_tol of its earliest contact).
 BAND = 8
 BandF = wp.types.vector(length=BAND, dtype=int)
@@ -563,66 +563,151 @@ def _centre2(b: Box6):
 
 
 @wp.func
+def _lo(b: Box6, axis: int):
+    if axis == 0:
+        return b[0]
+    if axis == 1:
+        return b[2]
+    return b[4]
+
+
+@wp.func
+def _hi(b: Box6, axis: int):
+    if axis == 0:
+        return b[1]
+    if axis == 1:
+        return b[3]
+    return b[5]
+
+
+@wp.func
+def _along(b: Box6, axis: int, lo: real, hi: real):
+    """b with its extent along axis replaced by [lo, hi]."""
+    if axis == 0:
+        return Box6(lo, hi, b[2], b[3], b[4], b[5])
+    if axis == 1:
+        return Box6(b[0], b[1], lo, hi, b[4], b[5])
+    return Box6(b[0], b[1], b[2], b[3], lo, hi)
+
+
+@wp.func
+def _late(b: Box6, axis: int):
+    """Whether b is the later half of its parent along axis: the boxes are dyadic ([k h,
+    (k + 1) h], h = 2^-m: halving from the unit cube is exact while h >= MIN_WIDTH), so k's
+    parity says which half (in reals: k passes 2^31 at the depths float64 reaches)."""
+    h = _hi(b, axis) - _lo(b, axis)
+    half = real(0.5) * wp.floor(_lo(b, axis) / h + real(0.5))
+    return half != wp.floor(half)
+
+
+#: Narrowest box side halved (smaller: a contact, conservatively, as when the depth runs out);
+#: halving stays exact above it, which the backtracking of search relies on.
+MIN_WIDTH = real(16.0) * EPS
+#: The levels of search's path: DEPTH, the NumPy stack's size, in four words of 2-bit axes.
+LEVELS = DEPTH
+
+
+@wp.func
+def _axis_at(w0: wp.uint64, w1: wp.uint64, w2: wp.uint64, w3: wp.uint64, d: int):
+    """The split axis recorded at level d (2 bits a level, 32 levels a word)."""
+    w = w0
+    if d >= 96:
+        w = w3
+    elif d >= 64:
+        w = w2
+    elif d >= 32:
+        w = w1
+    return int((w >> wp.uint64(2 * (d % 32))) & wp.uint64(3))
+
+
+@wp.func
+def _with_axis(w: wp.uint64, d: int, axis: int):
+    shift = wp.uint64(2 * (d % 32))
+    return (w & ~(wp.uint64(3) << shift)) | (wp.uint64(axis) << shift)
+
+
+@wp.func
 def search(q: Any, bound: real, t_tol: real):
     """The pair's earliest contact (arraycontact._sweep.roots for one pair) before `bound`:
     (toi or 3e38, the contact box's centre (s, w), converged, boxes visited). q: TriPair or
-    CurvedPair (_pair). The whole domain is examined first: most pairs end there, before the
-    stack of pending boxes (local memory) is set up."""
-    root = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
-    state, box, axis = _visit(q, t_tol, root)
-    if state == 0:
-        return real(3.0e38), vec2(real(0.5)), 1, 1
-    if state == 1:
-        if box[4] < bound:
-            return box[4], _centre2(box), 1, 1
-        return real(3.0e38), vec2(real(0.5)), 1, 1
-    stack = Stack()
-    sp = int(0)
+    CurvedPair (_pair).
+
+    The same depth-first order as roots' stack (the earlier half first, boxes that start at
+    or after the earliest contact skipped), without the stack: a pending box is always the
+    later sibling of a box on the path from the root, so the path's split axes (registers)
+    and the current box are enough to step to the next one (the sibling, or up to the
+    parent). No local memory a thread, which on a GPU was most of the search's time."""
+    node = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
+    state, box, axis = _visit(q, t_tol, node)
     best = real(3.0e38)
     limit = bound
     where = vec2(real(0.5))
     converged = int(1)
     visits = int(1)
+    d = int(0)
+    w0 = wp.uint64(0)
+    w1 = wp.uint64(0)
+    w2 = wp.uint64(0)
+    w3 = wp.uint64(0)
     while state >= 0:
-        if state == 1:
-            best = box[4]
-            limit = wp.min(limit, best)
-            where = _centre2(box)
-        elif state == 2:
-            if sp + 2 > DEPTH:  # no room: a contact, conservatively
-                best = box[4]
-                limit = wp.min(limit, best)
-                where = _centre2(box)
+        if state == 2:
+            lo = _lo(node, axis)
+            hi = _hi(node, axis)
+            if d + 1 >= LEVELS or hi - lo < MIN_WIDTH:
+                state = 1  # no room: a contact, conservatively
+                box = node
                 converged = 0
             else:
-                mid = real(0.5) * (box[2 * axis] + box[2 * axis + 1])
-                for c in range(6):
-                    stack[sp, c] = box[c]
-                    stack[sp + 1, c] = box[c]
-                stack[sp, 2 * axis] = mid  # the later half below
-                stack[sp + 1, 2 * axis + 1] = mid  # the earlier half on top
-                sp += 2
-        if visits > VISITS and sp > 0:
-            # Over budget: the earliest pending box, never late.
-            converged = 0
-            for k in range(sp):
-                if stack[k, 4] < limit:
-                    best = stack[k, 4]
-                    limit = best
-                    where = vec2(
-                        real(0.5) * (stack[k, 0] + stack[k, 1]),
-                        real(0.5) * (stack[k, 2] + stack[k, 3]),
-                    )
-            sp = 0
-        # The next pending box that starts before the limit.
-        state = int(-1)
-        while sp > 0 and state < 0:
-            sp -= 1
-            for c in range(6):
-                box[c] = stack[sp, c]
-            if box[4] < limit:
+                if d < 32:
+                    w0 = _with_axis(w0, d, axis)
+                elif d < 64:
+                    w1 = _with_axis(w1, d, axis)
+                elif d < 96:
+                    w2 = _with_axis(w2, d, axis)
+                else:
+                    w3 = _with_axis(w3, d, axis)
+                d += 1
+                node = _along(node, axis, lo, real(0.5) * (lo + hi))  # the earlier half
                 visits += 1
-                state, box, axis = _visit(q, t_tol, box)
+                state, box, axis = _visit(q, t_tol, node)
+        if state == 1:
+            if box[4] < limit:
+                best = box[4]
+                limit = best
+                where = _centre2(box)
+        if state != 2:
+            # The next pending box that starts before the limit: the later sibling of the
+            # deepest earlier half on the path.
+            state = int(-1)
+            if visits > VISITS and d > 0:
+                # Over budget: the earliest pending box (never late), found on the way up.
+                converged = 0
+                while d > 0:
+                    d -= 1
+                    a = _axis_at(w0, w1, w2, w3, d)
+                    lo = _lo(node, a)
+                    hi = _hi(node, a)
+                    if _late(node, a):
+                        node = _along(node, a, real(2.0) * lo - hi, hi)
+                    else:
+                        sib = _along(node, a, hi, real(2.0) * hi - lo)
+                        if sib[4] < limit:
+                            best = sib[4]
+                            limit = best
+                            where = _centre2(sib)
+                        node = _along(node, a, lo, real(2.0) * hi - lo)
+            while d > 0 and state < 0:
+                a = _axis_at(w0, w1, w2, w3, d - 1)
+                lo = _lo(node, a)
+                hi = _hi(node, a)
+                if _late(node, a):
+                    node = _along(node, a, real(2.0) * lo - hi, hi)  # up to the parent
+                    d -= 1
+                else:
+                    node = _along(node, a, hi, real(2.0) * hi - lo)  # the later sibling
+                    if node[4] < limit:
+                        visits += 1
+                        state, box, axis = _visit(q, t_tol, node)
     return best, where, converged, visits
 
 
