@@ -638,18 +638,21 @@ def search(q: Any, bound: real, t_tol: real):
     and the current box are enough to step to the next one (the sibling, or up to the
     parent). No local memory a thread, which on a GPU was most of the search's time."""
     node = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
-    state, box, axis = _visit(q, t_tol, node)
     best = real(3.0e38)
     limit = bound
     where = vec2(real(0.5))
     converged = int(1)
-    visits = int(1)
+    visits = int(0)
     d = int(0)
     w0 = wp.uint64(0)
     w1 = wp.uint64(0)
     w2 = wp.uint64(0)
     w3 = wp.uint64(0)
-    while state >= 0:
+    going = int(1)
+    while going == 1:
+        # One call site: _visit is large (a curved pair's most of all) and is inlined.
+        state, box, axis = _visit(q, t_tol, node)
+        visits += 1
         if state == 2:
             lo = _lo(node, axis)
             hi = _hi(node, axis)
@@ -668,17 +671,14 @@ def search(q: Any, bound: real, t_tol: real):
                     w3 = _with_axis(w3, d, axis)
                 d += 1
                 node = _along(node, axis, lo, real(0.5) * (lo + hi))  # the earlier half
-                visits += 1
-                state, box, axis = _visit(q, t_tol, node)
-        if state == 1:
-            if box[4] < limit:
-                best = box[4]
-                limit = best
-                where = _centre2(box)
+        if state == 1 and box[4] < limit:
+            best = box[4]
+            limit = best
+            where = _centre2(box)
         if state != 2:
             # The next pending box that starts before the limit: the later sibling of the
             # deepest earlier half on the path.
-            state = int(-1)
+            going = int(0)
             if visits > VISITS and d > 0:
                 # Over budget: the earliest pending box (never late), found on the way up.
                 converged = 0
@@ -696,7 +696,7 @@ def search(q: Any, bound: real, t_tol: real):
                             limit = best
                             where = _centre2(sib)
                         node = _along(node, a, lo, real(2.0) * hi - lo)
-            while d > 0 and state < 0:
+            while d > 0 and going == 0:
                 a = _axis_at(w0, w1, w2, w3, d - 1)
                 lo = _lo(node, a)
                 hi = _hi(node, a)
@@ -706,8 +706,7 @@ def search(q: Any, bound: real, t_tol: real):
                 else:
                     node = _along(node, a, hi, real(2.0) * hi - lo)  # the later sibling
                     if node[4] < limit:
-                        visits += 1
-                        state, box, axis = _visit(q, t_tol, node)
+                        going = int(1)
     return best, where, converged, visits
 
 
