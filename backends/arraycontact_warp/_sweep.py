@@ -532,32 +532,20 @@ def _centre(el: Element):  # noqa: F811
 @wp.func
 def _visit(q: Any, t_tol: real, box: Box6):
     """One box of the search: (0 none in it, 1 a contact at the returned box's earliest time,
-    2 split it along the returned axis), the box (contracted when proven).
-
-    One call site each for _examine and _krawczyk (both are inlined, a curved pair's are
-    large): pass 0 examines the box; when it proves a zero, the passes after it contract the
-    zero's box to t_tol in time and off the diagonal."""
-    kb = Box6(box)
-    axis = int(0)
-    extent = real(0.0)
-    proven = int(0)
-    for it in range(CONTRACTIONS + 1):
-        if it == 0 or kb[5] - kb[4] > t_tol or _straddles(q, kb):
-            out, ext, ax, jac = _examine(q, kb)
-            if it == 0:
-                if out or _outside(q, box):
-                    return 0, box, ax
-                axis = ax
-                extent = ext
-            empty, inside, kb2 = _krawczyk(q, kb, jac)
-            if it == 0:
-                if empty:
-                    return 0, box, axis
-                if not inside:
-                    break
-                proven = int(1)
-            kb = kb2
-    if proven == 1:
+    2 split it along the returned axis), the box (contracted when proven)."""
+    out, extent, axis, jac = _examine(q, box)
+    if out or _outside(q, box):
+        return 0, box, axis
+    empty, inside, kb = _krawczyk(q, box, jac)
+    if empty:
+        return 0, box, axis
+    if inside:
+        # One zero proven: contract it to T_TOL in time and off the diagonal.
+        for _it in range(CONTRACTIONS):
+            if kb[5] - kb[4] > t_tol or _straddles(q, kb):
+                o2, e2, a2, j2 = _examine(q, kb)
+                em2, in2, kb2 = _krawczyk(q, kb, j2)
+                kb = kb2
         if _outside(q, kb):
             return 0, box, axis
         return 1, kb, axis
