@@ -115,12 +115,10 @@ def _count(sc, m, slave_x, ids=None, *, st):
     return {"attached": jnp.sum(per)}
 
 
-@partial(jax.jit, static_argnames=("st", "slots"))
-def _per_slave(sc, m, slave_x, ids=None, *, st, slots=0):
+@partial(jax.jit, static_argnames=("st",))
+def _per_slave(sc, m, slave_x, ids=None, *, st):
     """Each slave's work (the scans of stages 3-4 with no candidate slots): its candidate
-    faces (exact mode), or the faces attached to its closest node (node mode).
-    slots > 0 (exact mode, at least the most candidates of a slave): also, per face, the number
-    of slaves it is a candidate of."""
+    faces (exact mode), or the faces attached to its closest node (node mode)."""
     grids = build_grids(jnp, st, m)
     own = None if ids is None else (ids, m.node_normals[ids], m.node_normals)
     node, dn, _ = _grid.closest_node(
@@ -138,18 +136,7 @@ def _per_slave(sc, m, slave_x, ids=None, *, st, slots=0):
         if own is not None:  # as run_stages
             rho = self_reach(jnp, st, sc, m, own, slave_x, node)
         normal = None if own is None else own[1]
-        if not slots:
-            return _grid.candidate_counts(grids.face, slave_x, rho, slack=sc.slack, normal=normal)
-        _, face, valid, _ = _grid.candidate_faces(
-            jnp,
-            grids.face,
-            slave_x,
-            rho,
-            slack=sc.slack,
-            capacity={"face_candidates": slots},
-            normal=normal,
-        )
-        return jnp.zeros(m.faces.shape[0], jnp.int32).at[face].add(valid.astype(jnp.int32))
+        return _grid.candidate_counts(grids.face, slave_x, rho, slack=sc.slack, normal=normal)
     nd = jnp.maximum(node, 0)
     deg = m.nf_offsets[nd + 1] - m.nf_offsets[nd]
     return jnp.where(node >= 0, deg, 0)

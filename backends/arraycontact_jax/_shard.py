@@ -43,7 +43,6 @@ from arraycontact._detect import (
     Static,
     build_grids,
     check_options,
-    master_geometry,
     scalars,
 )
 from arraycontact._grid import W, consecutive, morton_order
@@ -163,7 +162,7 @@ def plan(
     sc = scalars(prep, master, dtype)
     st_global = Static.of(master, mode, prep, self_contact)
 
-    # 1. Work per slave (its candidate faces) on one device, then the RCB.
+    # 1. The faces each slave reaches, on one device, then the RCB.
     sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
     x_dev = jnp.asarray((all_x - origin).astype(dtype))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
@@ -174,19 +173,18 @@ def plan(
         face_ids=morton_order(centres, lo, extent),
     )
     m = jax.tree.map(jnp.asarray, master_arrays(master, prep, dtype))
-    per = np.asarray(once(_per_slave, sc_dev, m, x_dev, ids, st=st_global))
-    # The work the JAX search does per item: every slave is a lane of the same scans and the
-    # same candidate slots, whatever its candidates (weighting slaves by 1 + candidates
-    # left 2^23 rough nodes split 3.6M / 4.8M on two H200s: 122 ms where the even split
-    # takes 101); a face costs its tree entry and geometry where some slave reaches it.
-    weights, face_weights = np.ones(len(all_x)), None
-    if mode == "exact":
-        slots = max(int(per.max(initial=0)), 1)
-        used = np.asarray(once(_per_slave, sc_dev, m, x_dev, ids, st=st_global, slots=slots))
-        face_weights = (used > 0).astype(float)
     margin = (growth - 1) * (d_max + r_max) if margin is None else float(margin)
     if not margin >= 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
+    pairs = _reach_pairs(sc_dev, m, x_dev, _reach(sc_dev, m, x_dev, margin, st_global), st_global)
+    # The work the JAX search does per item: every slave is a lane of the same scans and the
+    # same candidate slots, whatever its candidates (weighting slaves by 1 + candidates
+    # left 2^23 rough nodes split 3.6M / 4.8M on two H200s: 122 ms where the even split
+    # takes 101); a face costs its tree entry and geometry where some slave reaches it (a
+    # halo face: within a slave's reach).
+    weights, face_weights = np.ones(len(all_x)), None
+    if mode == "exact":
+        face_weights = (np.bincount(pairs[1], minlength=master.n_faces) > 0).astype(float)
     part = partition(
         master,
         None if self_contact else slave_x,
@@ -196,9 +194,7 @@ def plan(
         weights=weights,
         face_weights=face_weights,
         self_contact=self_contact,
-        pairs=_reach_pairs(
-            sc_dev, m, x_dev, _reach(sc_dev, m, x_dev, margin, st_global), st_global
-        ),
+        pairs=pairs,
     )
     parts = [part.part(e) for e in range(n_dev)]
 
@@ -305,17 +301,13 @@ def plan(
             )
         engine = _WarpSearch(plans, dtype, self_contact, axis=axis)
     else:
-        # The capacities: each part's own counts, the largest, times growth.
-        # Padded like detect's inputs: one compilation serves every part.
-        for e, (surf, _) in enumerate(locals_):
-            mine = parts[e].slaves
-            xs = _part_slaves(all_x, mine, s_cap, nowhere)
-            t_e = jax.tree.map(lambda v, e=e: v[e], topo)
-            m_e = master_geometry(np, element, t_e, (surf.points - origin).astype(dtype))
-            own = jnp.asarray(t_e.slave_nodes) if self_contact else None
-            xs = jnp.asarray((xs - origin).astype(dtype))
-            m_e = jax.tree.map(jnp.asarray, m_e)
-            cand.append(np.asarray(once(_per_slave, sc_dev, m_e, xs, own, st=st))[: len(mine)])
+        # The capacities: each part's own counts, the largest, times growth. A part's slave
+        # has the candidates it has on one device: its part holds every face within its
+        # reach and its trees keep the one-device groups, so one device's count serves. (Each
+        # part's own count was a compilation for the parts' shapes and a search, most of a
+        # second plan's time; the detection still counts and reports any overflow.)
+        per = np.asarray(once(_per_slave, sc_dev, m, x_dev, ids, st=st_global))
+        cand = [per[q.slaves] for q in parts]
         if mode == "exact":
             counts = {"face_candidates": max(int(c.max(initial=0)) for c in cand)}
         else:
