@@ -43,7 +43,7 @@ class Partition:
     root; regions [P, 2, 3]: each part's cell (outer sides at +-inf); slave_part [n] and
     face_part [F]: the owning part of each slave and face (a face by its centre);
     halo[p]: sorted face ids within `d_max + margin` of part p's slave box `boxes[p]` (or of
-    its slaves one by one, `pairs`);
+    its slaves one by one, `reached`);
     weights: what the cuts balanced, per part (`work`)."""
 
     n_parts: int
@@ -93,7 +93,7 @@ def partition(
     weights=None,
     face_weights=None,
     self_contact=False,
-    pairs=None,
+    reached=None,
 ) -> Partition:
     """RCB of `slave_points` [n, 3] and `master`'s faces into `n_parts` parts, with halos.
 
@@ -104,9 +104,10 @@ def partition(
     face's [F] (default 1; the JAX plan passes 1 where a slave has the face as a candidate,
     else 0: a face no slave reaches costs no part anything).
     self_contact: the slaves are the master's nodes (`master.nodes`; slave_points not given).
-    pairs: (slave rows, face ids) of every face within d_max + margin of each slave, when the
-    caller has them (the JAX plan finds them with its tree): a part's halo is then the faces
-    its own slaves reach, tighter than the faces that reach the box around them all."""
+    reached: when the caller can find the faces each slave reaches (the JAX plan, with its
+    tree), a function of the slaves' parts [n] returning [n_parts, F] bools: whether a slave
+    of the part has the face within d_max + margin. A part's halo is then the faces its own
+    slaves reach, tighter than the faces that reach the box around them all."""
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if master.n_faces == 0:
@@ -165,9 +166,7 @@ def partition(
     boxes = np.empty((n_parts, 2, 3))
     halo = []
     reach = d_max + margin
-    if pairs is not None:
-        rows, faces = (np.asarray(a) for a in pairs)
-        pair_part = slave_part[rows]
+    table = None if reached is None else np.asarray(reached(slave_part))
     for p in range(n_parts):
         mine = slave_x[slave_part == p]
         if len(mine) == 0:  # a part with faces only: nothing to detect
@@ -176,10 +175,8 @@ def partition(
             continue
         lo, hi = bounds(mine)
         boxes[p] = lo, hi
-        if pairs is not None:
-            hit = np.zeros(master.n_faces, bool)
-            hit[faces[pair_part == p]] = True
-            halo.append(np.flatnonzero(hit))
+        if table is not None:
+            halo.append(np.flatnonzero(table[p]))
             continue
         out = np.maximum(np.maximum(lo - centres, centres - hi), 0)
         halo.append(np.flatnonzero(np.linalg.norm(out, axis=1) - radii <= reach))

@@ -176,7 +176,7 @@ def plan(
     margin = (growth - 1) * (d_max + r_max) if margin is None else float(margin)
     if not margin >= 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
-    pairs = _reach_pairs(sc_dev, m, x_dev, _reach(sc_dev, m, x_dev, margin, st_global), st_global)
+    reached = _Reached(sc_dev, m, x_dev, _reach(sc_dev, m, x_dev, margin, st_global), st_global)
     # The work the JAX search does per item: every slave is a lane of the same scans and the
     # same candidate slots, whatever its candidates (weighting slaves by 1 + candidates
     # left 2^23 rough nodes split 3.6M / 4.8M on two H200s: 122 ms where the even split
@@ -184,7 +184,7 @@ def plan(
     # halo face: within a slave's reach).
     weights, face_weights = np.ones(len(all_x)), None
     if mode == "exact":
-        face_weights = (np.bincount(pairs[1], minlength=master.n_faces) > 0).astype(float)
+        face_weights = reached(np.zeros(len(all_x), np.int32), 1)[0].astype(float)
     part = partition(
         master,
         None if self_contact else slave_x,
@@ -194,8 +194,9 @@ def plan(
         weights=weights,
         face_weights=face_weights,
         self_contact=self_contact,
-        pairs=pairs,
+        reached=partial(reached, n_groups=n_dev),
     )
+    del reached  # (its device buffers)
     parts = [part.part(e) for e in range(n_dev)]
 
     # 2. Each part's master, padded to shared shapes.
@@ -394,28 +395,59 @@ def _closest_distance(sc, m, x, *, st):
     )[1]
 
 
-def _reach_pairs(sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
-    """(slave row, face) pairs whose face box is within `reach` [n] of the slave (the halos of
-    each slave on its own: a part holding slaves both near and far from the master needs
-    the faces near each, not those near the box around them all). In chunks of slaves that
-    keep the candidate slots under `slots`."""
-    # (Node mode too: a face incident to a node within reach has its box within reach.)
-    grid = _face_tree(sc, m, st=replace(st, mode="exact"))
-    rho = jnp.asarray(reach, x.dtype)
-    count = _counts_within(grid, x, rho, sc.slack)
-    rows, faces = [], []
-    start, n = 0, x.shape[0]
-    while start < n:
-        # A power of two: a few compilations of _candidates serve every chunk (a graded
-        # mesh's chunks had as many distinct counts, each a compilation: most of its plan).
-        k = 1 << (max(int(jnp.max(count[start : start + chunk])), 1) - 1).bit_length()
-        stop = min(n, start + max(slots // k, 1), start + chunk)
-        slave, face, valid, _ = _candidates(grid, x[start:stop], rho[start:stop], sc.slack, k)
-        valid = np.asarray(valid)
-        rows.append(np.asarray(slave)[valid] + start)
-        faces.append(np.asarray(face)[valid])
-        start = stop
-    return np.concatenate(rows), np.concatenate(faces)
+class _Reached:
+    """The faces each slave reaches (its face's box within `reach` [n] of it): the halos of
+    each slave on its own (a part holding slaves both near and far from the master needs the
+    faces near each, not those near the box around them all). Found once on the device, in
+    chunks of slaves that keep the candidate slots under `slots`, and kept there; a call
+    (group [n], n_groups) returns [n_groups, F] host bools: whether a slave of each group
+    reaches the face. (The pairs themselves, brought to the host, took most of a graded
+    scene's plan at 2^20.)"""
+
+    def __init__(self, sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
+        # (Node mode too: a face incident to a node within reach has its box within reach.)
+        grid = _face_tree(sc, m, st=replace(st, mode="exact"))
+        self.n, self.n_faces = x.shape[0], m.faces.shape[0]
+        rho = jnp.asarray(reach, x.dtype)
+        count = np.asarray(_counts_within(grid, x, rho, sc.slack))
+        # Padded by a chunk of rows (of no group: dropped when marked), so that every chunk
+        # has one of a few shapes: a few compilations serve every chunk.
+        self.pad = chunk
+        x = jnp.pad(x, ((0, chunk), (0, 0)))
+        rho = jnp.pad(rho, (0, chunk))
+        self.chunks = []  # (first slave, slots a slave, the slots' faces or F)
+        start = 0
+        while start < self.n:
+            k = 1 << (max(int(count[start : start + chunk].max()), 1) - 1).bit_length()
+            size = 1 << (min(chunk, max(slots // k, 1)).bit_length() - 1)
+            faces = _reached_faces(grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)
+            self.chunks.append((start, k, faces))
+            start += size
+
+    def __call__(self, group, n_groups):
+        group = jnp.asarray(np.pad(group, (0, self.pad), constant_values=n_groups), jnp.int32)
+        hit = jnp.zeros((n_groups, self.n_faces), bool)
+        for start, k, faces in self.chunks:
+            hit = _mark(hit, group, jnp.int32(start), faces, k=k)
+        return np.asarray(hit)
+
+
+@partial(jax.jit, static_argnames=("k", "size"))
+def _reached_faces(grid, x, rho, start, slack, *, k, size):
+    """The candidate slots' faces of slaves [start, start + size) [size k], -1 where empty."""
+    xs = jax.lax.dynamic_slice_in_dim(x, start, size)
+    rs = jax.lax.dynamic_slice_in_dim(rho, start, size)
+    _, face, valid, _ = _grid.candidate_faces(
+        jnp, grid, xs, rs, slack=slack, capacity={"face_candidates": k}, shrink=False
+    )
+    return jnp.where(valid, face, -1).astype(jnp.int32)
+
+
+@partial(jax.jit, static_argnames=("k",))
+def _mark(hit, group, start, faces, *, k):
+    rows = jnp.repeat(jax.lax.dynamic_slice_in_dim(group, start, faces.shape[0] // k), k)
+    rows = jnp.where(faces >= 0, rows, hit.shape[0])  # (an empty slot: dropped)
+    return hit.at[rows, faces].set(True, mode="drop")
 
 
 @partial(jax.jit, static_argnames=("st",))
@@ -426,13 +458,6 @@ def _face_tree(sc, m, *, st):
 @jax.jit
 def _counts_within(grid, x, rho, slack):
     return _grid.candidate_counts(grid, x, rho, slack=slack, shrink=False)
-
-
-@partial(jax.jit, static_argnames=("k",))
-def _candidates(grid, x, rho, slack, k):
-    return _grid.candidate_faces(
-        jnp, grid, x, rho, slack=slack, capacity={"face_candidates": k}, shrink=False
-    )
 
 
 def _aligned(rank, block=W**3):
