@@ -167,6 +167,10 @@ def partition(
     halo = []
     reach = d_max + margin
     table = None if reached is None else np.asarray(reached(slave_part))
+    if table is not None and table.shape != (n_parts, master.n_faces):
+        raise ValueError(
+            f"reached must return [n_parts, F] = {(n_parts, master.n_faces)}, got {table.shape}"
+        )
     for p in range(n_parts):
         mine = slave_x[slave_part == p]
         if len(mine) == 0:  # a part with faces only: nothing to detect

@@ -407,7 +407,7 @@ class _Reached:
     def __init__(self, sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
         # (Node mode too: a face incident to a node within reach has its box within reach.)
         grid = _face_tree(sc, m, st=replace(st, mode="exact"))
-        self.n, self.n_faces = x.shape[0], m.faces.shape[0]
+        n, self.n_faces = x.shape[0], m.faces.shape[0]
         rho = jnp.asarray(reach, x.dtype)
         count = np.asarray(_counts_within(grid, x, rho, sc.slack))
         # Padded by a chunk of rows (of no group: dropped when marked), so that every chunk
@@ -415,9 +415,9 @@ class _Reached:
         self.pad = chunk
         x = jnp.pad(x, ((0, chunk), (0, 0)))
         rho = jnp.pad(rho, (0, chunk))
-        self.chunks = []  # (first slave, slots a slave, the slots' faces or F)
+        self.chunks = []  # (first slave, slots a slave, the slots' faces or -1)
         start = 0
-        while start < self.n:
+        while start < n:
             k = 1 << (max(int(count[start : start + chunk].max()), 1) - 1).bit_length()
             size = 1 << (min(chunk, max(slots // k, 1)).bit_length() - 1)
             faces = _reached_faces(grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)

@@ -563,21 +563,9 @@ def _centre2(b: Box6):
 
 
 @wp.func
-def _lo(b: Box6, axis: int):
-    if axis == 0:
-        return b[0]
-    if axis == 1:
-        return b[2]
-    return b[4]
-
-
-@wp.func
-def _hi(b: Box6, axis: int):
-    if axis == 0:
-        return b[1]
-    if axis == 1:
-        return b[3]
-    return b[5]
+def _side(b: Box6, axis: int):
+    """b's extent (lo, hi) along axis."""
+    return b[2 * axis], b[2 * axis + 1]
 
 
 @wp.func
@@ -595,8 +583,8 @@ def _late(b: Box6, axis: int):
     """Whether b is the later half of its parent along axis: the boxes are dyadic ([k h,
     (k + 1) h], h = 2^-m: halving from the unit cube is exact while h >= MIN_WIDTH), so k's
     parity says which half (in reals: k passes 2^31 at the depths float64 reaches)."""
-    h = _hi(b, axis) - _lo(b, axis)
-    half = real(0.5) * wp.floor(_lo(b, axis) / h + real(0.5))
+    lo, hi = _side(b, axis)
+    half = real(0.5) * wp.floor(lo / (hi - lo) + real(0.5))
     return half != wp.floor(half)
 
 
@@ -654,8 +642,7 @@ def search(q: Any, bound: real, t_tol: real):
         state, box, axis = _visit(q, t_tol, node)
         visits += 1
         if state == 2:
-            lo = _lo(node, axis)
-            hi = _hi(node, axis)
+            lo, hi = _side(node, axis)
             if d + 1 >= LEVELS or hi - lo < MIN_WIDTH:
                 state = 1  # no room: a contact, conservatively
                 box = node
@@ -685,8 +672,7 @@ def search(q: Any, bound: real, t_tol: real):
                 while d > 0:
                     d -= 1
                     a = _axis_at(w0, w1, w2, w3, d)
-                    lo = _lo(node, a)
-                    hi = _hi(node, a)
+                    lo, hi = _side(node, a)
                     if _late(node, a):
                         node = _along(node, a, real(2.0) * lo - hi, hi)
                     else:
@@ -698,8 +684,7 @@ def search(q: Any, bound: real, t_tol: real):
                         node = _along(node, a, lo, real(2.0) * hi - lo)
             while d > 0 and going == 0:
                 a = _axis_at(w0, w1, w2, w3, d - 1)
-                lo = _lo(node, a)
-                hi = _hi(node, a)
+                lo, hi = _side(node, a)
                 if _late(node, a):
                     node = _along(node, a, real(2.0) * lo - hi, hi)  # up to the parent
                     d -= 1
