@@ -18,7 +18,7 @@ from ._contacts import Contacts, Counts, Feature, Status, SweptContacts
 from ._elements import get_element
 from ._grid import FACING_TOL
 from ._normals import face_normal
-from ._prepare import Prepared, default_d_max, ordered, prepare
+from ._prepare import Prepared, default_d_max, ordered, prepare, slaves_in_box
 from ._surface import (
     Surface,
     _dot,
@@ -494,10 +494,10 @@ def _empty(n, ids, d_max, counts=None, timings=None, **answered) -> Contacts:
     )
 
 
-def assemble(n, ids, prep, out, d_max, counts, timings, answered) -> Contacts:
-    """Scatter per-in-box-slave outputs (global frame, float64) into a full Contacts record."""
+def assemble(n, ids, rows, origin, out, d_max, counts, timings, answered) -> Contacts:
+    """Scatter the outputs of the slaves in the box (their rows; points in the local frame
+    at `origin`) into a full Contacts record (global frame, float64)."""
     c = _empty(n, ids, d_max)
-    rows = prep.slave_rows
     active = np.asarray(out["active"], bool)
     keep = active | (np.asarray(out["status"]) == int(Status.PASSING_BY))
     r = rows[keep]
@@ -507,7 +507,7 @@ def assemble(n, ids, prep, out, d_max, counts, timings, answered) -> Contacts:
     c.master_node[rows] = mn
     c.face[r] = np.asarray(out["face"])[keep]
     c.xi[r] = np.asarray(out["xi"], float)[keep]
-    c.point[r] = np.asarray(out["point"], float)[keep] + prep.origin
+    c.point[r] = np.asarray(out["point"], float)[keep] + origin
     c.gap[r] = np.asarray(out["gap"], float)[keep]
     c.distance[r] = np.asarray(out["distance"], float)[keep]
     c.normal[r] = np.asarray(out["normal"], float)[keep]
@@ -569,7 +569,9 @@ def detect(
     which ran. dtype: float64 (default, on every back end) or float32 for the computation
     (inputs are always read in float64 and moved to a local frame first)."""
     t0 = time.perf_counter()
-    d_max, dtype = check_options(master, mode, d_max, displacement, dtype)
+    backend = _backend(backend)
+    longest = _longest_edge(master, backend, d_max)
+    d_max, dtype = check_options(master, mode, d_max, displacement, dtype, longest)
     slave_x, ids = _slaves(slave)
     return _detect(slave_x, ids, master, backend, mode, d_max, dtype, None, t0)
 
@@ -607,53 +609,82 @@ def detect_self(surface, *, backend="auto", mode="exact", d_max=None, dtype=None
     t0 = time.perf_counter()
     if not isinstance(surface, Surface):
         raise ValueError("surface must be an arraycontact.Surface")
-    d_max, dtype = check_options(surface, mode, d_max, None, dtype)
+    backend = _backend(backend)
+    longest = _longest_edge(surface, backend, d_max)
+    d_max, dtype = check_options(surface, mode, d_max, None, dtype, longest)
     ids = surface.nodes
     return _detect(surface.points[ids], ids, surface, backend, mode, d_max, dtype, ids, t0)
 
 
-def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> Contacts:
-    from ._backends import load, resolve
+def _backend(backend):
+    from ._backends import resolve
 
     if backend not in BACKENDS + ("auto",):
         raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {backend!r}")
-    backend = resolve(backend)
+    return resolve(backend)
+
+
+def _longest_edge(master, backend, d_max):
+    """The default d_max's longest edge from the Warp back end's device topology (which its
+    detection makes anyway), so that a Warp call makes none of the Surface's host tables."""
+    if backend != "warp" or d_max is not None or not isinstance(master, Surface):
+        return None
+    if master.n_faces == 0:
+        return 0.0
+    from ._backends import load
+
+    return load("warp").master_scalars(master)[0]
+
+
+def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> Contacts:
+    from ._backends import load
+
     n = len(slave_x)
-    # The Warp back end sorts its own trees on the device: no Morton order here.
-    prep = prepare(slave_x, master, float(d_max), dtype, order=backend != "warp")
-    t1 = time.perf_counter()
     answered = dict(backend=backend, dtype=dtype.name)
     if self_ids is not None:
         answered["finer"] = np.zeros(n, bool)
-    if prep is None:  # the boxes do not meet: no grid, no contact
-        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0}, **answered)
-    st = Static.of(master, mode, prep, self_contact=self_ids is not None)
-    if backend == "numpy":
-        out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype, slave_ids=self_ids)
-        answered["device"] = "cpu"
+    if backend == "warp":
+        # The Warp back end builds its trees on its device from its own topology: only the box
+        # cut is made here (none of the Surface's NumPy tables).
+        warp = load("warp")
+        cut = None
+        if n and master.n_faces:
+            _, m_lo, m_hi = warp.master_scalars(master)
+            cut = slaves_in_box(slave_x, m_lo, m_hi, float(d_max))
+        rows, origin = (None, None) if cut is None else (cut[0], np.zeros(3))
     else:
-        out, count, cap, answered["device"] = load(backend).run_one_shot(
-            slave_x, master, prep, st, dtype, slave_ids=self_ids
+        prep = prepare(slave_x, master, float(d_max), dtype)
+        rows, origin = (None, None) if prep is None else (prep.slave_rows, prep.origin)
+    t1 = time.perf_counter()
+    if rows is None:  # the boxes do not meet: no grid, no contact
+        return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0}, **answered)
+    if backend == "warp":
+        out, answered["device"], in_box = warp.run_one_shot(
+            slave_x[rows], master, d_max, dtype, mode, self_ids is not None
         )
-        laps = {}
+        count, cap, laps = {}, {}, {}
+    else:
+        st = Static.of(master, mode, prep, self_contact=self_ids is not None)
+        if backend == "numpy":
+            run = _run_numpy(slave_x, master, prep, st, dtype, slave_ids=self_ids)
+            out, count, cap, laps = run
+            answered["device"] = "cpu"
+        else:
+            out, count, cap, answered["device"] = load(backend).run_one_shot(
+                slave_x, master, prep, st, dtype, slave_ids=self_ids
+            )
+            laps = {}
+        in_box = len(prep.node_ids), len(prep.face_ids)
     t2 = time.perf_counter()
     counts = Counts(
-        slaves_in_box=len(prep.slave_rows),
-        master_nodes_in_box=len(prep.node_ids),
-        master_faces_in_box=len(prep.face_ids),
+        slaves_in_box=len(rows),
+        master_nodes_in_box=in_box[0],
+        master_faces_in_box=in_box[1],
         count=count,
         capacity=cap,
     )
-    return assemble(
-        n,
-        ids,
-        prep,
-        out,
-        d_max,
-        counts,
-        {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0},
-        answered,
-    )
+    timings = {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0}
+    return assemble(n, ids, rows, origin, out, d_max, counts, timings, answered)
 
 
 # --- swept detection ---------------------------------------------------------------------

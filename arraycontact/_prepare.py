@@ -62,6 +62,19 @@ def ordered(ids, x, lo, extent):
     return ids[order], grouping(keys[order])
 
 
+def slaves_in_box(slave_x, m_lo, m_hi, d_max):
+    """The box where the slaves' box and the master's (m_lo, m_hi: of its nodes, or of its
+    faces' balls where faces are curved), each grown by d_max (eq. 4), meet, and the rows of
+    the slaves inside it: (rows, lo, hi), or None when there are none."""
+    s_lo, s_hi = bounds(slave_x)
+    lo = np.maximum(s_lo, m_lo) - d_max
+    hi = np.minimum(s_hi, m_hi) + d_max
+    if (lo > hi).any():
+        return None
+    rows = np.nonzero(in_box(slave_x, lo, hi))[0]
+    return (rows, lo, hi) if len(rows) else None
+
+
 def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | None:
     """Boxes and selections, or None when the slave and master boxes do not meet. order=False:
     node_ids and face_ids in id order (for a back end that builds its own trees)."""
@@ -73,14 +86,10 @@ def prepare(slave_x, master, d_max, dtype=np.float64, order=True) -> Prepared | 
         m_lo, m_hi = master.node_box
     else:  # curved faces may bulge past their nodes; their balls hold them
         m_lo, m_hi = bounds(centres - radii[:, None])[0], bounds(centres + radii[:, None])[1]
-    s_lo, s_hi = bounds(slave_x)
-    lo = np.maximum(s_lo, m_lo) - d_max
-    hi = np.minimum(s_hi, m_hi) + d_max
-    if (lo > hi).any():
+    cut = slaves_in_box(slave_x, m_lo, m_hi, d_max)
+    if cut is None:
         return None
-    slave_rows = np.nonzero(in_box(slave_x, lo, hi))[0]
-    if len(slave_rows) == 0:
-        return None
+    slave_rows, lo, hi = cut
     s = slave_x[slave_rows]
     s_lo, s_hi = bounds(s)
     lo = np.maximum(lo, s_lo - d_max)  # shrink to the slaves actually inside

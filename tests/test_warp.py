@@ -687,6 +687,16 @@ def _topology_surfaces():
     out["non-manifold, pinched"] = ac.Surface(
         np.vstack([pts, pinch]), [[0, 1, 2], [1, 0, 3], [0, 1, 4], [0, 6, 7]], "tri3"
     )
+    # Large enough for the CPU's launches in parts (their atomics fill the counting sorts'
+    # segments in a varying order), faces and nodes numbered at random.
+    rough = scenes.rough_surfaces(2**12, element="quad4").master
+    rng = np.random.default_rng(7)
+    new_id = rng.permutation(len(rough.points))
+    pts = np.empty_like(rough.points)
+    pts[new_id] = rough.points
+    out["rough quad4, shuffled"] = ac.Surface(
+        pts, new_id[rough.faces][rng.permutation(rough.n_faces)]
+    )
     return out
 
 
@@ -706,6 +716,8 @@ def test_device_topology_equals_the_surfaces(name):
     from arraycontact._select import boundary_topology
 
     m = _topology_surfaces()[name]
+    # A first topology of a copy loads the kernels: the CPU launches this one in parts.
+    topology(ac.Surface(m.points, m.faces, m.element.name), DEVICE)
     t = topology(m, DEVICE)
     assert topology(m, DEVICE) is t  # made once per Surface and device
     np.testing.assert_array_equal(t.face_edges.numpy(), m.face_edges)
@@ -727,6 +739,9 @@ def test_device_topology_equals_the_surfaces(name):
     np.testing.assert_array_equal(t.node_box[0], m.node_box[0])
     np.testing.assert_array_equal(t.node_box[1], m.node_box[1])
     np.testing.assert_array_equal(t.centres.numpy(), m.face_bounds[0])
+    c, r = m.face_bounds
+    np.testing.assert_array_equal(t.ball_box[0], (c - r[:, None]).min(0))
+    np.testing.assert_array_equal(t.ball_box[1], (c + r[:, None]).max(0))
     np.testing.assert_allclose(t.radii.numpy(), radii, rtol=1e-15)
     np.testing.assert_array_equal(t.edges.numpy()[: t.n_edges], m.edges)
     # The exact tables copied into a new Surface's cache equal its NumPy properties.

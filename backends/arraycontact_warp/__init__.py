@@ -27,6 +27,7 @@ from ._detect import SweptPlan as SweptPlan  # noqa: E402
 from ._detect import detect as detect  # noqa: E402
 from ._detect import detect_self as detect_self  # noqa: E402
 from ._detect import detect_swept as detect_swept  # noqa: E402
+from ._detect import master_scalars as master_scalars  # noqa: E402
 from ._detect import plan as plan  # noqa: E402
 from ._detect import plan_self as plan_self  # noqa: E402
 from ._detect import plan_swept as plan_swept  # noqa: E402
@@ -69,6 +70,7 @@ __all__ = [
     "geometry",
     "plan",
     "plan_self",
+    "master_scalars",
     "run_one_shot",
     "run_swept",
     "set_node",

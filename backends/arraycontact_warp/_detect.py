@@ -1043,23 +1043,32 @@ def detect_self(p: Plan, points):
     return detect(p, None, points)
 
 
-def run_one_shot(slave_x, master, prep, st, dtype, slave_ids=None):
-    """`arraycontact.detect(backend="warp")` and `detect_self` (slave_ids: the slaves' node
-    ids, every used node in master.nodes order): plan, detect, host arrays out."""
-    x = slave_x[prep.slave_rows]
-    if slave_ids is not None and not np.array_equal(slave_ids[prep.slave_rows], master.nodes):
-        raise ValueError("self-contact: the slaves must be the master's used nodes, in order")
-    if st.self_contact:
-        p = plan_self(master, d_max=prep.d_max, dtype=dtype, mode=st.mode)
+def master_scalars(master: Surface, device=None):
+    """(longest edge, box lo, box hi) of the master from its topology on `device` (made
+    there on first use): the box of its used nodes, or of its faces' balls where faces are
+    curved (they may bulge past their nodes)."""
+    topo = _surface.topology(master, device)
+    box = topo.node_box if master.element.linear else topo.ball_box
+    return topo.longest_edge, box[0], box[1]
+
+
+def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
+    """`arraycontact.detect(backend="warp")` and `detect_self` (slave_x: every used node, in
+    master.nodes order): plan and detect on the default device; host arrays (global frame),
+    the device, and the master's (nodes, faces) in the trees."""
+    if self_contact:
+        p = plan_self(master, d_max=d_max, dtype=dtype, mode=mode)
         out = detect_self(p, master.points)
     else:
-        p = plan(master, x, d_max=prep.d_max, dtype=dtype, mode=st.mode)
-        out = detect(p, x, master.points)
+        p = plan(master, slave_x, d_max=d_max, dtype=dtype, mode=mode)
+        out = detect(p, slave_x, master.points)
     out["active"] = out["active"].astype(bool)
     if "finer" in out:
         out["finer"] = out["finer"].astype(bool)
-    out["point"] = out["point"] - prep.origin  # assemble adds prep's origin back
-    return out, {}, {}, str(p.device)
+    n_nodes = _surface.topology(master, p.device).n_nodes
+    if len(out["active"]) != len(slave_x):
+        raise ValueError(f"self-contact: the slaves must be the master's {n_nodes} used nodes")
+    return out, str(p.device), (n_nodes, master.n_faces)
 
 
 # --- swept detection -----------------------------------------------------------------------
@@ -1275,6 +1284,7 @@ __all__ = [
     "detect",
     "detect_self",
     "detect_swept",
+    "master_scalars",
     "run_one_shot",
     "run_swept",
 ]

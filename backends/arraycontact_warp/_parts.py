@@ -1,5 +1,7 @@
 """Launches over independent threads, split on the CPU into parts run at once (Warp runs a
-CPU launch on one core and releases the GIL): the per-slave kernels and the trees' builds."""
+CPU launch on one core and releases the GIL): the per-slave kernels and the trees' builds.
+And independent chains of launches run at once on the CPU (the topology's). On the CPU Warp's
+atomics are plain read-modify-writes: a kernel that uses them is never split."""
 
 from __future__ import annotations
 
@@ -21,11 +23,32 @@ _pool = None
 _loaded = set()
 
 
+def _get_pool():
+    global _pool
+    if _pool is None:
+        _pool = ThreadPoolExecutor(CPU_PARTS, thread_name_prefix="arraycontact-warp")
+    return _pool
+
+
+def concurrently(dev, *chains):
+    """Call the functions `chains` (each launching kernels of one module on dev, with
+    `wp.launch` only, on arrays no other chain writes): on the CPU at once, the first in the
+    calling thread; on a GPU one after the other (their launches queue on one stream)."""
+    dev = wp.get_device(dev)
+    if dev.is_cuda or CPU_PARTS < 2 or len(chains) < 2:
+        for c in chains:
+            c()
+        return
+    jobs = [_get_pool().submit(c) for c in chains[1:]]
+    chains[0]()
+    for j in jobs:
+        j.result()
+
+
 def launch(kernel, n, inputs, outputs, dev, order=None, first=None):
     """Launch a kernel over n independent threads (the slaves, a tree's items). inputs[order]:
     the order the threads take (a part takes its slice), or inputs[first]: the first of the
     part (its threads take first + t)."""
-    global _pool
     dev = wp.get_device(dev)
     if dev.is_cuda:
         wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
@@ -36,8 +59,6 @@ def launch(kernel, n, inputs, outputs, dev, order=None, first=None):
         _loaded.add(key)
         return
     kernel.module.load(dev)  # another kernel's new overload may have made the module stale
-    if _pool is None:
-        _pool = ThreadPoolExecutor(CPU_PARTS, thread_name_prefix="arraycontact-warp")
     cuts = np.linspace(0, n, CPU_PARTS + 1).astype(int)
     jobs = []
     for a, b in zip(cuts[:-1], cuts[1:]):
@@ -47,7 +68,9 @@ def launch(kernel, n, inputs, outputs, dev, order=None, first=None):
         else:
             part[first] = int(a)
         jobs.append(
-            _pool.submit(wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev)
+            _get_pool().submit(
+                wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev
+            )
         )
     for j in jobs:
         j.result()

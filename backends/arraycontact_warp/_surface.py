@@ -4,11 +4,13 @@ sorts, scans and a thread per item, so that a plan does not wait for the host's 
 H100 machine's host).
 
 The tables equal the Surface's, row for row (tests/test_warp.py checks them):
-- face_edges [F, k], edge_faces [E, 2]: one stable radix sort of the keys min(a, b) n + max(a, b)
-  of every (face, local edge); an edge's faces come in face order, and its id is the rank of
-  its key, the Surface's order. Allocated for F k edges (the count is not known before the
-  sort): rows past the last edge are never read.
-- node_faces (offsets [n + 1], ids): one stable radix sort of the faces' node ids.
+- face_edges [F, k], edge_faces [E, 2]: the keys min(a, b) n + max(a, b) of every (face, local
+  edge) in the order of a stable sort (a counting sort by min(a, b), each node's few entries
+  then sorted by a thread); an edge's faces come in face order, and its id is the rank of its
+  key, the Surface's order. Allocated for F k edges (the count is not known before the sort):
+  rows past the last edge are never read.
+- node_faces (offsets [n + 1], ids): a counting sort of the faces by node, each node's faces
+  then sorted by a thread.
 - prev/next node and face of each node (arraycontact._select.boundary_topology): the edges of
   one face, oriented as in that face, split at their mid node. Where several boundary edges
   leave one node (a pinch), the last in face order wins, as NumPy's assignment does, so the
@@ -31,6 +33,8 @@ import warp as wp
 
 from arraycontact._surface import Surface, validate_points
 
+from ._parts import concurrently
+
 wp.set_module_options({"enable_backward": False})
 
 #: Items a thread reduces before its one atomic update (a float atomic on one address from
@@ -39,20 +43,98 @@ CHUNK = 64
 
 
 @wp.kernel
-def _edge_keys(
+def _count_edges(
+    faces: wp.array2d(dtype=int), ends: wp.array2d(dtype=int), uses: wp.array(dtype=int)
+):
+    """Face f: each local edge counted at its smaller corner."""
+    f = wp.tid()
+    for le in range(ends.shape[0]):
+        wp.atomic_add(uses, wp.min(faces[f, ends[le, 0]], faces[f, ends[le, 1]]), 1)
+
+
+@wp.kernel
+def _count_nodes(faces: wp.array2d(dtype=int), uses: wp.array(dtype=int)):
+    f = wp.tid()
+    for c in range(faces.shape[1]):
+        wp.atomic_add(uses, faces[f, c], 1)
+
+
+@wp.kernel
+def _scatter_edges(
     faces: wp.array2d(dtype=int),
     ends: wp.array2d(dtype=int),
+    offsets: wp.array(dtype=int),
+    cursor: wp.array(dtype=int),
+    pairs: wp.array(dtype=wp.int64),
+):
+    """Face f: each local edge v = f k + le into its smaller corner's segment as the pair
+    (larger corner) m + v, in any order (_edge_segments sorts them)."""
+    f = wp.tid()
+    k = ends.shape[0]
+    m = wp.int64(faces.shape[0] * k)
+    for le in range(k):
+        a = faces[f, ends[le, 0]]
+        b = faces[f, ends[le, 1]]
+        lo = wp.min(a, b)
+        pairs[offsets[lo] + wp.atomic_add(cursor, lo, 1)] = wp.int64(wp.max(a, b)) * m + wp.int64(
+            f * k + le
+        )
+
+
+@wp.kernel
+def _scatter_nodes(
+    faces: wp.array2d(dtype=int),
+    offsets: wp.array(dtype=int),
+    cursor: wp.array(dtype=int),
+    ids: wp.array(dtype=int),
+):
+    """Face f into each of its nodes' segments, in any order (_face_segments sorts them)."""
+    f = wp.tid()
+    for c in range(faces.shape[1]):
+        i = faces[f, c]
+        ids[offsets[i] + wp.atomic_add(cursor, i, 1)] = f
+
+
+@wp.kernel
+def _edge_segments(
+    offsets: wp.array(dtype=int),
+    pairs: wp.array(dtype=wp.int64),
     n: wp.int64,
+    m: wp.int64,
     keys: wp.array(dtype=wp.int64),
     vals: wp.array(dtype=int),
 ):
-    t = wp.tid()
-    k = ends.shape[0]
-    f = t // k
-    a = faces[f, ends[t - f * k, 0]]
-    b = faces[f, ends[t - f * k, 1]]
-    keys[t] = wp.int64(wp.min(a, b)) * n + wp.int64(wp.max(a, b))
-    vals[t] = t
+    """Node i's edges (a handful: insertion sort) by (larger corner, face, local edge),
+    written as the keys i n + larger corner and the values f k + le: the order of a stable
+    sort of every edge's key."""
+    i = wp.tid()
+    a = offsets[i]
+    for j in range(a + 1, offsets[i + 1]):
+        p = pairs[j]
+        q = j
+        while q > a and pairs[q - 1] > p:
+            pairs[q] = pairs[q - 1]
+            q -= 1
+        pairs[q] = p
+    for j in range(a, offsets[i + 1]):
+        p = pairs[j]
+        b = p // m
+        keys[j] = wp.int64(i) * n + b
+        vals[j] = int(p - b * m)
+
+
+@wp.kernel
+def _face_segments(offsets: wp.array(dtype=int), ids: wp.array(dtype=int)):
+    """Node i's faces ascending (insertion sort)."""
+    i = wp.tid()
+    a = offsets[i]
+    for j in range(a + 1, offsets[i + 1]):
+        f = ids[j]
+        q = j
+        while q > a and ids[q - 1] > f:
+            ids[q] = ids[q - 1]
+            q -= 1
+        ids[q] = f
 
 
 @wp.kernel
@@ -162,27 +244,6 @@ def _boundary(
 
 
 @wp.kernel
-def _node_keys(
-    faces: wp.array2d(dtype=int),
-    keys: wp.array(dtype=int),
-    vals: wp.array(dtype=int),
-    uses: wp.array(dtype=int),
-):
-    t = wp.tid()
-    nn = faces.shape[1]
-    i = faces[t // nn, t - (t // nn) * nn]
-    keys[t] = i
-    vals[t] = t
-    wp.atomic_add(uses, i, 1)
-
-
-@wp.kernel
-def _node_face_ids(vals: wp.array(dtype=int), nn: int, ids: wp.array(dtype=int)):
-    t = wp.tid()
-    ids[t] = vals[t] // nn
-
-
-@wp.kernel
 def _used(uses: wp.array(dtype=int), flags: wp.array(dtype=int)):
     i = wp.tid()
     flags[i] = wp.where(uses[i] > 0, 1, 0)
@@ -205,18 +266,22 @@ def _face_scalars(
     radii: wp.array(dtype=wp.float32),
     ids: wp.array(dtype=int),
     out: wp.array(dtype=wp.float64),
+    contiguous: int,
 ):
-    """Faces t, t + T, ... (T threads): each face's centre and radius
+    """Faces t, t + T, ... (T threads; contiguous = 1, for the CPU's cache: faces t CHUNK,
+    t CHUNK + 1, ...): each face's centre and radius
     (arraycontact._surface.face_bounds, the centre summed in its order), then one atomic
-    update of the largest squared node distance within a face (out[0]) and the largest
-    radius (out[1])."""
+    update of the largest squared node distance within a face (out[0]), the largest
+    radius (out[1]) and the box of the faces' balls (out[8:11] lo, out[11:14] hi)."""
     t = wp.tid()
     n_threads = (faces.shape[0] + CHUNK - 1) // CHUNK
     nn = faces.shape[1]
     l2 = wp.float64(0.0)
     r_max = wp.float64(0.0)
+    lo = wp.vec3d(wp.float64(1.0e300))
+    hi = wp.vec3d(wp.float64(-1.0e300))
     for j in range(CHUNK):
-        f = t + j * n_threads
+        f = wp.where(contiguous == 1, t * CHUNK + j, t + j * n_threads)
         if f < faces.shape[0]:
             c = wp.vec3d()
             for a in range(nn):
@@ -234,8 +299,13 @@ def _face_scalars(
             radii[f] = wp.float32(r)  # to sort: a tenth percentile needs no more
             ids[f] = f
             r_max = wp.max(r_max, r)
+            lo = wp.min(lo, c - wp.vec3d(r, r, r))
+            hi = wp.max(hi, c + wp.vec3d(r, r, r))
     wp.atomic_max(out, 0, l2)
     wp.atomic_max(out, 1, r_max)
+    for a in range(3):
+        wp.atomic_min(out, 8 + a, lo[a])
+        wp.atomic_max(out, 11 + a, hi[a])
 
 
 @wp.kernel
@@ -283,8 +353,10 @@ def iota(n: int, size: int, device):
 
 
 def _scalars(device):
-    """out[0:2] (maxima, from 0), out[2:5] and out[5:8] (a box, from empty), bad[0] (a count)."""
-    out = wp.array([0.0, 0.0, *[1e300] * 3, *[-1e300] * 3], dtype=wp.float64, device=device)
+    """out[0:2] (maxima, from 0), out[2:5] and out[5:8], out[8:11] and out[11:14] (two boxes,
+    from empty), bad[0] (a count)."""
+    empty = [*[1e300] * 3, *[-1e300] * 3]
+    out = wp.array([0.0, 0.0, *empty, *empty], dtype=wp.float64, device=device)
     return out, wp.zeros(1, dtype=int, device=device)
 
 
@@ -331,6 +403,7 @@ class Topology:
     r_max: float
     r_small: float  # the tenth percentile of the face radii (np.quantile's, in float32)
     node_box: tuple  # (lo, hi) of the used nodes
+    ball_box: tuple  # (lo, hi) of the faces' balls
 
 
 #: Surface -> {device: Topology}: a Surface is immutable, so its tables on a device are made
@@ -348,114 +421,115 @@ def topology(master: Surface, device) -> Topology:
     return per_device[device.alias]
 
 
+def _tenth(radii, rows, nf: int, device) -> float:
+    """The tenth percentile of radii[:nf] (float32; np.quantile's linear interpolation): a
+    partial sort on the CPU, a radix sort on a GPU (radii and rows [2 nf]: its scratch)."""
+    q = 0.1 * (nf - 1)
+    i0 = int(np.floor(q))
+    i1 = min(i0 + 1, nf - 1)
+    if device.is_cuda:
+        wp.utils.radix_sort_pairs(radii, rows, nf)
+        r0, r1 = radii[i0 : i1 + 1].numpy()[[0, -1]]
+    else:
+        r = np.partition(radii.numpy()[:nf], [i0, i1])
+        r0, r1 = r[i0], r[i1]
+    return float(r0 + (q - i0) * (r1 - r0))
+
+
 def _topology(master: Surface, device) -> Topology:
     e = master.element
     n = len(master.points)
     nf, nn = master.faces.shape
     k = e.n_corners
+    m = nf * k
     # Scratch and tables that the kernels write whole (or read only where written) are left
     # uninitialised; counters start at zero.
     empty = lambda *shape: wp.empty(shape, dtype=int, device=device)  # noqa: E731
+    zeros = lambda size: wp.zeros(size, dtype=int, device=device)  # noqa: E731
+
+    def run(kernel, threads, *args):
+        wp.launch(kernel, threads, inputs=args, device=device)
+
     faces = wp.array(master.faces.astype(np.int32), dtype=int, device=device)
     ends = wp.array(e.edge_nodes, dtype=int, device=device)
-
-    # Edges: the sorted (face, local edge) keys and the ranks of the distinct ones.
-    m = m_edges = nf * k
-    keys = wp.empty(2 * m, dtype=wp.int64, device=device)
-    vals = empty(2 * m)
-    wp.launch(
-        _edge_keys,
-        m,
-        inputs=[faces, ends, wp.int64(max(n, 1))],
-        outputs=[keys, vals],
-        device=device,
-    )
-    wp.utils.radix_sort_pairs(keys, vals, m, end_bit=max(2 * (n - 1).bit_length(), 1))
-    ranks = empty(m)
-    wp.launch(_heads, m, inputs=[keys], outputs=[ranks], device=device)
-    wp.utils.array_scan(ranks, ranks, inclusive=True)
-    face_edges, edge_faces, starts, edges = empty(nf, k), empty(m, 2), empty(m), empty(m, 2)
-    odd = wp.zeros(1, dtype=int, device=device)
-    win_next = wp.full(n, -1, dtype=int, device=device)
-    win_prev = wp.full(n, -1, dtype=int, device=device)
-    wp.launch(
-        _edge_tables,
-        m,
-        inputs=[faces, ends, keys, vals, ranks, m],
-        outputs=[face_edges, edge_faces, starts, edges, odd, win_next, win_prev],
-        device=device,
-    )
-    prev_node, next_node, prev_face, next_face = empty(n), empty(n), empty(n), empty(n)
-    wp.launch(
-        _boundary,
-        n,
-        inputs=[faces, ends, win_next, win_prev],
-        outputs=[next_node, next_face, prev_node, prev_face],
-        device=device,
-    )
-
-    # Node -> faces, and the used nodes.
-    m = nf * nn
-    node_keys, vals = empty(2 * m), empty(2 * m)
-    uses = wp.zeros(n + 1, dtype=int, device=device)
-    wp.launch(_node_keys, m, inputs=[faces], outputs=[node_keys, vals, uses], device=device)
-    wp.utils.radix_sort_pairs(node_keys, vals, m, end_bit=max((n - 1).bit_length(), 1))
-    nf_ids = empty(m)
-    wp.launch(_node_face_ids, m, inputs=[vals, nn], outputs=[nf_ids], device=device)
-    flags = empty(n)
-    wp.launch(_used, n, inputs=[uses], outputs=[flags], device=device)
-    wp.utils.array_scan(flags, flags, inclusive=True)
-    nodes = empty(n)
-    wp.launch(_compact, n, inputs=[uses, flags], outputs=[nodes], device=device)
-    nf_offsets = empty(n + 1)
-    wp.utils.array_scan(uses, nf_offsets, inclusive=False)
-
-    # Scalars in float64.
     points = wp.array(master.points, dtype=wp.vec3d, device=device)
     out, bad = _scalars(device)
-    centres = wp.empty(nf, dtype=wp.vec3d, device=device)
-    radii64 = wp.empty(nf, dtype=wp.float64, device=device)
-    radii = wp.empty(2 * nf, dtype=wp.float32, device=device)
-    rows = empty(2 * nf)
-    wp.launch(
-        _face_scalars,
-        -(-nf // CHUNK),
-        inputs=[points, faces, wp.float64(e.lebesgue)],
-        outputs=[centres, radii64, radii, rows, out],
-        device=device,
-    )
-    wp.launch(_box, -(-n // CHUNK), inputs=[points, uses, 1], outputs=[out, bad], device=device)
-    wp.utils.radix_sort_pairs(radii, rows, nf)
-    q = 0.1 * (nf - 1)  # np.quantile's linear interpolation
-    i0 = int(np.floor(q))
-    r01 = radii[i0 : min(i0 + 2, nf)].numpy()
+    t = {}  # what each chain makes
+
+    # Three independent chains of launches (on the CPU run at once, one thread each).
+    def edge_chain():
+        # A counting sort of each (face, local edge) into its smaller corner's segment, each
+        # segment then sorted by a thread (no radix sort: two were a third of the CPU's
+        # topology); the ranks of the distinct keys; the tables.
+        uses, offsets = zeros(n + 1), empty(n + 1)
+        run(_count_edges, nf, faces, ends, uses)
+        wp.utils.array_scan(uses, offsets, inclusive=False)
+        pairs, keys = (wp.empty(m, dtype=wp.int64, device=device) for _ in range(2))
+        vals = empty(m)
+        run(_scatter_edges, nf, faces, ends, offsets, zeros(n), pairs)
+        run(_edge_segments, n, offsets, pairs, wp.int64(max(n, 1)), wp.int64(m), keys, vals)
+        ranks = t["ranks"] = empty(m)
+        run(_heads, m, keys, ranks)
+        wp.utils.array_scan(ranks, ranks, inclusive=True)
+        t["face_edges"], t["edge_faces"] = empty(nf, k), empty(m, 2)
+        t["edge_starts"], t["edges"], t["odd"] = empty(m), empty(m, 2), zeros(1)
+        win_next = wp.full(n, -1, dtype=int, device=device)
+        win_prev = wp.full(n, -1, dtype=int, device=device)
+        tables = [t[a] for a in ("face_edges", "edge_faces", "edge_starts", "edges", "odd")]
+        run(_edge_tables, m, faces, ends, keys, vals, ranks, m, *tables, win_next, win_prev)
+        for a in ("prev_node", "next_node", "prev_face", "next_face"):
+            t[a] = empty(n)
+        neighbours = [t[a] for a in ("next_node", "next_face", "prev_node", "prev_face")]
+        run(_boundary, n, faces, ends, win_next, win_prev, *neighbours)
+
+    def node_chain():
+        # Node -> faces by a counting sort, each node's faces sorted by a thread; the used
+        # nodes and their box.
+        uses, offsets = zeros(n + 1), empty(n + 1)
+        run(_count_nodes, nf, faces, uses)
+        wp.utils.array_scan(uses, offsets, inclusive=False)
+        t["nf_offsets"], t["nf_ids"] = offsets, empty(nf * nn)
+        run(_scatter_nodes, nf, faces, offsets, zeros(n), t["nf_ids"])
+        run(_face_segments, n, offsets, t["nf_ids"])
+        flags = t["flags"] = empty(n)
+        run(_used, n, uses, flags)
+        wp.utils.array_scan(flags, flags, inclusive=True)
+        t["nodes"] = empty(n)
+        run(_compact, n, uses, flags, t["nodes"])
+        run(_box, -(-n // CHUNK), points, uses, 1, out, bad)
+
+    def scalar_chain():
+        # Face centres and radii in float64; the longest edge, the largest radius and the
+        # box of the faces' balls.
+        t["centres"] = wp.empty(nf, dtype=wp.vec3d, device=device)
+        t["radii"] = wp.empty(nf, dtype=wp.float64, device=device)
+        radii, rows = wp.empty(2 * nf, dtype=wp.float32, device=device), empty(2 * nf)
+        scalars = (points, faces, wp.float64(e.lebesgue), t["centres"], t["radii"], radii, rows)
+        run(_face_scalars, -(-nf // CHUNK), *scalars, out, int(not device.is_cuda))
+        t["r_small"] = _tenth(radii, rows, nf, device)
+
+    _count_edges.module.load(device)  # once, before threads launch its kernels
+    concurrently(device, edge_chain, node_chain, scalar_chain)
     s = out.numpy()
-    n_nodes = int(flags[n - 1 : n].numpy()[0]) if n else 0
-    n_edges = int(ranks[m_edges - 1 : m_edges].numpy()[0])
-    r_small = float(r01[0] + (q - i0) * (r01[-1] - r01[0]))
+    n_nodes = int(t["flags"][n - 1 : n].numpy()[0]) if n else 0
+    n_edges = int(t["ranks"][m - 1 : m].numpy()[0])
     return Topology(
         faces=faces,
-        face_edges=face_edges,
-        edge_faces=edge_faces,
-        nf_offsets=nf_offsets,
-        nf_ids=nf_ids,
-        prev_node=prev_node,
-        next_node=next_node,
-        prev_face=prev_face,
-        next_face=next_face,
-        nodes=nodes,
+        **{a: t[a] for a in ("face_edges", "edge_faces", "nf_offsets", "nf_ids", "nodes")},
+        **{a: t[a] for a in ("prev_node", "next_node", "prev_face", "next_face")},
         n_nodes=n_nodes,
         points=points,
-        centres=centres,
-        radii=radii64,
-        edge_starts=starts,
-        edges=edges,
+        centres=t["centres"],
+        radii=t["radii"],
+        edge_starts=t["edge_starts"],
+        edges=t["edges"],
         n_edges=n_edges,
-        closed=int(odd.numpy()[0]) == 0,
+        closed=int(t["odd"].numpy()[0]) == 0,
         longest_edge=float(np.sqrt(s[0])),
         r_max=float(s[1]),
-        r_small=r_small,
+        r_small=t["r_small"],
         node_box=(s[2:5].copy(), s[5:8].copy()),
+        ball_box=(s[8:11].copy(), s[11:14].copy()),
     )
 
 
