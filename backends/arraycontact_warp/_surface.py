@@ -155,6 +155,7 @@ def _edge_tables(
     vals: wp.array(dtype=int),
     ranks: wp.array(dtype=int),
     count: int,
+    n: wp.int64,
     face_edges: wp.array2d(dtype=int),
     edge_faces: wp.array2d(dtype=int),
     starts: wp.array(dtype=int),
@@ -184,8 +185,9 @@ def _edge_tables(
         if t + 2 < count:
             three = keys[t + 2] == keys[t]
         starts[e] = t
-        edges[e, 0] = wp.min(faces[f, ends[v - f * k, 0]], faces[f, ends[v - f * k, 1]])
-        edges[e, 1] = wp.max(faces[f, ends[v - f * k, 0]], faces[f, ends[v - f * k, 1]])
+        lo = keys[t] // n  # the key is lo n + hi: no read of the (scattered) faces
+        edges[e, 0] = int(lo)
+        edges[e, 1] = int(keys[t] - lo * n)
         edge_faces[e, 0] = f
         edge_faces[e, 1] = -1
         if two:
@@ -476,7 +478,8 @@ def _topology(master: Surface, device) -> Topology:
         win_next = wp.full(n, -1, dtype=int, device=device)
         win_prev = wp.full(n, -1, dtype=int, device=device)
         tables = [t[a] for a in ("face_edges", "edge_faces", "edge_starts", "edges", "odd")]
-        run(_edge_tables, m, faces, ends, keys, vals, ranks, m, *tables, win_next, win_prev)
+        n64 = wp.int64(max(n, 1))
+        run(_edge_tables, m, faces, ends, keys, vals, ranks, m, n64, *tables, win_next, win_prev)
         for a in ("prev_node", "next_node", "prev_face", "next_face"):
             t[a] = empty(n)
         neighbours = [t[a] for a in ("next_node", "next_face", "prev_node", "prev_face")]
