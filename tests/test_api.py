@@ -163,12 +163,17 @@ def test_graded_scenes_reject_bad_parameters():
 
 def test_default_contract_is_float64_on_every_backend():
     """`ac.detect(slave, master)` computes in float64 whichever back end answers, and the
-    answer says which one did; "auto" picks Warp (here on the CPU device) since it imports."""
+    answer says which one did; "auto" picks Warp (on its default device: the CPU here, a GPU
+    where one is visible) since it imports."""
+    import jax
+    import warp as wp
+
+    devices = {"numpy": "cpu", "warp": str(wp.get_device()), "jax": jax.devices()[0].platform}
     for backend in ("auto", "numpy", "jax", "warp"):
         c = ac.detect(SLAVE, MASTER, backend=backend)
         assert c.dtype == "float64" and c.gap.dtype == np.float64
         assert c.backend == ("warp" if backend == "auto" else backend)
-        assert c.device.startswith("cpu")
+        assert c.device.startswith(devices[c.backend])
         assert f"backend: {c.backend} on {c.device}, float64" in c.summary()
         # float64 agreement, not float32's (the Warp back end once defaulted to float32)
         assert_matches_reference(c, SLAVE, MASTER, dtype=np.float64)
