@@ -499,19 +499,26 @@ def assemble(n, ids, rows, origin, out, d_max, counts, timings, answered) -> Con
     at `origin`) into a full Contacts record (global frame, float64)."""
     c = _empty(n, ids, d_max)
     active = np.asarray(out["active"], bool)
-    keep = active | (np.asarray(out["status"]) == int(Status.PASSING_BY))
-    r = rows[keep]
-    c.active[rows] = active
-    c.status[rows] = np.asarray(out["status"])
-    mn = np.asarray(out["master_node"])
-    c.master_node[rows] = mn
-    c.face[r] = np.asarray(out["face"])[keep]
-    c.xi[r] = np.asarray(out["xi"], float)[keep]
-    c.point[r] = np.asarray(out["point"], float)[keep] + origin
-    c.gap[r] = np.asarray(out["gap"], float)[keep]
-    c.distance[r] = np.asarray(out["distance"], float)[keep]
-    c.normal[r] = np.asarray(out["normal"], float)[keep]
-    c.feature[r] = np.asarray(out["feature"])[keep]
+    status = np.asarray(out["status"])
+    keep = active | (status == int(Status.PASSING_BY))
+    if len(rows) == n:  # every slave in the box (rows = 0 .. n - 1): masked copies
+        np.copyto(c.active, active)
+        np.copyto(c.status, status)
+        np.copyto(c.master_node, out["master_node"])
+        for k in ("face", "xi", "point", "gap", "distance", "normal", "feature"):
+            v = np.asarray(out[k])
+            dst = getattr(c, k)
+            np.copyto(dst, v, where=keep.reshape((n,) + (1,) * (v.ndim - 1)))
+            if k == "point":
+                dst += origin  # NaN rows stay NaN
+    else:
+        r = rows[keep]
+        c.active[rows] = active
+        c.status[rows] = status
+        c.master_node[rows] = np.asarray(out["master_node"])
+        for k in ("face", "xi", "point", "gap", "distance", "normal", "feature"):
+            v = np.asarray(out[k])[keep]
+            getattr(c, k)[r] = v + origin if k == "point" else v
     if "finer" in out:
         finer = np.zeros(n, bool)
         finer[rows] = np.asarray(out["finer"], bool)
