@@ -666,8 +666,9 @@ def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> 
     if rows is None:  # the boxes do not meet: no grid, no contact
         return _empty(n, ids, d_max, timings={"prepare": t1 - t0, "total": t1 - t0}, **answered)
     if backend == "warp":
+        x = slave_x if len(rows) == n else slave_x[rows]  # rows: all, or a few
         out, answered["device"], in_box = warp.run_one_shot(
-            slave_x[rows], master, d_max, dtype, mode, self_ids is not None
+            x, master, d_max, dtype, mode, self_ids is not None
         )
         count, cap, laps = {}, {}, {}
     else:
