@@ -53,8 +53,14 @@ class Progress:
                     print(f"\r{blank}\r", end="", file=self.stream, flush=True)
 
 
-def topology(surface):
-    """Derive what a detection reads from a Surface (a stage of its own in the progress)."""
+def topology(surface, backend):
+    """Derive what a detection on `backend` reads from a Surface (a stage of its own in the
+    progress): the Warp back end's topology on its device, else the Surface's NumPy tables."""
+    from ._backends import load, resolve
+
+    if resolve(backend) == "warp":
+        load("warp").master_scalars(surface)
+        return
     for name in ("nodes", "node_faces", "edges", "face_bounds", "node_normals", "longest_edge"):
         getattr(surface, name)
 
@@ -128,7 +134,7 @@ def demo(args):
     with progress.stage("making the scene"):
         scene = ac.scenes.rough_surfaces(args.nodes, gap=args.gap, element=args.element)
     with progress.stage("master topology"):
-        topology(scene.master)
+        topology(scene.master, args.backend)
     label = (
         f"rough surfaces (seed 000 Fig. 10): {len(scene.slave)} slave nodes, "
         f"{scene.master.n_faces} {args.element} master faces, mode {args.mode}"
@@ -157,7 +163,7 @@ def detect_files(args):
     with progress.stage(f"reading {args.slave}"):
         slave = ac.read_surface(args.slave, file_format=args.format)
     with progress.stage("master topology"):
-        topology(master)
+        topology(master, args.backend)
     with progress.stage("detecting"):
         c = ac.detect(
             slave, master, backend=args.backend, mode=args.mode, d_max=args.d_max, dtype=args.dtype
