@@ -674,8 +674,7 @@ def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> 
     else:
         st = Static.of(master, mode, prep, self_contact=self_ids is not None)
         if backend == "numpy":
-            run = _run_numpy(slave_x, master, prep, st, dtype, slave_ids=self_ids)
-            out, count, cap, laps = run
+            out, count, cap, laps = _run_numpy(slave_x, master, prep, st, dtype, slave_ids=self_ids)
             answered["device"] = "cpu"
         else:
             out, count, cap, answered["device"] = load(backend).run_one_shot(
