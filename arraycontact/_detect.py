@@ -470,7 +470,7 @@ def _admissible(xp, element, m, own, slave, face, xi, mode):
 def _slaves(slave):
     if isinstance(slave, Surface):
         return slave.points[slave.nodes], slave.nodes
-    x = validate_points(slave, "slave")
+    x = validate_points(slave, "slave", copy=False)
     return x, np.arange(len(x))
 
 

@@ -723,7 +723,7 @@ def _input(p: Plan, a, staging, what, n):
     kind = _kind(a)
     if kind == "numpy":
         # float64 host data: subtract the origin in float64 before a float32 cast.
-        x = validate_points(a, what)
+        x = validate_points(a, what, copy=False)
         if len(x) != n:
             raise ValueError(f"{what} must have {n} rows (the plan's), got {len(x)}")
         staging.assign((x - p.origin).astype(NP_REAL))
