@@ -12,7 +12,10 @@ def test_demo(tmp_path, capsys):
     assert main(["demo", "--nodes", "1024", "-o", str(stem)]) == 0
     out = capsys.readouterr().out
     assert "active:" in out and "time per stage" in out and "min gap" in out
-    assert "backend: warp on cpu, float64" in out  # the default: auto, float64
+    import warp as wp
+
+    # The default: auto (Warp, on its default device: the CPU here, a GPU where visible), float64.
+    assert f"backend: warp on {wp.get_device()}, float64" in out
     mesh = meshio.read(f"{stem}.vtu")
     assert (stem.parent / "demo.png").stat().st_size > 1000
     n_active = int(out.split("active: ")[1].split()[0])
