@@ -465,13 +465,14 @@ def _topology(master: Surface, device) -> Topology:
         # A counting sort of each (face, local edge) into its smaller corner's segment, each
         # segment then sorted by a thread (no radix sort: two were a third of the CPU's
         # topology); the ranks of the distinct keys; the tables.
+        n64 = wp.int64(max(n, 1))
         uses, offsets = zeros(n + 1), empty(n + 1)
         run(_count_edges, nf, faces, ends, uses)
         wp.utils.array_scan(uses, offsets, inclusive=False)
         pairs, keys = (wp.empty(m, dtype=wp.int64, device=device) for _ in range(2))
         vals = empty(m)
         run(_scatter_edges, nf, faces, ends, offsets, zeros(n), pairs)
-        run(_edge_segments, n, offsets, pairs, wp.int64(max(n, 1)), wp.int64(m), keys, vals)
+        run(_edge_segments, n, offsets, pairs, n64, wp.int64(m), keys, vals)
         ranks = t["ranks"] = empty(m)
         run(_heads, m, keys, ranks)
         wp.utils.array_scan(ranks, ranks, inclusive=True)
@@ -480,7 +481,6 @@ def _topology(master: Surface, device) -> Topology:
         win_next = wp.full(n, -1, dtype=int, device=device)
         win_prev = wp.full(n, -1, dtype=int, device=device)
         tables = [t[a] for a in ("face_edges", "edge_faces", "edge_starts", "edges", "odd")]
-        n64 = wp.int64(max(n, 1))
         run(_edge_tables, m, faces, ends, keys, vals, ranks, m, n64, *tables, win_next, win_prev)
         for a in ("prev_node", "next_node", "prev_face", "next_face"):
             t[a] = empty(n)
