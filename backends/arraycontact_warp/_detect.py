@@ -793,19 +793,21 @@ def _master_stages(p: Plan, xm, m_origin):
         device=dev,
     )
     if p.self_contact:
-        wp.launch(
+        _slave_launch(
             self_face_geometry,
             p.master.n_faces,
-            inputs=[p.kernel_element, m],
-            outputs=[p.face_nlo, p.face_nhi, p.h_face],
-            device=dev,
+            [0, p.kernel_element, m],
+            [p.face_nlo, p.face_nhi, p.h_face],
+            dev,
+            first=0,
         )
-        wp.launch(
+        _slave_launch(
             self_node_geometry,
             p.n_nodes,
-            inputs=[p.kernel_element, m, p.own_nodes, p.h_face],
-            outputs=[p.normals, p.h_node],
-            device=dev,
+            [0, p.kernel_element, m, p.own_nodes, p.h_face],
+            [p.normals, p.h_node],
+            dev,
+            first=0,
         )
     node_n, face_n = _normal_boxes(p)
     # A refit where the device decides without the host: in a CUDA graph (detect's own or the

@@ -156,6 +156,7 @@ def node_normal(el: Any, m: Master, node: int):
 
 @wp.kernel
 def self_node_geometry(
+    first: int,
     el: Any,
     m: Master,
     nodes: wp.array(dtype=int),
@@ -163,8 +164,9 @@ def self_node_geometry(
     normals: wp.array(dtype=vec3),
     h_node: wp.array(dtype=real),
 ):
-    """Each used node's pseudo-normal and local mesh size (the mean of its faces' sizes)."""
-    i = nodes[wp.tid()]
+    """Each used node's pseudo-normal and local mesh size (the mean of its faces' sizes).
+    Threads first + t (no atomics: on the CPU in parts)."""
+    i = nodes[first + wp.tid()]
     normals[i] = node_normal(el, m, i)
     h = real(0.0)
     for j in range(m.nf_offsets[i], m.nf_offsets[i + 1]):
@@ -174,6 +176,7 @@ def self_node_geometry(
 
 @wp.kernel
 def self_face_geometry(
+    first: int,
     el: Any,
     m: Master,
     lo: wp.array(dtype=vec3),
@@ -182,8 +185,8 @@ def self_face_geometry(
 ):
     """Each face's normal box (arraycontact._surface.normal_boxes: tri3 its normal, quad4 its
     corner normals, tri6 the nine cross products of x_xi and x_eta at its corners, else all
-    unit vectors) and its size (the mean length of its edges)."""
-    f = wp.tid()
+    unit vectors) and its size (the mean length of its edges). Threads first + t."""
+    f = first + wp.tid()
     nn = m.faces.shape[1]
     k = el.n_corners
     b_lo = vec3(real(-1.0))
