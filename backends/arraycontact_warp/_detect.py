@@ -1200,20 +1200,11 @@ def _swept_launch(p: SweptPlan, xs):
     nf = p.master.n_faces
     s0, s1, m0, m1 = xs
     g = p.grid
-    wp.launch(
-        _sweep.capture_keys,
-        nf,
-        inputs=[m0, m1, p.faces, real(c.lebesgue), p.face_world, g],
-        device=dev,
-    )
+    args = [m0, m1, p.faces, real(c.lebesgue), p.face_world]
+    _slave_launch(_sweep.capture_keys, nf, [0, *args, g], [], dev, first=0)
     _grid._sort(g, nf, p.world_bits)
     _grid.arrange(g, nf, p.layout, dev)
-    wp.launch(
-        _sweep.capture_gather,
-        nf,
-        inputs=[m0, m1, p.faces, real(c.lebesgue), p.face_world, real(c.pad), g],
-        device=dev,
-    )
+    _slave_launch(_sweep.capture_gather, nf, [0, *args, real(c.pad), g], [], dev, first=0)
     _grid.fill(g, p.layout, dev)
     o = p.out
     _slave_launch(

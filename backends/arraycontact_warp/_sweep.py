@@ -697,6 +697,7 @@ def search(q: Any, bound: real, t_tol: real):
 
 @wp.kernel
 def capture_keys(
+    first: int,
     x0: wp.array(dtype=vec3),
     x1: wp.array(dtype=vec3),
     faces: wp.array2d(dtype=int),
@@ -704,7 +705,9 @@ def capture_keys(
     world: wp.array(dtype=int),
     grid: Grid,
 ):
-    f = wp.tid()
+    """Each face's key: the Morton code of its capture box's centre (threads first + t, no
+    atomics: on the CPU in parts)."""
+    f = first + wp.tid()
     c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
     c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
     c = real(0.5) * (wp.min(lo0, lo1) + wp.max(hi0, hi1))
@@ -714,6 +717,7 @@ def capture_keys(
 
 @wp.kernel
 def capture_gather(
+    first: int,
     x0: wp.array(dtype=vec3),
     x1: wp.array(dtype=vec3),
     faces: wp.array2d(dtype=int),
@@ -723,8 +727,8 @@ def capture_gather(
     grid: Grid,
 ):
     """Each face's capture box (its boxes at both ends of the step, grown by pad) in its
-    slot."""
-    k = wp.tid()
+    slot (threads first + t)."""
+    k = first + wp.tid()
     f = grid.sorted_ids[k]
     c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
     c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
