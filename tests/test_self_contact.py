@@ -209,6 +209,20 @@ def test_warped_quad4_faces(backend):
     assert_self_matches(ac.detect_self(sc.master, backend=backend, d_max=d), sc.master, d)
 
 
+def _warp_cpu_compiles() -> bool:
+    import warp as wp
+
+    return wp.is_cpu_available()
+
+
+#: Tests that run Warp's CPU device: a GPU machine's Warp may have no LLVM to compile for it
+#: (a failed compile there left the next tests' GPU launches failing).
+needs_warp_cpu = pytest.mark.skipif(
+    not _warp_cpu_compiles(), reason="Warp's CPU device cannot compile here (no LLVM)"
+)
+
+
+@needs_warp_cpu
 def test_warp_first_reach_needs_a_surely_facing_face():
     """Warp self-contact's first reach (`_detect._reach` for `Own`): the closest obtuse
     node's distance (0.25 here) only through a face of that node that does not hold the
@@ -324,6 +338,7 @@ def test_jax_plan_detect_grad_vmap():
         acj.detect_self(acj.plan(s, s.points[s.nodes], d_max=d), s.points)
 
 
+@needs_warp_cpu
 def test_warp_plan_detect_worlds():
     """arraycontact_warp.plan_self / detect_self: equal to NumPy at the plan's and at moved
     coordinates (a refit), and with two worlds in one surface, each world alone."""
