@@ -431,9 +431,10 @@ def table(a):
                     and not k.endswith(("detect_s", "plan_s", "new_s"))
                 )
                 new = r.get("warp_cpu_float32_new_s")
-                new_ms = "-" if new is None else f"{1e3 * new:.1f} ms"
-                new_ratio = "-" if new is None else f"{r['new_vs_fcpw']:.2f}"
-                new_ms, new_ratio = (f"{new_ms} | ", f"{new_ratio} | ") if fresh else ("", "")
+                new_ms = new_ratio = ""
+                if fresh:
+                    new_ms = "- | " if new is None else f"{1e3 * new:.1f} ms | "
+                    new_ratio = "- | " if new is None else f"{r['new_vs_fcpw']:.2f} | "
                 e = r["errors"]
                 print(
                     f"| {r['scene']} | {r['n_faces']} | {r['n_slaves']} | {1e3 * best:.1f} ms | "
