@@ -37,7 +37,9 @@ class Status(IntEnum):
 class Counts:
     """Work counters of one detection: `count` may exceed `capacity` (overflow)."""
 
-    slaves_in_box: int = 0
+    slaves_in_box: int = 0  # the slaves inside the box where both surfaces' boxes meet
+    # The master's nodes and faces the trees hold: those in that box (NumPy, JAX) or every
+    # used node and face (Warp, whose trees hold the whole master).
     master_nodes_in_box: int = 0
     master_faces_in_box: int = 0
     count: dict = field(default_factory=dict)
