@@ -494,6 +494,10 @@ def _empty(n, ids, d_max, counts=None, timings=None, **answered) -> Contacts:
     )
 
 
+#: The fields of a row that only active (or passing-by) slaves fill.
+_KEPT = ("face", "xi", "point", "gap", "distance", "normal", "feature")
+
+
 def assemble(n, ids, rows, origin, out, d_max, counts, timings, answered) -> Contacts:
     """Scatter the outputs of the slaves in the box (their rows; points in the local frame
     at `origin`) into a full Contacts record (global frame, float64)."""
@@ -505,7 +509,7 @@ def assemble(n, ids, rows, origin, out, d_max, counts, timings, answered) -> Con
         np.copyto(c.active, active)
         np.copyto(c.status, status)
         np.copyto(c.master_node, out["master_node"])
-        for k in ("face", "xi", "point", "gap", "distance", "normal", "feature"):
+        for k in _KEPT:
             v = np.asarray(out[k])
             dst = getattr(c, k)
             np.copyto(dst, v, where=keep.reshape((n,) + (1,) * (v.ndim - 1)))
@@ -516,7 +520,7 @@ def assemble(n, ids, rows, origin, out, d_max, counts, timings, answered) -> Con
         c.active[rows] = active
         c.status[rows] = status
         c.master_node[rows] = np.asarray(out["master_node"])
-        for k in ("face", "xi", "point", "gap", "distance", "normal", "feature"):
+        for k in _KEPT:
             v = np.asarray(out[k])[keep]
             getattr(c, k)[r] = v + origin if k == "point" else v
     if "finer" in out:

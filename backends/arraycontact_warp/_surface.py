@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -97,6 +98,18 @@ def _scatter_nodes(
         ids[offsets[i] + wp.atomic_add(cursor, i, 1)] = f
 
 
+@wp.func
+def _sort_run(a: wp.array(dtype=Any), lo: int, hi: int):
+    """a[lo:hi] ascending in place (a node's handful of entries: insertion sort)."""
+    for j in range(lo + 1, hi):
+        p = a[j]
+        q = j
+        while q > lo and a[q - 1] > p:
+            a[q] = a[q - 1]
+            q -= 1
+        a[q] = p
+
+
 @wp.kernel
 def _edge_segments(
     offsets: wp.array(dtype=int),
@@ -106,19 +119,11 @@ def _edge_segments(
     keys: wp.array(dtype=wp.int64),
     vals: wp.array(dtype=int),
 ):
-    """Node i's edges (a handful: insertion sort) by (larger corner, face, local edge),
-    written as the keys i n + larger corner and the values f k + le: the order of a stable
-    sort of every edge's key."""
+    """Node i's edges by (larger corner, face, local edge), written as the keys i n + larger
+    corner and the values f k + le: the order of a stable sort of every edge's key."""
     i = wp.tid()
-    a = offsets[i]
-    for j in range(a + 1, offsets[i + 1]):
-        p = pairs[j]
-        q = j
-        while q > a and pairs[q - 1] > p:
-            pairs[q] = pairs[q - 1]
-            q -= 1
-        pairs[q] = p
-    for j in range(a, offsets[i + 1]):
+    _sort_run(pairs, offsets[i], offsets[i + 1])
+    for j in range(offsets[i], offsets[i + 1]):
         p = pairs[j]
         b = p // m
         keys[j] = wp.int64(i) * n + b
@@ -127,16 +132,9 @@ def _edge_segments(
 
 @wp.kernel
 def _face_segments(offsets: wp.array(dtype=int), ids: wp.array(dtype=int)):
-    """Node i's faces ascending (insertion sort)."""
+    """Node i's faces ascending."""
     i = wp.tid()
-    a = offsets[i]
-    for j in range(a + 1, offsets[i + 1]):
-        f = ids[j]
-        q = j
-        while q > a and ids[q - 1] > f:
-            ids[q] = ids[q - 1]
-            q -= 1
-        ids[q] = f
+    _sort_run(ids, offsets[i], offsets[i + 1])
 
 
 @wp.kernel
