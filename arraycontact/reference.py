@@ -553,8 +553,8 @@ def _polish(element, xe0, xe1, p0, p1, toi, xi):
         vf = np.einsum("pa,pak->pk", n, a1 - a0)
         f = x - (b0 + t * (b1 - b0))
         jac = np.concatenate([dx, (vf - (b1 - b0))[..., None]], -1)
-        with np.errstate(all="ignore"):
-            step = np.linalg.solve(jac + 1e-300 * np.eye(3), f[..., None])[..., 0]
+        with np.errstate(all="ignore"):  # pinv: a node moving in the face's plane is singular
+            step = (np.linalg.pinv(jac) @ f[..., None])[..., 0]
         z = np.where(np.isfinite(step).all(1, keepdims=True), z - step, z)
     t = z[:, 2:3]
     x, _ = interpolate(element, a0 + t[:, :, None] * (a1 - a0), z[:, :2])

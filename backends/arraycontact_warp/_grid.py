@@ -364,15 +364,49 @@ class Own:
     normal: vec3
 
 
+@wp.struct
+class Segment:
+    """A swept scan's slave: the segment a + t d, t in [0, 1] (its path over the step)."""
+
+    a: vec3
+    d: vec3
+
+
 @wp.func
-def may_face(o: Plain, grid: Grid, key: int):
-    """Whether the tree entry at `key` may hold a face (or node) facing the slave."""
+def meets(o: Segment, lo: vec3, hi: vec3):
+    """Whether the segment meets the box [lo, hi] (slab test; an axis along which the segment
+    does not move: its coordinate within the box's). Far tighter than the ball around the
+    segment for the long paths of fast or steep motion (pairs a slave at 2^12: steep 25 ->
+    3.4, rough_fast 26 -> 7.2)."""
+    t0 = real(0.0)
+    t1 = real(1.0)
+    ok = bool(True)
+    for c in range(3):
+        if o.d[c] != real(0.0):
+            u = (lo[c] - o.a[c]) / o.d[c]
+            v = (hi[c] - o.a[c]) / o.d[c]
+            t0 = wp.max(t0, wp.min(u, v))
+            t1 = wp.min(t1, wp.max(u, v))
+        elif o.a[c] < lo[c] or o.a[c] > hi[c]:
+            ok = False
+    return ok and t0 <= t1
+
+
+@wp.func
+def may_face(o: Plain, grid: Grid, key: int, box: Box):
+    """Whether the tree entry at `key` (box) may hold a face (or node) facing the slave, or
+    (swept) met by its segment."""
     return True
 
 
 @wp.func
-def may_face(o: Own, grid: Grid, key: int):  # noqa: F811 (a Warp overload)
+def may_face(o: Own, grid: Grid, key: int, box: Box):  # noqa: F811 (a Warp overload)
     return facing(o.normal, grid.nboxes[key])
+
+
+@wp.func
+def may_face(o: Segment, grid: Grid, key: int, box: Box):  # noqa: F811 (a Warp overload)
+    return meets(o, box.lo, box.hi)
 
 
 @wp.func
@@ -414,7 +448,8 @@ def children(
     among boxes that hold s (near the root, several), the one whose centre is nearest (node
     scan at 2^20 on an H100: 0.68 -> 0.58 ms uniform, 4.67 -> 3.53 ms graded_1000; the face
     scan, which starts from the closest node's distance, runs slower with it). o: Plain, or
-    Own (self-contact: only the children that may face the slave's normal)."""
+    Own (self-contact: only the children that may face the slave's normal), or Segment (swept:
+    only the children its segment meets)."""
     mask = int(0)
     near = int(-1)
     near_d2 = real(3.0e38)
@@ -425,7 +460,7 @@ def children(
         if ok and shared == 0:
             ok = of_world(box.world, world)
         if ok:
-            ok = may_face(o, grid, grid.offsets[k - 1] + first + c)
+            ok = may_face(o, grid, grid.offsets[k - 1] + first + c, box)
         if ok:
             mask = mask | (1 << c)
             if centred == 1 and d2 == real(0.0):
