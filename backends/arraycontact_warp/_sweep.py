@@ -671,22 +671,20 @@ SLAB = 6
 
 
 @wp.func
-def earliest(q: TriPair, bound: real, t_tol: real):
-    """search for a triangle, narrowed first in time by the coplanarity cubic (_coplanar): a
-    contact needs the node in the face's plane, which it crosses at most three times. The
-    pair is dropped when the cubic has no root over the step (certified by its Bernstein
-    coefficients); otherwise its first root, found numerically, picks a dyadic slab
-    [lo, hi] of time around it, [0, lo] is certified free of roots, and the box search runs
-    on the slab alone, where the face's motion is nearly affine and Krawczyk's test decides
-    almost every pair in one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the whole
-    step, 1.4 on the slab); then [hi, 1] is certified free of roots, or the box search runs
-    on the whole step (a second crossing, a grazing or coplanar motion: rare). Same result
-    and guarantee as search."""
+def _narrow(q: TriPair, bound: real):
+    """Where a triangle's box search starts, narrowed in time by the coplanarity cubic
+    (_coplanar), which a contact needs to be zero: (0, -) no contact before `bound`, (1, a
+    slab of time) or (2, the unit box). The pair is dropped when the cubic has no root over
+    the step (certified by its Bernstein coefficients); otherwise its first root, found
+    numerically, picks a dyadic slab [lo, hi] around it and [0, lo] is certified free of
+    roots. On the slab the face's motion is nearly affine and Krawczyk's test decides almost
+    every pair in one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the whole step, 1.4
+    on the slab). A grazing, coplanar motion or a root left uncertified: the unit box."""
     unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
     m = _coplanar_margin(q)
     g = _coplanar(q, real(0.0), real(1.0))
     if _apart(g, m):
-        return real(3.0e38), vec2(real(0.5)), int(1), int(0)
+        return 0, unit
     # The first sign change of g among 17 samples, then 3 bisections: the root within 2^-7.
     c1 = real(3.0) * (g[1] - g[0])
     c2 = real(3.0) * (g[2] - real(2.0) * g[1] + g[0])
@@ -715,45 +713,71 @@ def earliest(q: TriPair, bound: real, t_tol: real):
             f0 = f1
         j += 1
     if found == 0:
-        return search(q, unit, bound, t_tol)
+        return 2, unit
     # The slab: the deepest dyadic interval of at most 2^-SLAB that holds the root estimate
     # [t0, t0 + 2^-7] with an eighth of its width to spare on each side.
     r = real(0.5) * t0 + real(0.5) * wp.min(t0 + real(1.0 / 128.0), real(1.0))
     lo = real(0.0)
-    hi = real(1.0)
     k = int(SLAB)
     while k > 0:
         w = real(1.0) / real(1 << k)
         lo = wp.floor(r / w) * w
-        if r - lo >= real(0.125) * w + real(1.0 / 256.0) and lo + w - r >= real(0.125) * w + real(
-            1.0 / 256.0
-        ):
-            hi = lo + w
-            k = -1
-        else:
-            k -= 1
+        spare = real(0.125) * w + real(1.0 / 256.0)
+        if r - lo >= spare and lo + w - r >= spare:
+            break
+        k -= 1
     if k == 0:
-        return search(q, unit, bound, t_tol)
+        return 2, unit
+    clear = lo == real(0.0) or _apart(_coplanar(q, real(0.0), lo), m)
+    if not clear:
+        return 2, unit
     if lo >= bound:
-        if lo == real(0.0) or _apart(_coplanar(q, real(0.0), lo), m):
-            return real(3.0e38), vec2(real(0.5)), int(1), int(0)
-        return search(q, unit, bound, t_tol)
-    if lo > real(0.0) and not _apart(_coplanar(q, real(0.0), lo), m):
-        return search(q, unit, bound, t_tol)
-    slab = Box6(real(0.0), real(1.0), real(0.0), real(1.0), lo, hi)
-    t, where, cv, visits = search(q, slab, bound, t_tol)
-    if t < real(2.0) or hi >= wp.min(bound, real(1.0)):
-        return t, where, cv, visits
-    if _apart(_coplanar(q, hi, real(1.0)), m):
-        return t, where, cv, visits
-    t, where, cv, more = search(q, unit, bound, t_tol)
-    return t, where, cv, visits + more
+        return 0, unit
+    return 1, Box6(real(0.0), real(1.0), real(0.0), real(1.0), lo, lo + real(1.0) / real(1 << k))
 
 
 @wp.func
-def earliest(q: CurvedPair, bound: real, t_tol: real):  # noqa: F811 (a Warp overload)
-    unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
-    return search(q, unit, bound, t_tol)
+def _narrow(q: CurvedPair, bound: real):  # noqa: F811 (a Warp overload)
+    return 2, Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
+
+
+@wp.func
+def _rest_clear(q: TriPair, hi: real, bound: real):
+    """Whether nothing is left to search after a slab ending at hi: the bound, or no root of
+    the coplanarity cubic in [hi, 1]."""
+    if hi >= wp.min(bound, real(1.0)):
+        return True
+    return _apart(_coplanar(q, hi, real(1.0)), _coplanar_margin(q))
+
+
+@wp.func
+def _rest_clear(q: CurvedPair, hi: real, bound: real):  # noqa: F811
+    return True
+
+
+@wp.func
+def earliest(q: Any, bound: real, t_tol: real):
+    """search on the box _narrow gives (a slab: then on the unit box unless the rest of the
+    step is clear), with search called from one place (it is inlined: each call site is a
+    copy of it, which costs a GPU its instruction cache and registers). Same result and
+    guarantee as search on the unit box."""
+    kind, node = _narrow(q, bound)
+    best = real(3.0e38)
+    where = vec2(real(0.5))
+    conv = int(1)
+    visits = int(0)
+    while kind != 0:
+        t, at, cv, n = search(q, node, bound, t_tol)
+        visits += n
+        if t < real(2.0) or kind == 2 or _rest_clear(q, node[5], bound):
+            best = t
+            where = at
+            conv = cv
+            kind = 0
+        else:
+            node = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
+            kind = 2
+    return best, where, conv, visits
 
 
 @wp.func
