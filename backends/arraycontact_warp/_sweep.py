@@ -145,6 +145,8 @@ class TriPair:
     n1: vec3
     margin: real
     delta: real
+    g: vec4  # the coplanarity cubic on [0, 1] (_coplanarity) and its rounding bound
+    g_margin: real
 
 
 @wp.struct
@@ -196,6 +198,9 @@ def _pair(
     q.n1 = wp.normalize(wp.cross(q.e1 + q.u1, q.e2 + q.u2))
     q.margin = real(ROUND) * EPS * sc
     q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    g, gm = _coplanarity(x0, x1, faces, f, s0, s1)
+    q.g = g
+    q.g_margin = gm
     return q
 
 
@@ -620,40 +625,57 @@ def _det(a: vec3, b: vec3, c: vec3):
 
 
 @wp.func
-def _coplanar(q: TriPair, lo: real, hi: real):
-    """The Bernstein coefficients on [lo, hi] of g(t) = det(E1, E2, D): the face's edge vectors
-    E1 = e1 + t u1, E2 = e2 + t u2 and D = a + t b (face node 0 minus the node), so g is zero
-    when the node is in the face's plane, which a contact needs. From g's blossom (det is
-    linear in each of its three linear factors): no change of basis, so the coefficients carry
-    only the rounding of 8 determinants (_coplanar_margin)."""
-    a0 = q.e1 + lo * q.u1
-    a1 = q.e1 + hi * q.u1
-    b0 = q.e2 + lo * q.u2
-    b1 = q.e2 + hi * q.u2
-    c0 = q.a + lo * q.b
-    c1 = q.a + hi * q.b
+def _coplanarity(
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    f: int,
+    s0: vec3,
+    s1: vec3,
+):
+    """The Bernstein coefficients on [0, 1] of g(t) = det(E1, E2, D), with the face's edge
+    vectors E1 = x1 - x0, E2 = x2 - x0 and D = x0 - the node, each linear in t (so g is zero
+    when the node is in the face's plane, which a contact needs), by g's blossom (det is
+    linear in each factor), and a bound on their rounding.
+
+    The factors' end values are differences of the inputs at one time, so each coordinate is
+    within 3 eps of its own factor's size (nE for the edges, nD for D; a factor computed
+    through the pair frame's motion would carry the motion's size, which a small face far
+    from a fast node magnifies). That moves a determinant by at most
+    3 (sqrt 3)^3 (2 3 eps nE nE nD + 3 eps nE nE nD) < 47 eps nE^2 nD, the determinants'
+    and the blossom's own arithmetic add below 25 eps nE^2 nD and a split of the interval
+    (_split) below 42 eps nE^2 nD: bounded here by 320 eps nE^2 nD."""
+    p0 = x0[faces[f, 0]]
+    p1 = x1[faces[f, 0]]
+    a0 = x0[faces[f, 1]] - p0
+    a1 = x1[faces[f, 1]] - p1
+    b0 = x0[faces[f, 2]] - p0
+    b1 = x1[faces[f, 2]] - p1
+    c0 = p0 - s0
+    c1 = p1 - s1
     third = real(1.0) / real(3.0)
-    return vec4(
+    g = vec4(
         _det(a0, b0, c0),
         third * (_det(a1, b0, c0) + _det(a0, b1, c0) + _det(a0, b0, c1)),
         third * (_det(a0, b1, c1) + _det(a1, b0, c1) + _det(a1, b1, c0)),
         _det(a1, b1, c1),
     )
+    ne = wp.max(wp.max(_inf(a0), _inf(a1)), wp.max(_inf(b0), _inf(b1)))
+    nd = wp.max(_inf(c0), _inf(c1))
+    return g, real(320.0) * EPS * ne * ne * nd
 
 
 @wp.func
-def _coplanar_margin(q: TriPair):
-    """A bound on the rounding of _coplanar's coefficients on any [lo, hi] in [0, 1]. With n
-    the largest coordinate of the six factors' end values and sc the pair's scale (q.margin
-    = ROUND eps sc): each factor's coordinates are within 32 eps sc of their exact values (a
-    few roundings of quantities below 2 sc), which moves a determinant by at most
-    3 (sqrt 3)^3 32 eps sc n^2 < 500 eps sc n^2, and the determinants' and the blossom's own
-    arithmetic add below 25 eps n^3: bounded here by twice and ten times that."""
-    n = _inf(q.e1)
-    n = wp.max(n, _inf(q.e1 + q.u1))
-    n = wp.max(n, wp.max(_inf(q.e2), _inf(q.e2 + q.u2)))
-    n = wp.max(n, wp.max(_inf(q.a), _inf(q.a + q.b)))
-    return n * n * (real(_SC_MARGIN) * q.margin + real(256.0) * EPS * n)
+def _split(g: vec4, c: real):
+    """The cubic's Bernstein coefficients on [0, c] and on [c, 1] (de Casteljau: convex
+    combinations, whose rounding _coplanarity's bound holds)."""
+    p01 = g[0] + c * (g[1] - g[0])
+    p12 = g[1] + c * (g[2] - g[1])
+    p23 = g[2] + c * (g[3] - g[2])
+    p012 = p01 + c * (p12 - p01)
+    p123 = p12 + c * (p23 - p12)
+    mid = p012 + c * (p123 - p012)
+    return vec4(g[0], p01, p012, mid), vec4(mid, p123, p23, g[3])
 
 
 @wp.func
@@ -664,8 +686,6 @@ def _apart(g: vec4, m: real):
     return lo > m or hi < -m
 
 
-#: 1024 eps sc over q.margin (ROUND eps sc).
-_SC_MARGIN = 1024.0 / ROUND
 #: The time slab of a coplanar crossing that the box search gets: 2^-SLAB of the step.
 SLAB = 6
 
@@ -673,7 +693,7 @@ SLAB = 6
 @wp.func
 def _narrow(q: TriPair, bound: real):
     """Where a triangle's box search starts, narrowed in time by the coplanarity cubic
-    (_coplanar), which a contact needs to be zero: (0, -) no contact before `bound`, (1, a
+    (_coplanarity), which a contact needs to be zero: (0, -) no contact before `bound`, (1, a
     slab of time) or (2, the unit box). The pair is dropped when the cubic has no root over
     the step (certified by its Bernstein coefficients); otherwise its first root, found
     numerically, picks a dyadic slab [lo, hi] around it and [0, lo] is certified free of
@@ -681,11 +701,11 @@ def _narrow(q: TriPair, bound: real):
     every pair in one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the whole step, 1.4
     on the slab). A grazing, coplanar motion or a root left uncertified: the unit box."""
     unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
-    m = _coplanar_margin(q)
-    g = _coplanar(q, real(0.0), real(1.0))
+    m = q.g_margin
+    g = q.g
     if _apart(g, m):
         return 0, unit
-    # The first sign change of g among 17 samples, then 3 bisections: the root within 2^-7.
+    # The first sign change of g among 17 samples, then 6 bisections: the root within 2^-10.
     c1 = real(3.0) * (g[1] - g[0])
     c2 = real(3.0) * (g[2] - real(2.0) * g[1] + g[0])
     c3 = g[3] - real(3.0) * g[2] + real(3.0) * g[1] - g[0]
@@ -699,7 +719,7 @@ def _narrow(q: TriPair, bound: real):
         t1 = real(j) / real(16.0)
         f1 = g[0] + t1 * (c1 + t1 * (c2 + t1 * c3))
         if (f0 < real(0.0)) != (f1 < real(0.0)) or wp.abs(f1) <= m:
-            for _b in range(3):
+            for _b in range(6):
                 tm = real(0.5) * (t0 + t1)
                 fm = g[0] + tm * (c1 + tm * (c2 + tm * c3))
                 if (f0 < real(0.0)) != (fm < real(0.0)):
@@ -715,20 +735,22 @@ def _narrow(q: TriPair, bound: real):
     if found == 0:
         return 2, unit
     # The slab: the deepest dyadic interval of at most 2^-SLAB that holds the root estimate
-    # [t0, t0 + 2^-7] with an eighth of its width to spare on each side.
-    r = real(0.5) * t0 + real(0.5) * wp.min(t0 + real(1.0 / 128.0), real(1.0))
+    # [t0, t0 + 2^-10] with an eighth of its width to spare on each side (none at the step's
+    # ends: a root at rest contact, t = 0, is common).
+    r = real(0.5) * t0 + real(0.5) * wp.min(t0 + real(1.0 / 1024.0), real(1.0))
     lo = real(0.0)
     k = int(SLAB)
     while k > 0:
         w = real(1.0) / real(1 << k)
         lo = wp.floor(r / w) * w
-        spare = real(0.125) * w + real(1.0 / 256.0)
-        if r - lo >= spare and lo + w - r >= spare:
+        spare = real(0.125) * w + real(1.0 / 2048.0)
+        if (lo == real(0.0) or r - lo >= spare) and (lo + w >= real(1.0) or lo + w - r >= spare):
             break
         k -= 1
     if k == 0:
         return 2, unit
-    clear = lo == real(0.0) or _apart(_coplanar(q, real(0.0), lo), m)
+    before, after = _split(g, lo)
+    clear = lo == real(0.0) or _apart(before, m)
     if not clear:
         return 2, unit
     if lo >= bound:
@@ -747,7 +769,8 @@ def _rest_clear(q: TriPair, hi: real, bound: real):
     the coplanarity cubic in [hi, 1]."""
     if hi >= wp.min(bound, real(1.0)):
         return True
-    return _apart(_coplanar(q, hi, real(1.0)), _coplanar_margin(q))
+    before, after = _split(q.g, hi)
+    return _apart(after, q.g_margin)
 
 
 @wp.func
