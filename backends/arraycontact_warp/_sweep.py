@@ -1,12 +1,14 @@
 """Swept detection in Warp: the certified search of arraycontact._sweep (read its docstring for
 the method and its guarantee) as `@wp.func`s, the faces' capture boxes in the size-adaptive
-tree (_grid), and one kernel a slave that walks the tree with the ball around its segment and
-searches every face it meets, keeping the earliest contact.
+tree (_grid), and one kernel a slave that walks the tree with its segment (_grid.Segment) and
+searches every face whose capture box the segment meets, keeping the earliest contact.
 
 The search of a pair is depth first over boxes of (s, w, t), stepping to the next pending box
 by the path's split axes (no stack in local memory); faces are searched one after the other,
 each bounded by the earliest contact found so far plus the tie band (boxes that start later
-cannot matter)."""
+cannot matter). A triangle's search starts from a slab of time around the first root of its
+coplanarity cubic (_narrow); so Warp's toi may differ from NumPy's within t_tol (another box
+sequence), with the same guarantee."""
 
 from __future__ import annotations
 
