@@ -185,14 +185,17 @@ def _pair(
 ):
     """Face f and the node moving from s0 to s1 as a pair, face node 0 at t = 0 the origin."""
     o = x0[faces[f, 0]]
+    p1 = x1[faces[f, 0]]
+    x1f1 = x1[faces[f, 1]]
+    x1f2 = x1[faces[f, 2]]
     q = TriPair()
     q.a = o - s0
     q.e1 = x0[faces[f, 1]] - o
     q.e2 = x0[faces[f, 2]] - o
-    v0 = x1[faces[f, 0]] - o
+    v0 = p1 - o
     q.b = v0 - (s1 - s0)
-    q.u1 = x1[faces[f, 1]] - o - q.e1 - v0
-    q.u2 = x1[faces[f, 2]] - o - q.e2 - v0
+    q.u1 = x1f1 - o - q.e1 - v0
+    q.u2 = x1f2 - o - q.e2 - v0
     sc = _scale(q.e1, _scale(q.e2, _scale(v0, real(0.0))))
     sc = _scale(q.e1 + q.u1 + v0, _scale(q.e2 + q.u2 + v0, sc))
     sc = _scale(s0 - o, _scale(s1 - o, sc))
@@ -200,7 +203,7 @@ def _pair(
     q.n1 = wp.normalize(wp.cross(q.e1 + q.u1, q.e2 + q.u2))
     q.margin = real(ROUND) * EPS * sc
     q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
-    g, gm = _coplanarity(x0, x1, faces, f, s0, s1)
+    g, gm = _coplanarity(q.e1, x1f1 - p1, q.e2, x1f2 - p1, q.a, p1 - s1)
     q.g = g
     q.g_margin = gm
     return q
@@ -627,18 +630,12 @@ def _det(a: vec3, b: vec3, c: vec3):
 
 
 @wp.func
-def _coplanarity(
-    x0: wp.array(dtype=vec3),
-    x1: wp.array(dtype=vec3),
-    faces: wp.array2d(dtype=int),
-    f: int,
-    s0: vec3,
-    s1: vec3,
-):
+def _coplanarity(a0: vec3, a1: vec3, b0: vec3, b1: vec3, c0: vec3, c1: vec3):
     """The Bernstein coefficients on [0, 1] of g(t) = det(E1, E2, D), with the face's edge
-    vectors E1 = x1 - x0, E2 = x2 - x0 and D = x0 - the node, each linear in t (so g is zero
-    when the node is in the face's plane, which a contact needs), by g's blossom (det is
-    linear in each factor), and a bound on their rounding.
+    vectors E1 = x1 - x0, E2 = x2 - x0 and D = x0 - the node, each linear in t (a0, a1: E1 at
+    t = 0 and t = 1; b0, b1: E2's; c0, c1: D's), so g is zero when the node is in the face's
+    plane, which a contact needs; by g's blossom (det is linear in each factor), and a bound
+    on their rounding.
 
     The factors' end values are differences of the inputs at one time, so each coordinate is
     within 3 eps of its own factor's size (nE for the edges, nD for D; a factor computed
@@ -647,14 +644,6 @@ def _coplanarity(
     3 (sqrt 3)^3 (2 3 eps nE nE nD + 3 eps nE nE nD) < 47 eps nE^2 nD, the determinants'
     and the blossom's own arithmetic add below 25 eps nE^2 nD and a split of the interval
     (_split) below 42 eps nE^2 nD: bounded here by 320 eps nE^2 nD."""
-    p0 = x0[faces[f, 0]]
-    p1 = x1[faces[f, 0]]
-    a0 = x0[faces[f, 1]] - p0
-    a1 = x1[faces[f, 1]] - p1
-    b0 = x0[faces[f, 2]] - p0
-    b1 = x1[faces[f, 2]] - p1
-    c0 = p0 - s0
-    c1 = p1 - s1
     third = real(1.0) / real(3.0)
     g = vec4(
         _det(a0, b0, c0),
