@@ -642,8 +642,8 @@ def _coplanarity(a0: vec3, a1: vec3, b0: vec3, b1: vec3, c0: vec3, c1: vec3):
     through the pair frame's motion would carry the motion's size, which a small face far
     from a fast node magnifies). That moves a determinant by at most
     3 (sqrt 3)^3 (2 3 eps nE nE nD + 3 eps nE nE nD) < 47 eps nE^2 nD, the determinants'
-    and the blossom's own arithmetic add below 25 eps nE^2 nD and a split of the interval
-    (_split) below 42 eps nE^2 nD: bounded here by 320 eps nE^2 nD."""
+    and the blossom's own arithmetic add below 25 eps nE^2 nD and the splits of the interval
+    (_split: _narrow makes two) below 84 eps nE^2 nD: bounded here by 320 eps nE^2 nD."""
     third = real(1.0) / real(3.0)
     g = vec4(
         _det(a0, b0, c0),
@@ -679,118 +679,118 @@ def _apart(g: vec4, m: real):
 
 #: The time slab of a coplanar crossing that the box search gets: 2^-SLAB of the step.
 SLAB = 6
+#: Slabs a pair may search before its search takes the whole step (the cubic has 3 roots).
+SLABS = 3
 
 
 @wp.func
-def _narrow(q: TriPair, bound: real):
-    """Where a triangle's box search starts, narrowed in time by the coplanarity cubic
-    (_coplanarity), which a contact needs to be zero: (0, -) no contact before `bound`, (1, a
-    slab of time) or (2, the unit box). The pair is dropped when the cubic has no root over
-    the step (certified by its Bernstein coefficients); otherwise its first root, found
-    numerically, picks a dyadic slab [lo, hi] around it and [0, lo] is certified free of
-    roots. On the slab the face's motion is nearly affine and Krawczyk's test decides almost
-    every pair in one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the whole step, 1.4
-    on the slab). A grazing, coplanar motion or a root left uncertified: the unit box."""
+def _narrow(q: TriPair, bound: real, start: real):
+    """Where a triangle's box search goes next, after [0, start] was searched, narrowed in
+    time by the coplanarity cubic (_coplanarity), which a contact needs to be zero: (0, -) no
+    contact in [start, bound), (1, a slab of time) or (2, the unit box). Nothing is left when
+    the cubic has no root over [start, 1] (certified by its Bernstein coefficients there);
+    otherwise its first root there, found numerically, picks a dyadic slab [lo, hi] around it
+    and [start, lo] is certified free of roots. On the slab the face's motion is nearly affine
+    and Krawczyk's test decides almost every pair in one box (rough tri3 pairs at 2^12: 6.9
+    boxes a pair on the whole step, 1.4 on the slab). A node that crosses the plane again
+    after a slab (a turning face) gets the next slab. A grazing, coplanar motion or a root
+    left uncertified: the unit box."""
     unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
     m = q.g_margin
     g = q.g
-    if _apart(g, m):
+    if start > real(0.0):
+        _done, g = _split(g, start)  # g on [start, 1] (start is dyadic: an exact split point)
+    if start >= wp.min(bound, real(1.0)) or _apart(g, m):
         return 0, unit
-    # The first sign change of g among 17 samples, then 6 bisections: the root within 2^-10.
+    # The first sign change of g among 17 samples of [start, 1], then 6 bisections: the root
+    # within 2^-10 of the rest of the step (u: its parameter).
     c1 = real(3.0) * (g[1] - g[0])
     c2 = real(3.0) * (g[2] - real(2.0) * g[1] + g[0])
     c3 = g[3] - real(3.0) * g[2] + real(3.0) * g[1] - g[0]
-    t0 = real(0.0)
+    u0 = real(0.0)
     f0 = g[0]
     found = int(0)
     if wp.abs(f0) <= m:
         found = 1
     j = int(1)
     while found == 0 and j <= 16:
-        t1 = real(j) / real(16.0)
-        f1 = g[0] + t1 * (c1 + t1 * (c2 + t1 * c3))
+        u1 = real(j) / real(16.0)
+        f1 = g[0] + u1 * (c1 + u1 * (c2 + u1 * c3))
         if (f0 < real(0.0)) != (f1 < real(0.0)) or wp.abs(f1) <= m:
             for _b in range(6):
-                tm = real(0.5) * (t0 + t1)
-                fm = g[0] + tm * (c1 + tm * (c2 + tm * c3))
+                um = real(0.5) * (u0 + u1)
+                fm = g[0] + um * (c1 + um * (c2 + um * c3))
                 if (f0 < real(0.0)) != (fm < real(0.0)):
-                    t1 = tm
+                    u1 = um
                 else:
-                    t0 = tm
+                    u0 = um
                     f0 = fm
             found = 1
         else:
-            t0 = t1
+            u0 = u1
             f0 = f1
         j += 1
     if found == 0:
         return 2, unit
     # The slab: the deepest dyadic interval of at most 2^-SLAB that holds the root estimate
-    # [t0, t0 + 2^-10] with an eighth of its width to spare on each side (none at the step's
-    # ends: a root at rest contact, t = 0, is common).
-    r = real(0.5) * t0 + real(0.5) * wp.min(t0 + real(1.0 / 1024.0), real(1.0))
+    # [u0, u0 + 2^-10] with an eighth of its width to spare on each side (none at the step's
+    # ends, nor at start, searched already: a root at rest contact, t = 0, is common).
+    rest = real(1.0) - start
+    r = start + rest * (u0 + real(0.5) * wp.min(real(1.0 / 1024.0), real(1.0) - u0))
     lo = real(0.0)
     k = int(SLAB)
     while k > 0:
         w = real(1.0) / real(1 << k)
         lo = wp.floor(r / w) * w
-        spare = real(0.125) * w + real(1.0 / 2048.0)
-        if (lo == real(0.0) or r - lo >= spare) and (lo + w >= real(1.0) or lo + w - r >= spare):
+        spare = real(0.125) * w + rest * real(1.0 / 2048.0)
+        if (lo <= start or r - lo >= spare) and (lo + w >= real(1.0) or lo + w - r >= spare):
             break
         k -= 1
     if k == 0:
         return 2, unit
-    before, after = _split(g, lo)
-    clear = lo == real(0.0) or _apart(before, m)
-    if not clear:
-        return 2, unit
+    if lo > start:
+        # [start, lo] free of roots: g split at u a little past lo's (rounded up, so the
+        # part certified covers [start, lo] whatever the division's rounding).
+        c = wp.min((lo - start) / rest * (real(1.0) + real(4.0) * EPS), real(1.0))
+        gap, _after = _split(g, c)
+        if not _apart(gap, m):
+            return 2, unit
     if lo >= bound:
         return 0, unit
     return 1, Box6(real(0.0), real(1.0), real(0.0), real(1.0), lo, lo + real(1.0) / real(1 << k))
 
 
 @wp.func
-def _narrow(q: CurvedPair, bound: real):  # noqa: F811 (a Warp overload)
+def _narrow(q: CurvedPair, bound: real, start: real):  # noqa: F811 (a Warp overload)
     return 2, Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
 
 
 @wp.func
-def _rest_clear(q: TriPair, hi: real, bound: real):
-    """Whether nothing is left to search after a slab ending at hi: the bound, or no root of
-    the coplanarity cubic in [hi, 1]."""
-    if hi >= wp.min(bound, real(1.0)):
-        return True
-    before, after = _split(q.g, hi)
-    return _apart(after, q.g_margin)
-
-
-@wp.func
-def _rest_clear(q: CurvedPair, hi: real, bound: real):  # noqa: F811
-    return True
-
-
-@wp.func
 def earliest(q: Any, bound: real, t_tol: real):
-    """search on the box _narrow gives (a slab: then on the unit box unless the rest of the
-    step is clear), with search called from one place (it is inlined: each call site is a
-    copy of it, which costs a GPU its instruction cache and registers). Same result and
-    guarantee as search on the unit box."""
-    kind, node = _narrow(q, bound)
+    """search on the slabs _narrow gives in turn (after SLABS of them, or when _narrow cannot
+    certify the gap before the next, on the unit box), with search called from one place (it
+    is inlined: each call site is a copy of it, which costs a GPU its instruction cache and
+    registers). Same result and guarantee as search on the unit box."""
+    kind, node = _narrow(q, bound, real(0.0))
     best = real(3.0e38)
     where = vec2(real(0.5))
     conv = int(1)
     visits = int(0)
+    slabs = int(1)
     while kind != 0:
         t, at, cv, n = search(q, node, bound, t_tol)
         visits += n
-        if t < real(2.0) or kind == 2 or _rest_clear(q, node[5], bound):
-            best = t
-            where = at
-            conv = cv
+        best = t
+        where = at
+        conv = cv
+        if t < real(2.0) or kind == 2:
             kind = 0
-        else:
+        elif slabs == SLABS:
             node = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
             kind = 2
+        else:
+            kind, node = _narrow(q, bound, node[5])
+            slabs += 1
     return best, where, conv, visits
 
 
