@@ -1075,6 +1075,9 @@ def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
 
 # --- swept detection -----------------------------------------------------------------------
 
+#: The pair list's default length on a GPU, a slave (graded and fast-moving scenes need 7-8).
+PAIRS_PER_SLAVE = 12
+
 SWEPT_OUTPUTS = (
     ("hit", int),
     ("toi", real),
@@ -1109,6 +1112,18 @@ class SweptPlan:
     staging: list  # slave x0, x1, master x0, x1 in the local frame
     out: dict
     dtype: np.dtype
+    pairs: object  # _sweep.Pairs, or None: every slave searched by swept_scan
+    lost: wp.array  # per slave, 1: searched by swept_scan (its pairs did not fit)
+    scratch: wp.array  # the pair counts' prefix sum's
+
+    def pairs_needed(self) -> int:
+        """The pair list's length the last detect_swept needed (a host copy: synchronises).
+        Slaves whose pairs did not fit the plan's `pairs` were searched one thread a slave:
+        the same answers, slower on a GPU."""
+        if self.pairs is None:
+            return 0
+        n = self.n_slaves
+        return int(self.pairs.offset.numpy()[n - 1] + self.pairs.count.numpy()[n - 1])
 
 
 def plan_swept(
@@ -1119,11 +1134,18 @@ def plan_swept(
     master_world=None,
     device=None,
     dtype="float32",
+    pairs=None,
 ) -> SweptPlan:
     """Allocate a swept detection (arraycontact.detect_swept's contract) of n slaves
     (slave_points [n, 3]: their positions at plan time, which place the local frame) against
     `master`; worlds as in `plan`. Detect with `detect_swept(plan, slave_x0, slave_x1,
-    master_x0, master_x1)`: one sort of the faces' capture boxes a call."""
+    master_x0, master_x1)`: one sort of the faces' capture boxes a call.
+
+    pairs: the length of the (slave, face) pair list whose pairs are searched one thread a
+    pair (a GPU's threads then wait less on one another than one thread a slave would);
+    slaves whose pairs do not fit are searched one thread a slave (the same answers;
+    `plan.pairs_needed()` says how many the last call needed). None: PAIRS_PER_SLAVE x n on
+    a GPU, 0 on the CPU (no list: each CPU thread takes its slaves one after the other)."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan_swept(
@@ -1133,6 +1155,7 @@ def plan_swept(
             master_world=master_world,
             device=device,
             dtype=dtype,
+            pairs=pairs,
         )
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
@@ -1142,6 +1165,10 @@ def plan_swept(
     if len(x) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
     device = wp.get_device(device)
+    if pairs is None:
+        pairs = PAIRS_PER_SLAVE * len(x) if device.is_cuda else 0
+    if isinstance(pairs, bool) or not isinstance(pairs, (int, np.integer)) or pairs < 0:
+        raise ValueError(f"pairs must be an integer >= 0 or None, got {pairs!r}")
     sw = _worlds(slave_world, len(x), "slave_world")
     shared = master_world is None
     nw = _worlds(master_world, len(master.points), "master_world")
@@ -1191,13 +1218,34 @@ def plan_swept(
         staging=[wp.zeros(m, dtype=vec3, device=device) for m in (n, n, npts, npts)],
         out={k: wp.zeros(n, dtype=t, device=device) for k, t in SWEPT_OUTPUTS},
         dtype=NP_REAL,
+        pairs=_pair_list(n, int(pairs), device) if pairs > 0 else None,
+        lost=wp.full(n, 0 if pairs > 0 else 1, dtype=int, device=device),
+        scratch=wp.empty(_grid.scan_scratch(n), dtype=int, device=device),
     )
+
+
+def _pair_list(n: int, room: int, device) -> _sweep.Pairs:
+    q = _sweep.Pairs()
+    for name, size, t in (
+        ("slave", room, int),
+        ("face", room, int),
+        ("count", n, int),
+        ("offset", n, int),
+        ("toi", room, real),
+        ("where", room, vec2),
+        ("conv", room, int),
+        ("first", n, real),
+        ("pick", n, int),
+    ):
+        setattr(q, name, wp.empty(size, dtype=t, device=device))
+    return q
 
 
 def _swept_launch(p: SweptPlan, xs):
     c = p.constants
     dev = p.device
     nf = p.master.n_faces
+    n = p.n_slaves
     s0, s1, m0, m1 = xs
     g = p.grid
     args = [m0, m1, p.faces, real(c.lebesgue), p.face_world]
@@ -1206,30 +1254,28 @@ def _swept_launch(p: SweptPlan, xs):
     _grid.arrange(g, nf, p.layout, dev)
     _slave_launch(_sweep.capture_gather, nf, [0, *args, real(c.pad), g], [], dev, first=0)
     _grid.fill(g, p.layout, dev)
-    o = p.out
-    _slave_launch(
-        _sweep.swept_scan,
-        p.n_slaves,
-        [
-            g,
-            p.kernel_element,
-            m0,
-            m1,
-            p.faces,
-            s0,
-            s1,
-            p.slave_world,
-            p.shared,
-            real(c.pad),
-            real(c.t_tol),
-            real(c.space_rtol),
-            real(c.feature_tol),
-            0,
-        ],
-        [o[k] for k, _ in SWEPT_OUTPUTS],
-        dev,
-        first=13,
-    )
+    out = _sweep.Out()
+    for k, _ in SWEPT_OUTPUTS:
+        setattr(out, k, p.out[k])
+    q = p.pairs
+    el = p.kernel_element
+    walk = [g, s0, s1, p.slave_world, p.shared, real(c.pad), 0, q]
+    if q is not None:
+        room = q.slave.shape[0]
+        _slave_launch(_sweep.pair_count, n, walk, [], dev, first=6)
+        _grid.exclusive_scan(q.count, q.offset, n, p.scratch, dev)
+        _slave_launch(_sweep.pair_fill, n, [*walk, p.lost, p.out["visits"]], [], dev, first=6)
+        # One launch: the pairs of a slave update its entries by atomics, which a CPU part
+        # of its own would race.
+        inputs = [el, m0, m1, p.faces, s0, s1, real(c.t_tol), real(c.space_rtol), 0, q]
+        wp.launch(_sweep.pair_search, room, inputs=[*inputs, p.out["visits"]], device=dev)
+        wp.launch(_sweep.pair_band, room, inputs=[real(c.t_tol), 0, q], device=dev)
+    scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad)]
+    scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
+    _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14)
+    if q is not None:
+        finish = [el, m0, m1, p.faces, s0, s1, real(c.feature_tol), p.lost, 0, q, out]
+        _slave_launch(_sweep.pair_finish, n, finish, [], dev, first=8)
 
 
 def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1):

@@ -960,6 +960,59 @@ def _is_tri(el: Element):  # noqa: F811
     return el.n_corners == 3
 
 
+@wp.struct
+class Out:
+    """A swept detection's outputs, one row a slave (SWEPT_OUTPUTS in _detect)."""
+
+    hit: wp.array(dtype=int)
+    toi: wp.array(dtype=real)
+    face: wp.array(dtype=int)
+    xi: wp.array(dtype=vec2)
+    point: wp.array(dtype=vec3)
+    normal: wp.array(dtype=vec3)
+    feature: wp.array(dtype=int)
+    normal_velocity: wp.array(dtype=real)
+    converged: wp.array(dtype=int)
+    visits: wp.array(dtype=int)
+
+
+@wp.func
+def _write(
+    i: int,
+    el: Any,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    f: int,
+    first: real,
+    where: vec2,
+    a: vec3,
+    b: vec3,
+    feature_tol: real,
+    out: Out,
+):
+    """Slave i's contact: face f at time `first`, where (s, w) on it."""
+    z = _natural(el, where[0], where[1])
+    o = x0[faces[f, 0]]
+    xa = face_nodes(x0, faces, f, o)
+    xb = face_nodes(x1, faces, f, o)
+    xt = FaceNodes()
+    vf = vec3(0.0)
+    for q in range(faces.shape[1]):
+        xt = set_node(xt, q, _row(xa, q) + first * (_row(xb, q) - _row(xa, q)))
+        n, d0, d1, h00, h01, h11 = _shape(el, z, q)
+        vf += n * (_row(xb, q) - _row(xa, q))
+    nrm = _normal(el, xt, z)
+    out.hit[i] = 1
+    out.toi[i] = first
+    out.face[i] = f
+    out.xi[i] = z
+    out.point[i] = a + first * (b - a)
+    out.normal[i] = nrm
+    out.feature[i] = _feature(el, z, feature_tol)
+    out.normal_velocity[i] = wp.dot(nrm, (b - a) - vf)
+
+
 @wp.kernel
 def swept_scan(
     grid: Grid,
@@ -975,23 +1028,18 @@ def swept_scan(
     t_tol: real,
     space_rtol: real,
     feature_tol: real,
+    lost: wp.array(dtype=int),
     start: int,
-    hit: wp.array(dtype=int),
-    toi: wp.array(dtype=real),
-    face: wp.array(dtype=int),
-    xi: wp.array(dtype=vec2),
-    point: wp.array(dtype=vec3),
-    normal: wp.array(dtype=vec3),
-    feature: wp.array(dtype=int),
-    normal_velocity: wp.array(dtype=real),
-    converged: wp.array(dtype=int),
-    visits: wp.array(dtype=int),
+    out: Out,
 ):
-    """Slave i's earliest contact over the step: the faces whose capture box meets the ball
-    around its segment, each searched before the earliest contact so far plus t_tol; the tie
-    band (faces within t_tol of the earliest) goes to the smallest face id. Thread t takes
-    slave start + t."""
+    """Slave i's earliest contact over the step, for the slaves whose pairs did not fit the
+    plan's pair list (lost[i] = 1; pair_fill), one thread a slave: the faces whose capture
+    box meets its segment, each searched before the earliest contact so far plus t_tol; the
+    tie band (faces within t_tol of the earliest) goes to the smallest face id. Thread t
+    takes slave start + t."""
     i = start + wp.tid()
+    if lost[i] == 0:
+        return
     a = s0[i]
     b = s1[i]
     world = slave_world[i]
@@ -1000,7 +1048,6 @@ def swept_scan(
     seg = Segment()
     seg.a = a
     seg.d = b - a
-    nn = faces.shape[1]
     first = real(3.0e38)
     band_f = BandF()
     band_t = BandT()
@@ -1061,33 +1108,223 @@ def swept_scan(
                     visit = 1
         if visit == 0:
             stack, k, j, visit = next_pending(grid, top, stack, k, j)
-    visits[i] = total
-    converged[i] = conv
+    out.visits[i] = total
+    out.converged[i] = conv
     if nb == 0:
-        hit[i] = 0
-        face[i] = -1
+        out.hit[i] = 0
+        out.face[i] = -1
         return
     pick = int(0)
     for q in range(nb):
         if band_f[q] < band_f[pick]:
             pick = q
-    f = band_f[pick]
-    z = _natural(el, band_x[pick, 0], band_x[pick, 1])
-    o = x0[faces[f, 0]]
-    xa = face_nodes(x0, faces, f, o)
-    xb = face_nodes(x1, faces, f, o)
-    xt = FaceNodes()
-    vf = vec3(0.0)
-    for q in range(nn):
-        xt = set_node(xt, q, _row(xa, q) + first * (_row(xb, q) - _row(xa, q)))
-        n, d0, d1, h00, h01, h11 = _shape(el, z, q)
-        vf += n * (_row(xb, q) - _row(xa, q))
-    nrm = _normal(el, xt, z)
-    hit[i] = 1
-    toi[i] = first
-    face[i] = f
-    xi[i] = z
-    point[i] = a + first * (b - a)
-    normal[i] = nrm
-    feature[i] = _feature(el, z, feature_tol)
-    normal_velocity[i] = wp.dot(nrm, (b - a) - vf)
+    where = vec2(band_x[pick, 0], band_x[pick, 1])
+    _write(i, el, x0, x1, faces, band_f[pick], first, where, a, b, feature_tol, out)
+
+
+@wp.struct
+class Pairs:
+    """A swept detection's (slave, face) pairs, searched one thread a pair (swept_pairs): the
+    list (slave -1: a slot not filled), each slave's count and first slot, and per pair the
+    search's result (toi: 3e38 when none before the bound it had; (s, w); converged);
+    per slave the earliest toi and the tie band's smallest face."""
+
+    slave: wp.array(dtype=int)
+    face: wp.array(dtype=int)
+    count: wp.array(dtype=int)
+    offset: wp.array(dtype=int)
+    toi: wp.array(dtype=real)
+    where: wp.array(dtype=vec2)
+    conv: wp.array(dtype=int)
+    first: wp.array(dtype=real)
+    pick: wp.array(dtype=int)
+
+
+@wp.func
+def _walk(
+    grid: Grid,
+    a: vec3,
+    b: vec3,
+    world: int,
+    shared: int,
+    pad: real,
+    pairs: Pairs,
+    i: int,
+    at: int,
+    fill: int,
+):
+    """The faces whose capture box meets the segment a -> b (as swept_scan walks): their
+    count, and with fill = 1 the pairs (i, face) written from slot `at` on."""
+    s = real(0.5) * (a + b)
+    reach = real(0.5) * wp.length(b - a) + pad
+    seg = Segment()
+    seg.a = a
+    seg.d = b - a
+    m = int(0)
+    stack = wp.uint64(0)
+    top = grid.root[0]
+    k = top
+    j = int(0)
+    visit = int(1)
+    while visit == 1:
+        visit = 0
+        box = entry(grid, k, j)
+        if enters(s, world, shared, box, reach):
+            if k == 1:
+                for c in range(W):
+                    kk = box.first + c
+                    f = item_id(grid, kk)
+                    if f >= 0:  # (not an empty slot)
+                        near = meets(seg, item_lo(grid, kk), item_hi(grid, kk))
+                        if near and shared == 0:
+                            near = item_world(grid, kk) == world
+                        if near:
+                            if fill == 1:
+                                pairs.slave[at + m] = i
+                                pairs.face[at + m] = f
+                            m += 1
+            else:
+                mask, near_c = children(grid, s, world, shared, k, box.first, reach, 0, seg)
+                if mask != 0:
+                    stack, k, j = descend(stack, k, box.first, mask, near_c)
+                    visit = 1
+        if visit == 0:
+            stack, k, j, visit = next_pending(grid, top, stack, k, j)
+    return m
+
+
+@wp.kernel
+def pair_count(
+    grid: Grid,
+    s0: wp.array(dtype=vec3),
+    s1: wp.array(dtype=vec3),
+    slave_world: wp.array(dtype=int),
+    shared: int,
+    pad: real,
+    start: int,
+    pairs: Pairs,
+):
+    """Slave i's pair count; its earliest toi and band face reset."""
+    i = start + wp.tid()
+    pairs.count[i] = _walk(grid, s0[i], s1[i], slave_world[i], shared, pad, pairs, i, 0, 0)
+    pairs.first[i] = real(3.0e38)
+    pairs.pick[i] = 2147483647
+
+
+@wp.kernel
+def pair_fill(
+    grid: Grid,
+    s0: wp.array(dtype=vec3),
+    s1: wp.array(dtype=vec3),
+    slave_world: wp.array(dtype=int),
+    shared: int,
+    pad: real,
+    start: int,
+    pairs: Pairs,
+    lost: wp.array(dtype=int),
+    visits: wp.array(dtype=int),
+):
+    """Slave i's pairs into the list from its offset (the counts' prefix sum) when they fit;
+    else lost[i] = 1 (swept_scan searches it) and its slots in the list, if any, unfilled."""
+    i = start + wp.tid()
+    at = pairs.offset[i]
+    n = pairs.count[i]
+    room = pairs.slave.shape[0]
+    visits[i] = 0
+    if at + n <= room:
+        lost[i] = 0
+        _walk(grid, s0[i], s1[i], slave_world[i], shared, pad, pairs, i, at, 1)
+    else:
+        lost[i] = 1
+        for q in range(at, wp.min(at + n, room)):
+            pairs.slave[q] = -1
+
+
+@wp.func
+def _listed(pairs: Pairs, k: int):
+    """Pair k's slave, or -1 past the list's end or in a slot left unfilled."""
+    n = pairs.count.shape[0]
+    if k >= wp.min(pairs.offset[n - 1] + pairs.count[n - 1], pairs.slave.shape[0]):
+        return -1
+    return pairs.slave[k]
+
+
+@wp.kernel
+def pair_search(
+    el: Any,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    s0: wp.array(dtype=vec3),
+    s1: wp.array(dtype=vec3),
+    t_tol: real,
+    space_rtol: real,
+    start: int,
+    pairs: Pairs,
+    visits: wp.array(dtype=int),
+):
+    """Pair k's earliest contact before its slave's earliest so far plus t_tol (the bound
+    only prunes: whatever other pairs of the slave have found when this one reads it)."""
+    k = start + wp.tid()
+    i = _listed(pairs, k)
+    if i < 0:
+        return
+    pr = _pair(el, x0, x1, faces, pairs.face[k], s0[i], s1[i], space_rtol)
+    bound = real(3.0e38)
+    first = pairs.first[i]
+    if first < real(2.0):
+        bound = first + t_tol
+    t, where, cv, n_vis = earliest(pr, bound, t_tol)
+    wp.atomic_add(visits, i, n_vis)
+    if t < bound:
+        pairs.toi[k] = t
+        pairs.where[k] = where
+        pairs.conv[k] = cv
+        wp.atomic_min(pairs.first, i, t)
+    else:
+        pairs.toi[k] = real(3.0e38)
+
+
+@wp.kernel
+def pair_band(t_tol: real, start: int, pairs: Pairs):
+    """The tie band of pair k's slave: the smallest face within t_tol of its earliest."""
+    k = start + wp.tid()
+    i = _listed(pairs, k)
+    if i < 0:
+        return
+    t = pairs.toi[k]
+    if t < real(2.0) and t <= pairs.first[i] + t_tol:
+        wp.atomic_min(pairs.pick, i, pairs.face[k])
+
+
+@wp.kernel
+def pair_finish(
+    el: Any,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    s0: wp.array(dtype=vec3),
+    s1: wp.array(dtype=vec3),
+    feature_tol: real,
+    lost: wp.array(dtype=int),
+    start: int,
+    pairs: Pairs,
+    out: Out,
+):
+    """Slave i's outputs from its pairs' search (the slaves swept_scan searched: its own)."""
+    i = start + wp.tid()
+    if lost[i] == 1:
+        return
+    f = pairs.pick[i]
+    out.converged[i] = 1
+    if f == 2147483647:
+        out.hit[i] = 0
+        out.face[i] = -1
+        return
+    at = pairs.offset[i]
+    where = vec2(real(0.0))
+    for q in range(at, at + pairs.count[i]):
+        if pairs.face[q] == f:
+            where = pairs.where[q]
+            out.converged[i] = pairs.conv[q]
+    _write(i, el, x0, x1, faces, f, pairs.first[i], where, s0[i], s1[i], feature_tol, out)
