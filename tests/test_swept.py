@@ -302,8 +302,10 @@ def test_bad_input():
     assert len(empty) == 0
 
 
-def test_warp_worlds():
-    """Two worlds in one launch: each world's slaves see only that world's master."""
+@pytest.mark.parametrize("pairs", [0, 10**5])
+def test_warp_worlds(pairs):
+    """Two worlds in one launch: each world's slaves see only that world's master (searched
+    one thread a slave, and one thread a pair)."""
     import arraycontact_warp as acw
 
     st = STEPS["closing_tri3"]()
@@ -316,6 +318,7 @@ def test_warp_worlds():
         slave_world=np.r_[np.zeros(n, int), np.ones(n, int)],
         master_world=np.r_[np.zeros(npts, int), np.ones(npts, int)],
         dtype="float64",
+        pairs=pairs,
     )
     # World 1's master does not move: its answer is another step.
     out = acw.detect_swept(
@@ -331,6 +334,41 @@ def test_warp_worlds():
     f1 = out["face"][n:]
     assert np.array_equal(np.where(f1 >= 0, f1 - len(m.faces), -1), still.face)
     assert not np.array_equal(one.face, still.face)
+
+
+@pytest.mark.parametrize(
+    "name, dtype",
+    [("closing_tri3", "float64"), ("closing_quad4", "float32"), ("tumbling", "float32")],
+)
+def test_warp_pair_list_equals_one_thread_a_slave(name, dtype):
+    """The search one thread a pair (the GPU's default) gives the answers of the search one
+    thread a slave (the CPU's, checked against the reference above), with a list that holds
+    every pair and with one too short, whose slaves left out are searched one thread a slave;
+    a negative length is named."""
+    import arraycontact_warp as acw
+
+    st = _tumbling_triangles() if name == "tumbling" else STEPS[name]()
+    n = len(st.slave_x0)
+    xs = (st.slave_x0, st.slave_x1, st.master.points, st.master_x1)
+    runs = {}
+    for pairs in (0, 40 * n, n):
+        p = acw.plan_swept(st.master, st.slave_x0, dtype=dtype, pairs=pairs)
+        runs[pairs] = acw.detect_swept(p, *xs)
+        lost = p.lost.numpy()
+        if pairs == 0:
+            assert lost.all() and p.pairs_needed() == 0
+        elif pairs == n:  # too short
+            assert 0 < lost.sum() < n and p.pairs_needed() > n
+        else:
+            assert not lost.any() and n < p.pairs_needed() <= pairs
+    one = runs[0]
+    assert one["hit"].sum() > n // 4
+    for pairs in (40 * n, n):
+        for k, v in runs[pairs].items():
+            if k != "visits":  # (a pair's search may be bounded by another's find or not)
+                assert np.array_equal(v, one[k]), (pairs, k)
+    with pytest.raises(ValueError, match="pairs"):
+        acw.plan_swept(st.master, st.slave_x0, pairs=-1)
 
 
 def test_jax_gradients_and_overflow():

@@ -1075,8 +1075,9 @@ def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
 
 # --- swept detection -----------------------------------------------------------------------
 
-#: The pair list's default length on a GPU, a slave (graded and fast-moving scenes need 7-8).
-PAIRS_PER_SLAVE = 12
+#: The pair list's default length on a GPU, a slave: 24 B a pair in float32 (0.6 GB at 2^20
+#: slaves); the graded scene at 2^18 needs 21, rough surfaces 7.
+PAIRS_PER_SLAVE = 24
 
 SWEPT_OUTPUTS = (
     ("hit", int),

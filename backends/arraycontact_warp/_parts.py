@@ -45,11 +45,33 @@ def concurrently(dev, *chains):
         j.result()
 
 
+#: A generic kernel's overload by its arguments' kinds (see `_concrete`).
+_overloads = {}
+
+
+def _kind(v):
+    return type(v), getattr(v, "dtype", None), getattr(v, "ndim", None)
+
+
+def _concrete(kernel, args):
+    """kernel's overload for these arguments. Warp infers it on every launch of a generic
+    kernel (a third of a millisecond for the detection's three on a GPU's host, most of a
+    first call on a small scene); the arguments' kinds name it at a tenth of that cost."""
+    if not kernel.is_generic:
+        return kernel
+    key = (kernel, tuple(_kind(v) for v in args))
+    k = _overloads.get(key)
+    if k is None:
+        k = _overloads[key] = kernel._add_normalized_overload(kernel.infer_argument_types(args))
+    return k
+
+
 def launch(kernel, n, inputs, outputs, dev, order=None, first=None):
     """Launch a kernel over n independent threads (the slaves, a tree's items). inputs[order]:
     the order the threads take (a part takes its slice), or inputs[first]: the first of the
     part (its threads take first + t)."""
     dev = wp.get_device(dev)
+    kernel = _concrete(kernel, [*inputs, *outputs])
     if dev.is_cuda:
         wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
         return
