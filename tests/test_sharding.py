@@ -102,14 +102,16 @@ def test_warp_plans_per_part_give_one_plans_contacts():
     assert np.allclose(gap[a], one["gap"][a], atol=1e-12)
 
 
-def test_jax_sharded_detection_on_four_cpu_devices():
+def run_sharding_checks(select: str, expected: int):
+    """The checks of sharding_checks.py that `select` (pytest -k) names, in a child process
+    with four host devices (XLA fixes the count when it starts; conftest's cheaper
+    optimisation flags are in os.environ already). Two halves, one in
+    test_sharding_devices.py, so that the suite's two workers take one each."""
     here = Path(__file__).parent
-    # Four host devices (XLA fixes the count when it starts); conftest's cheaper optimisation
-    # flags are in os.environ already.
     flags = os.environ.get("XLA_FLAGS", "")
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count=4 {flags}")
     r = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0"]
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0", "-k", select]
         + [str(here / "sharding_checks.py")],
         cwd=here.parent,
         capture_output=True,
@@ -117,4 +119,12 @@ def test_jax_sharded_detection_on_four_cpu_devices():
         env=env,
     )
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
-    assert "12 passed" in r.stdout
+    assert f"{expected} passed" in r.stdout
+
+
+#: The half of sharding_checks.py this file runs (test_sharding_devices.py: the rest).
+HALF = "one_to_four or warp"
+
+
+def test_jax_sharded_detection_on_four_cpu_devices():
+    run_sharding_checks(HALF, 5)
