@@ -56,10 +56,11 @@ def _timed(f, repeats):
 
 
 def _exchange_only(p):
-    """The sharded detection's four all_to_alls on the plan's routes (the rows that cross
-    devices), without the detection."""
+    """The sharded detection's all_to_alls on the plan's routes (the rows that cross
+    devices), without the detection: one for the coordinates, two for the answers."""
     import jax
     import jax.numpy as jnp
+    from arraycontact_jax import _shard
     from jax.sharding import PartitionSpec as P
 
     axis, n_dev = p.axis, p.n_devices
@@ -67,13 +68,11 @@ def _exchange_only(p):
 
     def body(ex, s_blk, m_blk):
         ex = jax.tree_util.tree_map(lambda a: a[0], ex)
-        r_m = jax.lax.all_to_all(m_blk[ex["m_send"]], axis, 0, 0)  # as _shard._gather
-        r_s = jax.lax.all_to_all(s_blk[ex["s_send"]], axis, 0, 0)
-        c = ex["s_send"].shape[1]
-        back_f = jnp.zeros((n_dev, c, 10), dtype) + r_s[..., :1]
-        back_i = jnp.zeros((n_dev, c, 5), jnp.int32) + r_m[:, :1, :1].astype(jnp.int32)
-        r_f = jax.lax.all_to_all(back_f, axis, 0, 0)
-        r_i = jax.lax.all_to_all(back_i, axis, 0, 0)
+        r_m, r_s = _shard._exchange([m_blk, s_blk], ex, ["m_", "s_"], axis)
+        cap = ex["s_take"].shape[0]
+        vals_f = jnp.zeros((cap, 10), dtype) + r_s[0, :1, :1]
+        vals_i = jnp.zeros((cap, 5), jnp.int32) + r_m[0, :1, :1].astype(jnp.int32)
+        r_f, r_i = _shard._home(vals_f, ex, axis), _shard._home(vals_i, ex, axis)
         return (jnp.sum(r_f) + jnp.sum(r_i))[None]
 
     f = jax.jit(
@@ -144,6 +143,8 @@ def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax"):
     rec["overflow"] = bool(c.overflow)
     _, _, rec["exchange_s"] = _timed(_exchange_only(p), repeats)
     rec["balance"] = {k: v for k, v in p.counts}
+    if p.local.search is not None:  # Warp's graphs (a growing count: captured every call)
+        rec["warp_graphs"] = p.local.search.call.graph_cache_size
     if baseline:
         rec["mismatch"], rec["float_diff"] = _diff(jax.tree.map(np.asarray, c), r)
     return rec

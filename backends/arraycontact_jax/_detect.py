@@ -754,12 +754,12 @@ class _WarpSearch:
         # buffers with the copies in and out outside it (JAX cannot take the radix sort's
         # temporary storage as a child graph); without the graph every call pays Python's
         # launch overhead. vmap over scenes calls the search once per scene (its plan holds
-        # one scene's buffers).
-        mode = (
-            wp.JaxCallableGraphMode.WARP_STAGED_EX
-            if self.plans[0].device.is_cuda and not several_gpus
-            else wp.JaxCallableGraphMode.NONE
-        )
+        # one scene's buffers). Several GPUs: a graph per device and buffer addresses (XLA
+        # reuses a program's buffers from call to call), so that no call runs the search's
+        # Python, which the devices' threads would take turns at (the GIL).
+        mode = wp.JaxCallableGraphMode.NONE
+        if self.plans[0].device.is_cuda:
+            mode = wp.JaxCallableGraphMode.WARP if several_gpus else mode.WARP_STAGED_EX
         self.call = wp.jax_callable(
             search, num_outputs=len(self.names), graph_mode=mode, vmap_method="sequential"
         )

@@ -246,8 +246,9 @@ def plan(
     # 3. The exchange: rows a device sends to each part and where each part reads them.
     n_rows, n_pts = len(all_x), len(master.points)
     b_s, b_m = -(-n_rows // n_dev), -(-n_pts // n_dev)
-    s_route = _routes([q.slaves for q in parts], b_s, n_dev, s_cap, "s_")
-    m_route = _routes([q.nodes for q in parts], b_m, n_dev, p_cap, "m_")
+    s_route, s_sent = _routes([q.slaves for q in parts], b_s, n_dev, s_cap, "s_")
+    m_route, m_sent = _routes([q.nodes for q in parts], b_m, n_dev, p_cap, "m_")
+    del m_route["m_back"], m_route["m_home"]  # the answers go home by the slaves' routes
     pad_x = np.stack(tables)
     x_ref = np.zeros((n_dev * b_s, 3))
     x_ref[:n_rows] = all_x
@@ -320,11 +321,10 @@ def plan(
         local_faces=[len(q.faces) for q in parts],
         candidates=[int(c.sum()) for c in cand],  # the JAX search's (none with Warp's)
         work=[float(w) for w in part.work],
-        # Rows that cross devices in each exchange (slaves: none in self-contact), the rows
-        # each device keeps, and the widest route to another device (slaves, master).
-        sent_slave_rows=0 if self_contact else int(s_route["s_sent"].sum()),
-        sent_master_rows=int(m_route["m_sent"].sum()),
-        own_rows=[s_route["s_own"].shape[1], m_route["m_own"].shape[1]],
+        # Rows that cross devices in the exchange (slaves: none in self-contact) and the
+        # widest route to another device (slaves, master).
+        sent_slave_rows=0 if self_contact else s_sent,
+        sent_master_rows=m_sent,
         route_widths=[s_route["s_send"].shape[2], m_route["m_send"].shape[2]],
     )
     sharding = NamedSharding(mesh, P(axis))
@@ -501,13 +501,15 @@ def _padded(q, element, f_cap, p_cap, far, spacing, size):
 
 def _routes(members, block, n_dev, cap, prefix):
     """The routes of items held in row blocks of `block` rows (device d: rows
-    [d block, (d + 1) block)) to the parts whose sorted ids are `members[e]`. A part's items
-    in its own device's block stay there (`own` [D, C0]: their rows, `own_ok`); the others
-    travel by one all_to_all (`send` [D(src), D(dst), C]: the rows each device sends to each
-    other part, `sent`: which slots are real; C the widest route, 1 at least). `take` [D, cap]:
-    where a part reads its i-th item in [own C0 rows; received D C rows], `ok`: which are
-    real."""
-    c0 = max([int(np.sum(m // block == e)) for e, m in enumerate(members)] + [1])
+    [d block, (d + 1) block)) to the parts whose sorted ids are `members[e]`, and back.
+
+    Out: `send` [D(src), D(dst), C]: the rows of its block each device sends to each other
+    part (C the widest route, 1 at least; unused slots row 0); `take` [D, cap]: where a part
+    reads its i-th item in [its device's block; received D C rows], `ok`: which are real.
+    Back (`home`, slaves only, for the answers): `back` [D(part), D(dst), C]: the item a part
+    sends to each device in each slot, `home` [D, block]: where a device reads each of its
+    rows in [its part's items (cap); received D C rows]. Only the rows another part needs
+    cross devices; everything else is a gather (no scatter)."""
     c = max(
         [
             int(np.sum(m // block == d))
@@ -517,34 +519,42 @@ def _routes(members, block, n_dev, cap, prefix):
         ]
         + [1]
     )
-    own = np.zeros((n_dev, c0), np.int32)
-    own_ok = np.zeros((n_dev, c0), bool)
     send = np.zeros((n_dev, n_dev, c), np.int32)
-    sent = np.zeros((n_dev, n_dev, c), bool)
     take = np.zeros((n_dev, cap), np.int32)
     ok = np.zeros((n_dev, cap), bool)
+    back = np.zeros((n_dev, n_dev, c), np.int32)
+    home = np.zeros((n_dev, block), np.int32)
+    sent = 0
     for e, m in enumerate(members):
         src = m // block
         # members are sorted, so those of one source block are consecutive
         slot = np.arange(len(m)) - np.searchsorted(src, np.arange(n_dev))[src]
-        home = src == e
-        own[e, slot[home]] = m[home] - e * block
-        own_ok[e, slot[home]] = True
-        away = ~home
+        mine = src == e
+        away = ~mine
+        i = np.arange(len(m))
         send[src[away], e, slot[away]] = m[away] - src[away] * block
-        sent[src[away], e, slot[away]] = True
-        take[e, : len(m)] = np.where(home, slot, c0 + src * c + slot)
+        take[e, : len(m)] = np.where(mine, m - e * block, block + src * c + slot)
         ok[e, : len(m)] = True
-    names = ("own", "own_ok", "send", "sent", "take", "ok")
-    return {prefix + k: v for k, v in zip(names, (own, own_ok, send, sent, take, ok))}
+        back[e, src[away], slot[away]] = i[away]
+        home[e, m[mine] - e * block] = i[mine]
+        home[src[away], m[away] - src[away] * block] = cap + e * c + slot[away]
+        sent += int(away.sum())
+    arrays = dict(send=send, take=take, ok=ok, back=back, home=home)
+    return {prefix + k: v for k, v in arrays.items()}, sent
 
 
-def _gather(blk, ex, prefix, axis):
-    """A part's items from the row blocks: its own device's rows, and the others' by one
-    all_to_all (only the rows another part needs cross devices)."""
-    recv = jax.lax.all_to_all(blk[ex[prefix + "send"]], axis, 0, 0)
-    rows = jnp.concatenate([blk[ex[prefix + "own"]], recv.reshape(-1, blk.shape[1])])
-    return rows[ex[prefix + "take"]]
+def _gather(blk, recv, ex, prefix):
+    """A part's items: its own device's rows and those received (`_exchange`)."""
+    return jnp.concatenate([blk, recv.reshape(-1, blk.shape[1])])[ex[prefix + "take"]]
+
+
+def _exchange(blks, ex, prefixes, axis):
+    """The rows of several row blocks that other parts need, sent by one all_to_all:
+    [received rows [D, C, w] of each block]."""
+    out = [b[ex[q + "send"]] for b, q in zip(blks, prefixes)]
+    widths = np.cumsum([o.shape[1] for o in out])[:-1]
+    recv = jax.lax.all_to_all(jnp.concatenate(out, 1), axis, 0, 0)
+    return jnp.split(recv, widths, 1)
 
 
 def _stack(tables):
@@ -591,12 +601,16 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         topo = jax.tree_util.tree_map(lambda a: a[0], topo)
         ex = jax.tree_util.tree_map(lambda a: a[0], ex)
         ref_m = ex["m_ref"].astype(m_blk.dtype)
-        x_m = _gather(m_blk, ex, "m_", axis)
+        if self_contact:
+            (r_m,) = _exchange([m_blk], ex, ["m_"], axis)
+        else:
+            r_m, r_s = _exchange([m_blk, s_blk], ex, ["m_", "s_"], axis)
+        x_m = _gather(m_blk, r_m, ex, "m_")
         x_m = jnp.where(ex["m_ok"][:, None], x_m, ex["m_pad"].astype(x_m.dtype))
         if self_contact:
             s = x_m[topo.slave_nodes]
         else:
-            s = _gather(s_blk, ex, "s_", axis)
+            s = _gather(s_blk, r_s, ex, "s_")
             s = jnp.where(ex["s_ok"][:, None], s, ex["nowhere"].astype(s.dtype))
         fields, counts = local_detect(p.local, topo, s, x_m)
         # Global ids of the answer.
@@ -608,18 +622,19 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
             ints.append(fields["finer"])
         ints = jnp.stack([jnp.asarray(a, jnp.int32) for a in ints], -1)
         floats = jnp.concatenate([fields[k].reshape(s.shape[0], -1) for k, _ in _FLOATS], -1)
-        f_blk = _home(floats, ex, axis, n_dev, b_s)
-        i_blk = _home(ints, ex, axis, n_dev, b_s)
+        f_blk, i_blk = _home(floats, ex, axis), _home(ints, ex, axis)
         # Motion since the plan (halo check): the slaves this device holds, its master rows.
         dm = jnp.where(ex["m_used"], _norm(jax.lax.stop_gradient(m_blk) - ref_m), 0)
-        motion_m = jax.lax.pmax(jnp.max(dm), axis)
-        if self_contact:
-            motion_s = motion_m  # a slave's motion is its node's
-        else:
+        motion = [jnp.max(dm)]
+        if not self_contact:  # (a self-contact slave's motion is its node's)
             ds = _norm(jax.lax.stop_gradient(s_blk) - ex["s_ref"].astype(s_blk.dtype))
-            motion_s = jax.lax.pmax(jnp.max(jnp.where(ex["s_used"], ds, 0)), axis)
-        counts = {k: jax.lax.pmax(v, axis) for k, v in counts.items()}
-        counts["halo_motion"] = motion_s + p.lebesgue * motion_m
+            motion.append(jnp.max(jnp.where(ex["s_used"], ds, 0)))
+        # One reduction a dtype (the counts', the motions'): a collective is a sync between
+        # the devices, whatever it carries.
+        counts["halo_motion"] = jnp.stack(motion)
+        counts = _pmax(counts, axis)
+        motion = counts.pop("halo_motion")
+        counts["halo_motion"] = motion[-1] + p.lebesgue * motion[0]
         return f_blk, i_blk, counts
 
     f_out, i_out, counts = jax.shard_map(
@@ -654,19 +669,26 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
     return contacts_of(fields, slave_ids, p, counts, p.capacity)
 
 
+def _pmax(values, axis):
+    """`{k: pmax(v)}` with one pmax for the values of each dtype."""
+    values = {k: jnp.asarray(v) for k, v in values.items()}
+    out = {}
+    for dt in {v.dtype for v in values.values()}:
+        names = sorted(k for k, v in values.items() if v.dtype == dt)
+        flat = jnp.concatenate([values[k].reshape(-1) for k in names])
+        flat = jax.lax.pmax(flat, axis)
+        ends = np.cumsum([values[k].size for k in names])
+        for k, a, b in zip(names, np.r_[0, ends[:-1]], ends):
+            out[k] = flat[a:b].reshape(values[k].shape)
+    return out
+
+
 def _norm(v):
     return jnp.sqrt(jnp.sum(v * v, -1))
 
 
-def _home(vals, ex, axis, n_dev, b_s):
+def _home(vals, ex, axis):
     """Rows of a part's slaves [cap, w] back to the devices holding them: [b_s, w] blocks
-    (`_gather` reversed)."""
-    w = vals.shape[1]
-    c0, c = ex["s_own"].shape[0], ex["s_send"].shape[1]
-    buf = jnp.zeros((c0 + n_dev * c, w), vals.dtype)
-    buf = buf.at[jnp.where(ex["s_ok"], ex["s_take"], c0 + n_dev * c)].set(vals, mode="drop")
-    recv = jax.lax.all_to_all(buf[c0:].reshape(n_dev, c, w), axis, 0, 0)
-    out = jnp.zeros((b_s, w), vals.dtype)
-    out = out.at[jnp.where(ex["s_own_ok"], ex["s_own"], b_s)].set(buf[:c0], mode="drop")
-    rows = jnp.where(ex["s_sent"], ex["s_send"], b_s)
-    return out.at[rows.reshape(-1)].set(recv.reshape(-1, w), mode="drop")
+    (`_gather` reversed, one all_to_all)."""
+    recv = jax.lax.all_to_all(vals[ex["s_back"]], axis, 0, 0)
+    return jnp.concatenate([vals, recv.reshape(-1, vals.shape[1])])[ex["s_home"]]
