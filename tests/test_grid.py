@@ -86,3 +86,43 @@ def test_host_tree_groups_are_the_radix_trees_largest_nodes(kind, falls):
         np.testing.assert_allclose(np.asarray(dist), d.min(1), rtol=1e-12, atol=1e-12)
         tied = d <= d.min(1, keepdims=True) + tie
         assert np.array_equal(np.asarray(node), tied.argmax(1))
+
+
+def test_parts_trees_padded_to_common_levels_keep_their_answers():
+    """A sharded plan's parts (arraycontact_jax._shard): each part's tree over its own items,
+    grouped by `grouping`, padded to the deepest part's levels and the widest level sizes.
+    A shallow part padded so (3 items under a part of 3000) keeps its boxes and the JAX
+    scan's closest node is brute force's, in each part."""
+    import jax
+    import jax.numpy as jnp
+    from arraycontact_jax._grid import closest_node
+    from arraycontact_jax._shard import _common_levels, _part_tree
+
+    rng = np.random.default_rng(5)
+    x = rng.random((3003, 3))
+    lo = x.min(0)
+    keys = _grid.morton_keys(x, lo, 1.0)
+    order = np.argsort(keys, kind="stable")
+    rank = np.argsort(order)  # each item's position in the whole tree's order
+    parts = [np.sort(order[:3]), np.sort(order[3:])]  # the first 3 items in Morton order
+    trees = [_part_tree(rank[p], keys[order]) for p in parts]
+    padded = _common_levels([t[1] for t in trees])
+    assert len(trees[0][1]) < len(trees[1][1])  # (the case: a shallower part)
+    assert [len(s) for s in padded[0]] == [len(s) for s in padded[1]]
+    q = rng.random((200, 3))
+    for p, (ids, _), groups in zip(parts, trees, padded):
+        xs = x[p][ids] - lo
+        assert np.all(np.diff(keys[p][ids]) >= 0)  # in Morton order
+        tree = _grid.build(np, ids, xs, xs, xs, groups=groups)
+        np.testing.assert_array_equal(tree.lo[-1][0], xs.min(0))
+        np.testing.assert_array_equal(tree.hi[-1][0], xs.max(0))
+        assert np.array_equal(np.sort(tree.ids[tree.ids >= 0]), np.arange(len(p)))
+        with jax.enable_x64(True):
+            jtree = _grid.build(jnp, jnp.asarray(ids, jnp.int32), *(jnp.asarray(xs),) * 3,
+                                groups=groups)  # fmt: skip
+            node, dist, _ = closest_node(
+                jnp, jtree, None, jnp.asarray(q - lo), d_max=np.inf, tie=1e-12, slack=1e-12
+            )
+        d = np.linalg.norm(q[:, None] - x[p][None], axis=-1)
+        np.testing.assert_allclose(np.asarray(dist), d.min(1), rtol=1e-12, atol=1e-12)
+        assert np.array_equal(np.asarray(node), d.argmin(1))

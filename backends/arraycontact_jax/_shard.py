@@ -6,7 +6,8 @@ entry per face some slave reaches), one part per device along the mesh axis. Eac
 master of its own: its halo faces (those its slaves may reach, listed by the tree), the ring
 around them (so node normals, edges and boundary are the whole master's) and padding (small
 faces far from everything) to the shapes every part shares, which shard_map needs. Its trees
-keep the one-device tree's groups (`_aligned`); the padding's items are dead in them.
+hold its own items, in the one-device order and grouped by the one-device rule (Morton
+prefixes), padded to the parts' common level sizes; the padding's items are in no group.
 
 `detect` takes the coordinates as arrays sharded by rows over the axis (or replicated):
 device d holds rows [d B, (d + 1) B). Inside shard_map each device
@@ -45,7 +46,7 @@ from arraycontact._detect import (
     check_options,
     scalars,
 )
-from arraycontact._grid import W, consecutive, morton_order
+from arraycontact._grid import W, consecutive, grouping, morton_keys, morton_order
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds
@@ -167,10 +168,17 @@ def plan(
     x_dev = jnp.asarray((all_x - origin).astype(dtype))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
     # The one-device plan's trees: the nodes and faces in the Morton order of the scene's cube.
+    # (Grouped by Morton prefixes, as one device's JAX plan groups them.)
+    node_ids = master.nodes[morton_order(master.points[master.nodes], lo, extent)]
+    face_ids = morton_order(centres, lo, extent)
+    node_keys = morton_keys(master.points[node_ids], lo, extent)
+    face_keys = morton_keys(centres[face_ids], lo, extent)
     prep = replace(
         prep,
-        node_ids=master.nodes[morton_order(master.points[master.nodes], lo, extent)],
-        face_ids=morton_order(centres, lo, extent),
+        node_ids=node_ids,
+        face_ids=face_ids,
+        node_groups=grouping(node_keys),
+        face_groups=grouping(face_keys),
     )
     m = jax.tree.map(jnp.asarray, master_arrays(master, prep, dtype))
     margin = (growth - 1) * (d_max + r_max) if margin is None else float(margin)
@@ -211,24 +219,30 @@ def plan(
     node_rank = np.zeros(len(master.points), np.int64)
     node_rank[prep.node_ids] = np.arange(len(prep.node_ids))
     face_rank = np.argsort(prep.face_ids)
-    layouts = [(_aligned(node_rank[q.nodes]), _aligned(face_rank[q.faces])) for q in parts]
-    t_n = max(len(a[0][0]) for a in layouts)
-    t_f = max(len(a[1][0]) for a in layouts)
+    # Each part's trees over its own items in the one-device Morton order, grouped by the
+    # same rule (Morton prefixes), padded to the parts' common level sizes.
+    trees = [
+        (_part_tree(node_rank[q.nodes], node_keys), _part_tree(face_rank[q.faces], face_keys))
+        for q in parts
+    ]
+    t_n = max(len(q.nodes) for q in parts)
+    t_f = max(len(q.faces) for q in parts)
+    node_groups = _common_levels([t[0][1] for t in trees])
+    face_groups = _common_levels([t[1][1] for t in trees])
     locals_, tables, lives = [], [], []
-    for q, ((n_ids, n_live), (f_ids, f_live)) in zip(parts, layouts):
+    for e, (q, ((n_ids, _), (f_ids, _))) in enumerate(zip(parts, trees)):
         surf, pad_x = _padded(q, element, f_cap, p_cap, far, spacing, master.longest_edge)
         pq = replace(
             prep,
             node_ids=np.pad(n_ids, (0, t_n - len(n_ids))),
             face_ids=np.pad(f_ids, (0, t_f - len(f_ids))),
-            node_groups=consecutive(t_n),
-            face_groups=consecutive(t_f),
+            node_groups=node_groups[e],
+            face_groups=face_groups[e],
         )
         locals_.append((surf, pq))
         tables.append(pad_x)
-        lives.append(
-            (np.pad(n_live, (0, t_n - len(n_live))), np.pad(f_live, (0, t_f - len(f_live))))
-        )
+        # (the padding items are in no group; dead all the same)
+        lives.append((np.arange(t_n) < len(n_ids), np.arange(t_f) < len(f_ids)))
 
     topo = [_topology_arrays(surf, pq, self_contact, master) for surf, pq in locals_]
     for e, q in enumerate(parts):
@@ -303,11 +317,11 @@ def plan(
             )
         engine = _WarpSearch(plans, dtype, self_contact, axis=axis)
     else:
-        # The capacities: each part's own counts, the largest, times growth. A part's slave
-        # has the candidates it has on one device: its part holds every face within its
-        # reach and its trees keep the one-device groups, so one device's count serves. (Each
-        # part's own count was a compilation for the parts' shapes and a search, most of a
-        # second plan's time; the detection still counts and reports any overflow.)
+        # The capacities: one device's counts, times growth. A part's slave has about the
+        # candidates it has on one device: its part holds every face within its reach and
+        # its trees group them by the one-device rule (the same groups but where the part's
+        # items end). (Each part's own count was a compilation for the parts' shapes and a
+        # search, most of a second plan's time; the detection counts and reports overflow.)
         per = np.asarray(once(_per_slave, sc_dev, m, x_dev, ids, st=st_global))
         cand = [per[q.slaves] for q in parts]
         if mode == "exact":
@@ -460,21 +474,27 @@ def _counts_within(grid, x, rho, slack):
     return _grid.candidate_counts(grid, x, rho, slack=slack, shrink=False)
 
 
-def _aligned(rank, block=W**3):
-    """A part's tree layout from its items' positions `rank` in the one-device tree's order:
-    (ids [L], live [L]), the part's items (local ids) in that order, each kept at its position
-    modulo `block` with dead slots (empty boxes) where the one-device tree has items of other
-    parts. The groups of the lowest log_W(block) levels are then the one-device tree's (a
-    compacted order would shift the groups of W off the Morton cells and loosen every box
-    after the first gap)."""
-    b = rank // block
-    blocks = np.unique(b)
-    slot = np.searchsorted(blocks, b) * block + rank % block
-    ids = np.zeros(len(blocks) * block, np.int64)
-    live = np.zeros(len(ids), bool)
-    ids[slot] = np.arange(len(rank))
-    live[slot] = True
-    return ids, live
+def _part_tree(rank, keys):
+    """A part's tree over its items whose positions in the one-device tree's order are
+    `rank` (the items' keys there: `keys`): (ids, the part's items (local ids) in that order;
+    groups, `grouping` of their keys)."""
+    ids = np.argsort(rank)
+    return ids, grouping(keys[rank[ids]])
+
+
+def _common_levels(groups):
+    """The parts' tree slots (`grouping`'s, one tuple a part) to the same shapes: as many
+    levels as the deepest (a shallower part's root gets parents of one entry) and each
+    level's slots padded with empty ones (-1) to the widest; padding groups are empty boxes
+    no level above points to."""
+    depth = max(len(g) for g in groups)
+    root = np.array([0] + [-1] * (W - 1), np.int32)
+    groups = [list(g) + [root] * (depth - len(g)) for g in groups]
+    width = [max(len(g[k]) for g in groups) for k in range(depth)]
+    return [
+        tuple(np.pad(g[k], (0, width[k] - len(g[k])), constant_values=-1) for k in range(depth))
+        for g in groups
+    ]
 
 
 def _padded(q, element, f_cap, p_cap, far, spacing, size):
