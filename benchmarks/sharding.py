@@ -194,7 +194,8 @@ def table(machine, run=None):
     if not recs:
         return
     r0 = recs[0]
-    print(f"Run {r0['run']} ({r0['device']}, commit {_records.commit(r0)}): `{r0['command']}`\n")
+    commands = " and ".join(f"`{c}`" for c in dict.fromkeys(r["command"] for r in recs))
+    print(f"Run {r0['run']} ({r0['device']}, commit {_records.commit(r0)}): {commands}\n")
     rows = []
     for r in recs:
         b = r["balance"]
