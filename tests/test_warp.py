@@ -101,6 +101,29 @@ def test_slave_order_does_not_change_the_result():
         acw.plan(s.master, x, sort_slaves="never")
 
 
+def test_the_box_of_the_morton_cells_does_not_change_the_result():
+    """`box` (a sharded plan's parts take the scene's): a wider box (coarser cells, more
+    slack) or one smaller than the points (those outside take its border cells) only changes
+    the trees and the slaves' order: every output equals the default plan's, in one frame."""
+    s = scenes.graded_surfaces(2**10, ratio=30.0, seed=4)
+    frame = s.slave.min(0) - 1.0
+    lo = np.minimum(s.slave.min(0), s.master.points.min(0))
+    hi = np.maximum(s.slave.max(0), s.master.points.max(0))
+    base = acw.detect(
+        acw.plan(s.master, s.slave, device=DEVICE, frame=frame), s.slave, s.master.points
+    )
+    for box in ((lo - 5.0, hi + [0.0, 0.0, 300.0]), (lo + 0.3 * (hi - lo), hi - 0.3 * (hi - lo))):
+        p = acw.plan(s.master, s.slave, device=DEVICE, frame=frame, box=box)
+        assert p.constants.quantum == pytest.approx(float((box[1] - box[0]).max()) / 1024)
+        o = acw.detect(p, s.slave, s.master.points)
+        for k in base:
+            assert np.array_equal(base[k], o[k], equal_nan=True), k
+    with pytest.raises(ValueError, match="box must be"):
+        acw.plan(s.master, s.slave, box=(hi, lo))
+    with pytest.raises(ValueError, match="box must be"):
+        acw.plan(s.master, s.slave, box=(lo, hi, hi))
+
+
 @pytest.mark.parametrize("n_fan", [5, 12])
 def test_tie_rule_at_a_vertex_of_many_faces(n_fan):
     """Slaves above the centre of a fan of triangles (ids shuffled) are equidistant from every

@@ -656,11 +656,13 @@ def warp_plan(
     device=None,
     tie=None,
     frame=None,
+    box=None,
 ):
     """The Warp back end's plan of a search="warp" plan, taking coordinates in the JAX plan's
     frame `origin`, on the JAX device `device` (default: the first). tie: a part of a sharded
-    plan takes the whole master's tie band (and the slack that goes with it), and frame the
-    whole scene's Warp frame, so that its ties and roundings resolve as on one device."""
+    plan takes the whole master's tie band (and the slack that goes with it), frame the
+    whole scene's Warp frame, so that its ties and roundings resolve as on one device, and box
+    the scene's box, so that its items have one device's Morton keys."""
     import arraycontact_warp as acw
     import warp as wp
 
@@ -673,6 +675,7 @@ def warp_plan(
         growth=growth,
         self_contact=self_contact,
         frame=frame,
+        box=box,
     )
     # The inputs come in the JAX plan's frame: the kernels subtract the difference.
     p.origin = p.origin - np.asarray(origin)

@@ -455,6 +455,7 @@ def plan(
     refit=True,
     self_contact=False,
     frame=None,
+    box=None,
 ) -> Plan:
     """Allocate a detection of slaves [n, 3] against `master` computing in dtype (float32 or
     float64). mode: "exact" or "node" (seed 000: the faces attached to the closest node, blind
@@ -483,7 +484,11 @@ def plan(
     at master.nodes (use `plan_self` / `detect_self`).
     frame: the origin of the local frame the kernels compute in (default: the corner of the
     slaves' box less d_max). Plans of the parts of one scene take the whole scene's, so that
-    float32 rounds alike in every part and the parts answer as one plan would."""
+    float32 rounds alike in every part and the parts answer as one plan would.
+    box: (lo, hi), the box the Morton cells (trees, slave order) and the rounding slack are
+    sized over (default: the slaves' and the master's, widened by d_max); points outside it
+    take its border cells. Parts of one scene take the whole scene's, so that their items
+    have one plan's keys (a part's padding far off would otherwise coarsen them)."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan(
@@ -501,6 +506,7 @@ def plan(
             refit=refit,
             self_contact=self_contact,
             frame=frame,
+            box=box,
         )
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
@@ -546,6 +552,11 @@ def plan(
     r_max = topo.r_max
     lo = np.minimum(x_lo, topo.node_box[0]) - d_max
     hi = np.maximum(x_hi, topo.node_box[1]) + d_max
+    if box is not None:
+        b = np.asarray(box, np.float64)
+        if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
+            raise ValueError(f"box must be two finite points (lo, hi) with lo < hi, got {box!r}")
+        lo, hi = b
     extent = 2 * float((hi - lo).max())
     # The local frame at the slaves' box (less d_max): float32 keeps its precision where the
     # contacts are, however large the master is around them (a fine patch in a coarse plate).
