@@ -6,6 +6,8 @@ import os
 import socket
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 from test_sharding import HALF, run_sharding_checks
@@ -23,17 +25,29 @@ def test_two_processes_of_two_devices_equal_one_device():
         sock.bind(("localhost", 0))
         port = sock.getsockname()[1]
     script = Path(__file__).parent / "multihost_check.py"
+    logs = [tempfile.TemporaryFile("w+") for _ in range(2)]  # (a pipe could fill and block)
     procs = [
         subprocess.Popen(
             [sys.executable, str(script), str(pid), str(port)],
-            stdout=subprocess.PIPE,
+            stdout=log,
             stderr=subprocess.STDOUT,
             text=True,
             env=dict(os.environ),  # conftest's cheaper XLA optimisation flags included
         )
-        for pid in range(2)
+        for pid, log in enumerate(logs)
     ]
-    outs = [p.communicate(timeout=600)[0] for p in procs]
-    for pid, (p, out) in enumerate(zip(procs, outs)):
+    # A process that fails leaves the other waiting in a collective: stop both then.
+    deadline = time.monotonic() + 300
+    while any(p.poll() is None for p in procs) and time.monotonic() < deadline:
+        if any(p.poll() not in (None, 0) for p in procs):
+            break
+        time.sleep(0.2)
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+        p.wait()
+    for pid, (p, log) in enumerate(zip(procs, logs)):
+        log.seek(0)
+        out = log.read()
         assert p.returncode == 0, out[-4000:]
         assert f"process {pid}: equal" in out
