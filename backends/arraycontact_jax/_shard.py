@@ -261,8 +261,7 @@ def plan(
     n_rows, n_pts = len(all_x), len(master.points)
     b_s, b_m = -(-n_rows // n_dev), -(-n_pts // n_dev)
     s_route, s_sent = _routes([q.slaves for q in parts], b_s, n_dev, s_cap, "s_")
-    m_route, m_sent = _routes([q.nodes for q in parts], b_m, n_dev, p_cap, "m_")
-    del m_route["m_back"], m_route["m_home"]  # the answers go home by the slaves' routes
+    m_route, m_sent = _routes([q.nodes for q in parts], b_m, n_dev, p_cap, "m_", back=False)
     pad_x = np.stack(tables)
     x_ref = np.zeros((n_dev * b_s, 3))
     x_ref[:n_rows] = all_x
@@ -521,16 +520,16 @@ def _padded(q, element, f_cap, p_cap, far, spacing, size):
     return Surface(points, faces, element), pad_x
 
 
-def _routes(members, block, n_dev, cap, prefix):
+def _routes(members, block, n_dev, cap, prefix, back=True):
     """The routes of items held in row blocks of `block` rows (device d: rows
     [d block, (d + 1) block)) to the parts whose sorted ids are `members[e]`, and back.
 
     Out: `send` [D(src), D(dst), C]: the rows of its block each device sends to each other
     part (C the widest route, 1 at least; unused slots row 0); `take` [D, cap]: where a part
     reads its i-th item in [its device's block; received D C rows], `ok`: which are real.
-    Back (`home`, slaves only, for the answers): `back` [D(part), D(dst), C]: the item a part
-    sends to each device in each slot, `home` [D, block]: where a device reads each of its
-    rows in [its part's items (cap); received D C rows]. Only the rows another part needs
+    With `back` (the slaves', whose answers go home): `back` [D(part), D(dst), C]: the item a
+    part sends to each device in each slot, `home` [D, block]: where a device reads each of
+    its rows in [its part's items (cap); received D C rows]. Only the rows another part needs
     cross devices; everything else is a gather (no scatter)."""
     c = max(
         [
@@ -544,7 +543,7 @@ def _routes(members, block, n_dev, cap, prefix):
     send = np.zeros((n_dev, n_dev, c), np.int32)
     take = np.zeros((n_dev, cap), np.int32)
     ok = np.zeros((n_dev, cap), bool)
-    back = np.zeros((n_dev, n_dev, c), np.int32)
+    ret = np.zeros((n_dev, n_dev, c), np.int32)
     home = np.zeros((n_dev, block), np.int32)
     sent = 0
     for e, m in enumerate(members):
@@ -557,11 +556,14 @@ def _routes(members, block, n_dev, cap, prefix):
         send[src[away], e, slot[away]] = m[away] - src[away] * block
         take[e, : len(m)] = np.where(mine, m - e * block, block + src * c + slot)
         ok[e, : len(m)] = True
-        back[e, src[away], slot[away]] = i[away]
-        home[e, m[mine] - e * block] = i[mine]
-        home[src[away], m[away] - src[away] * block] = cap + e * c + slot[away]
+        if back:
+            ret[e, src[away], slot[away]] = i[away]
+            home[e, m[mine] - e * block] = i[mine]
+            home[src[away], m[away] - src[away] * block] = cap + e * c + slot[away]
         sent += int(away.sum())
-    arrays = dict(send=send, take=take, ok=ok, back=back, home=home)
+    arrays = dict(send=send, take=take, ok=ok)
+    if back:
+        arrays.update(back=ret, home=home)
     return {prefix + k: v for k, v in arrays.items()}, sent
 
 
