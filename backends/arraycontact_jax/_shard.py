@@ -46,7 +46,7 @@ from arraycontact._detect import (
     check_options,
     scalars,
 )
-from arraycontact._grid import W, consecutive, grouping, morton_keys, morton_order
+from arraycontact._grid import W, grouping, morton_keys, morton_order
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
 from arraycontact._surface import Surface, bounds
@@ -148,16 +148,22 @@ def plan(
     hi = np.maximum(bounds(all_x)[1], master.node_box[1]) + d_max
     origin = lo if dtype == np.float32 else np.zeros(3)
     extent = float((hi - lo).max())
+    # The one-device plan's trees: the nodes and faces in the Morton order of the scene's
+    # cube, grouped by Morton prefixes as one device's JAX plan groups them.
+    node_ids = master.nodes[morton_order(master.points[master.nodes], lo, extent)]
+    face_ids = morton_order(centres, lo, extent)
+    node_keys = morton_keys(master.points[node_ids], lo, extent)
+    face_keys = morton_keys(centres[face_ids], lo, extent)
     # The scene's constants, shared by every part: the answer is the one-device answer.
     prep = Prepared(
         slave_rows=np.arange(len(all_x)),
-        node_ids=master.nodes,
-        face_ids=np.arange(master.n_faces),
+        node_ids=node_ids,
+        face_ids=face_ids,
         origin=origin,
         d_max=d_max,
         r_max=r_max * growth,
-        node_groups=consecutive(len(master.nodes)),
-        face_groups=consecutive(master.n_faces),
+        node_groups=grouping(node_keys),
+        face_groups=grouping(face_keys),
         extent=2 * float(np.abs(np.r_[lo - origin, hi - origin]).max()),
     )
     sc = scalars(prep, master, dtype)
@@ -167,19 +173,6 @@ def plan(
     sc_dev = Scalars(*(jnp.asarray(v, dtype=dtype) for v in sc))
     x_dev = jnp.asarray((all_x - origin).astype(dtype))
     ids = jnp.asarray(master.nodes.astype(np.int32)) if self_contact else None
-    # The one-device plan's trees: the nodes and faces in the Morton order of the scene's cube.
-    # (Grouped by Morton prefixes, as one device's JAX plan groups them.)
-    node_ids = master.nodes[morton_order(master.points[master.nodes], lo, extent)]
-    face_ids = morton_order(centres, lo, extent)
-    node_keys = morton_keys(master.points[node_ids], lo, extent)
-    face_keys = morton_keys(centres[face_ids], lo, extent)
-    prep = replace(
-        prep,
-        node_ids=node_ids,
-        face_ids=face_ids,
-        node_groups=grouping(node_keys),
-        face_groups=grouping(face_keys),
-    )
     m = jax.tree.map(jnp.asarray, master_arrays(master, prep, dtype))
     margin = (growth - 1) * (d_max + r_max) if margin is None else float(margin)
     if not margin >= 0:
@@ -697,7 +690,8 @@ def _pmax(values, axis):
     """`{k: pmax(v)}` with one pmax for the values of each dtype."""
     values = {k: jnp.asarray(v) for k, v in values.items()}
     out = {}
-    for dt in {v.dtype for v in values.values()}:
+    # (in a fixed order: every process of a multi-host run must trace the same collectives)
+    for dt in sorted({v.dtype for v in values.values()}, key=str):
         names = sorted(k for k, v in values.items() if v.dtype == dt)
         flat = jnp.concatenate([values[k].reshape(-1) for k in names])
         flat = jax.lax.pmax(flat, axis)
