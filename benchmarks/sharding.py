@@ -57,7 +57,7 @@ def _timed(f, repeats):
 
 def _exchange_only(p):
     """The sharded detection's all_to_alls on the plan's routes (the rows that cross
-    devices), without the detection: one for the coordinates, two for the answers."""
+    devices), without the detection: one for the coordinates, one for the answers."""
     import jax
     import jax.numpy as jnp
     from arraycontact_jax import _shard
@@ -72,7 +72,7 @@ def _exchange_only(p):
         cap = ex["s_take"].shape[0]
         vals_f = jnp.zeros((cap, 10), dtype) + r_s[0, :1, :1]
         vals_i = jnp.zeros((cap, 5), jnp.int32) + r_m[0, :1, :1].astype(jnp.int32)
-        r_f, r_i = _shard._home(vals_f, ex, axis), _shard._home(vals_i, ex, axis)
+        r_f, r_i = _shard._home(vals_f, vals_i, ex, axis)
         return (jnp.sum(r_f) + jnp.sum(r_i))[None]
 
     f = jax.jit(
@@ -98,6 +98,41 @@ def _diff(c, r):
         for k in ("gap", "point", "normal", "xi")
     }
     return ints, floats
+
+
+def _ties(s, c, r, dtype):
+    """Where the sharded face differs from one device's: the two faces' float64 distances to
+    the slave, against the tie band (the smallest face id within `tie` of the smallest
+    distance wins). `exact_*`: how many rows each answer agrees with exact arithmetic on
+    (float64 distances, the same band, the two faces alone); `band_edge`: rows whose distance
+    difference lies within 1e-3 tie of the band's edge (decided by rounding)."""
+    from arraycontact._detect import TIE_RTOL
+    from arraycontact.reference import _closest_on_faces
+
+    rows = np.nonzero(np.asarray(c.face) != np.asarray(r.face))[0]
+    out = {"rows": int(len(rows))}
+    fa, fb = np.asarray(r.face)[rows], np.asarray(c.face)[rows]
+    both = (fa >= 0) & (fb >= 0)
+    rows, fa, fb = rows[both], fa[both], fb[both]
+    if not len(rows):
+        return out
+    m = s.master
+    x = s.slave[rows].astype(dtype).astype(float)  # the coordinates the detections saw
+    xm = m.points.astype(dtype).astype(float)
+    da = np.sqrt(_closest_on_faces(m.element, x, xm[m.faces[fa]])[1])
+    db = np.sqrt(_closest_on_faces(m.element, x, xm[m.faces[fb]])[1])
+    tie = TIE_RTOL[np.dtype(dtype)] * m.longest_edge
+    lo_id = np.where(fa < fb, da, db)  # the smaller id wins where it is within the band
+    hi_id = np.where(fa < fb, db, da)
+    exact = np.where(lo_id <= hi_id + tie, np.minimum(fa, fb), np.maximum(fa, fb))
+    out.update(
+        tie=float(tie),
+        largest_distance_difference=float(np.abs(da - db).max()),
+        band_edge=int((np.abs(np.abs(da - db) - tie) < 1e-3 * tie).sum()),
+        exact_one_device=int((exact == fa).sum()),
+        exact_sharded=int((exact == fb).sum()),
+    )
+    return out
 
 
 _BASELINE = {}
@@ -146,7 +181,10 @@ def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax"):
     if p.local.search is not None:  # Warp's graphs (a growing count: captured every call)
         rec["warp_graphs"] = p.local.search.call.graph_cache_size
     if baseline:
-        rec["mismatch"], rec["float_diff"] = _diff(jax.tree.map(np.asarray, c), r)
+        c = jax.tree.map(np.asarray, c)
+        rec["mismatch"], rec["float_diff"] = _diff(c, r)
+        if rec["mismatch"]["face"]:
+            rec["ties"] = _ties(s, c, r, dtype)
     return rec
 
 

@@ -1,11 +1,11 @@
-"""Where a sharded Warp-search detection's time goes: `jax.profiler` traces of five calls
+"""Where a sharded detection's time goes: `jax.profiler` traces of five calls
 each of one device unsharded, a mesh of one device (2^20 nodes a surface) and a mesh of all
 devices (2^20 a device), rough surfaces, float32.
 
-    python benchmarks/sharding_trace.py run --out DIR      # on the GPU machine
+    python benchmarks/sharding_trace.py run --out DIR [--search warp|jax]   # on the GPU
     python benchmarks/sharding_trace.py summary DIR         # GPU time a call per stream/kernel
 
-`run` writes DIR/perfetto_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
+`run` writes DIR/perfetto_<search>_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
 deep folders) and prints each case's median wall time of 10 calls.
 """
 
@@ -29,7 +29,7 @@ sys.path[:0] = [os.path.dirname(HERE), os.path.join(os.path.dirname(HERE), "back
 CALLS = 5
 
 
-def run(out):
+def run(out, search="warp"):
     import arraycontact_jax as acj
     import jax
     from jax.sharding import Mesh, NamedSharding
@@ -44,10 +44,10 @@ def run(out):
         sl = jax.device_put(s.slave.astype(np.float32))
         pts = jax.device_put(s.master.points.astype(np.float32))
         if d == 0:
-            p = acj.plan(s.master, s.slave, dtype=np.float32, search="warp")
+            p = acj.plan(s.master, s.slave, dtype=np.float32, search=search)
         else:
             mesh = Mesh(np.array(jax.devices()[:d]), ("space",))
-            p = acj.plan(s.master, s.slave, dtype=np.float32, mesh=mesh, search="warp")
+            p = acj.plan(s.master, s.slave, dtype=np.float32, mesh=mesh, search=search)
             rows = NamedSharding(mesh, P("space"))
             sl, pts = jax.device_put(sl, rows), jax.device_put(pts, rows)
         for _ in range(3):
@@ -57,13 +57,13 @@ def run(out):
             t = time.perf_counter()
             jax.block_until_ready(acj.detect(p, sl, pts))
             times.append(time.perf_counter() - t)
-        print(f"{name}: {np.median(times) * 1e3:.2f} ms a call (median of 10)", flush=True)
+        print(f"{search} {name}: {np.median(times) * 1e3:.2f} ms a call (median of 10)", flush=True)
         tmp = tempfile.mkdtemp()
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
             for _ in range(CALLS):
                 jax.block_until_ready(acj.detect(p, sl, pts))
         (trace,) = glob.glob(f"{tmp}/**/perfetto_trace.json.gz", recursive=True)
-        shutil.copy(trace, os.path.join(out, f"perfetto_{name}.json.gz"))
+        shutil.copy(trace, os.path.join(out, f"perfetto_{search}_{name}.json.gz"))
         shutil.rmtree(tmp)
         del p
 
@@ -98,9 +98,10 @@ def main():
     ap.add_argument("what", choices=["run", "summary"])
     ap.add_argument("folder", nargs="?", default=None)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--search", choices=["warp", "jax"], default="warp")
     a = ap.parse_args()
     if a.what == "run":
-        run(a.out or os.environ["OUT"])
+        run(a.out or os.environ["OUT"], a.search)
     else:
         summary(a.folder)
 

@@ -18,8 +18,8 @@ device d holds rows [d B, (d + 1) B). Inside shard_map each device
 2. runs the one-device detection (arraycontact_jax._detect.local_detect) on its part, with the
    scene's constants (d_max, tolerances, frame), so every row is the one-device answer (the
    search in JAX, or with search="warp" the part's own Warp plan on the device);
-3. sends each answer back to the device holding the slave's row (one all_to_all for the float
-   fields, one for the integer ones) and reduces the counts (pmax).
+3. sends each answer back to the device holding the slave's row (one all_to_all, the integer
+   fields riding with the float ones) and reduces the counts (pmax).
 
 Gradients flow through the gathers and all_to_alls as through the one-device detection. The
 halos hold as long as slaves and master nodes move less than the partition's margin from the
@@ -639,7 +639,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
             ints.append(fields["finer"])
         ints = jnp.stack([jnp.asarray(a, jnp.int32) for a in ints], -1)
         floats = jnp.concatenate([fields[k].reshape(s.shape[0], -1) for k, _ in _FLOATS], -1)
-        f_blk, i_blk = _home(floats, ex, axis), _home(ints, ex, axis)
+        f_blk, i_blk = _home(floats, ints, ex, axis)
         # Motion since the plan (halo check): the slaves this device holds, its master rows.
         dm = jnp.where(ex["m_used"], _norm(jax.lax.stop_gradient(m_blk) - ref_m), 0)
         motion = [jnp.max(dm)]
@@ -705,8 +705,15 @@ def _norm(v):
     return jnp.sqrt(jnp.sum(v * v, -1))
 
 
-def _home(vals, ex, axis):
-    """Rows of a part's slaves [cap, w] back to the devices holding them: [b_s, w] blocks
-    (`_gather` reversed, one all_to_all)."""
+def _home(floats, ints, ex, axis):
+    """Rows of a part's slaves (floats [cap, w], ints [cap, k]) back to the devices holding
+    them: [b_s, w] and [b_s, k] blocks (`_gather` reversed). One all_to_all: a collective
+    waits for every device, so each one costs the devices' skew. The int32 fields ride as
+    floats, split in two 16-bit halves (exact in float32, whose integers end at 2^24)."""
+    dt = floats.dtype
+    vals = jnp.concatenate([floats, (ints // 65536).astype(dt), (ints % 65536).astype(dt)], 1)
     recv = jax.lax.all_to_all(vals[ex["s_back"]], axis, 0, 0)
-    return jnp.concatenate([vals, recv.reshape(-1, vals.shape[1])])[ex["s_home"]]
+    out = jnp.concatenate([vals, recv.reshape(-1, vals.shape[1])])[ex["s_home"]]
+    w, k = floats.shape[1], ints.shape[1]
+    halves = out[:, w:].astype(jnp.int32)
+    return out[:, :w], halves[:, :k] * 65536 + halves[:, k:]
