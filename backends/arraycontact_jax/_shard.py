@@ -202,11 +202,9 @@ def plan(
 
     # 2. Each part's master, padded to shared shapes.
     k = element.nodes_per_face
-    # (rows in multiples of ALIGN: XLA's GPU loops unroll by 4 only over sizes that allow it;
-    # 1049186 slave rows made the scans' per-lane kernels 2x slower than 1048576 on an H100)
-    f_cap = _aligned(max(len(q.faces) for q in parts) + 1)  # a spare face: padded slaves' own
-    p_cap = _aligned(max(len(q.nodes) + k * (f_cap - len(q.faces)) for q in parts))
-    s_cap = _aligned(max(len(q.slaves) for q in parts))
+    f_cap = max(len(q.faces) for q in parts) + 1  # one spare face at least: padded slaves' own
+    p_cap = max(len(q.nodes) + k * (f_cap - len(q.faces)) for q in parts)
+    s_cap = max(max(len(q.slaves) for q in parts), 1)
     reach = d_max + part.margin
     spacing = 4 * (reach + r_max) + 2 * master.longest_edge
     far = hi + spacing  # the padding's corner, beyond reach of every slave
@@ -366,14 +364,6 @@ def plan(
         float(element.lebesgue),
         tuple(sorted(balance.items())),
     )
-
-
-ALIGN = 128
-
-
-def _aligned(n):
-    """n rounded up to a multiple of ALIGN (at least ALIGN)."""
-    return max(-(-n // ALIGN), 1) * ALIGN
 
 
 def _part_slaves(all_x, mine, s_cap, nowhere):
