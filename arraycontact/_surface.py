@@ -181,16 +181,18 @@ def node_normals(element, faces, points, xp=np, columns=None):
 
 
 def _stable_order(keys, end):
-    """np.argsort(keys, kind="stable") of non-negative int keys below `end`: where the key and
-    the position fit one int64, NumPy's sort of key << bits | position (SIMD, 3x argsort's
-    time on 2^19 edge keys)."""
-    bits = max(len(keys) - 1, 1).bit_length()
-    if max(int(end) - 1, 1).bit_length() + bits > 63:
-        return np.argsort(keys, kind="stable")
-    packed = keys.astype(np.int64) << bits
-    packed |= np.arange(len(keys), dtype=np.int64)
-    packed.sort()
-    return packed & ((1 << bits) - 1)
+    """np.argsort(keys, kind="stable") of non-negative int keys below `end`, by least
+    significant digit first radix passes of 16 bits: NumPy's stable argsort of uint16 is a
+    counting sort. 2.5-5x a comparison sort's time on 2^16-node meshes' node and edge keys,
+    1.25x at 2^20 (where the passes' gathers dominate)."""
+    keys = np.asarray(keys)
+    order = None
+    for shift in range(0, max(int(end) - 1, 1).bit_length(), 16):
+        k = keys if order is None else keys[order]
+        digit = ((k >> shift) & 0xFFFF).astype(np.uint16)
+        o = np.argsort(digit, kind="stable")
+        order = o if order is None else order[o]
+    return order
 
 
 def bounds(x):

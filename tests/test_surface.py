@@ -104,3 +104,16 @@ def test_integral_floats_accepted_and_immutable():
 def test_empty_surface_is_valid():
     s = ac.Surface(np.zeros((0, 3)), np.zeros((0, 3), int), "tri3")
     assert s.n_faces == 0 and not s.closed and s.longest_edge == 0.0
+
+
+@pytest.mark.parametrize("end", [1, 2, 1 << 16, (1 << 16) + 1, 1 << 33, 1 << 40])
+def test_stable_order_is_a_stable_argsort(end):
+    """The radix passes give NumPy's stable argsort, ties in input order, whatever the keys'
+    width (one pass up to 16 bits, more beyond)."""
+    from arraycontact._surface import _stable_order
+
+    rng = np.random.default_rng(end % 1000)
+    for n in (0, 1, 1000, 70000):
+        keys = rng.integers(0, end, n, dtype=np.int64)
+        keys[: n // 2] = keys[n // 2 : 2 * (n // 2)]  # many equal keys
+        assert np.array_equal(_stable_order(keys, end), np.argsort(keys, kind="stable"))
