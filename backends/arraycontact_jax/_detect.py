@@ -682,6 +682,16 @@ def warp_plan(
     if tie is not None:
         c = p.constants
         p.constants = c._replace(tie=tie, slack=c.slack + max(tie - c.tie, 0.0))
+    if p.device.is_cuda:
+        # One detection now, outside any capture: its first call loads the kernels' modules
+        # and captures the plan's own CUDA graph, which inside jax_callable's capture would
+        # happen within another (on an H100 the JAX program then failed with an illegal
+        # address whenever a Warp self-contact detection had run before in the process).
+        xm = master.points - np.asarray(origin)
+        if self_contact:
+            acw.detect_self(p, xm)
+        else:
+            acw.detect(p, slave_x - np.asarray(origin), xm)
     return p
 
 
