@@ -354,7 +354,8 @@ def run_cpu(a):
         rec["vs_fcpw"] = best / t_fcpw
         rec["new_vs_fcpw"] = ours["warp_cpu_float32_new_s"] / t_fcpw
         # Set-up, each against fcpw's whole build + query of the scene.
-        rec["topology_s"] = topology_time(m)
+        # (the median of repeats: one measurement of a 40 ms job swung 2x between scenes)
+        rec["topology_s"] = statistics.median(topology_time(m) for _ in range(a.repeats))
         for search in ("jax", "warp"):
             import arraycontact_jax as acj
 
