@@ -213,6 +213,8 @@ def main():
         return table(args.machine, args.run)
     import jax
 
+    if np.dtype(args.dtype) == np.float64:
+        jax.config.update("jax_enable_x64", True)
     devices = jax.devices()
     n_max = len(devices)
     meta = _records.meta(args.run)
