@@ -195,16 +195,18 @@ def self_face_geometry(
         b_lo = vec3(real(1.0))
         b_hi = vec3(real(-1.0))
         for a in range(k):
-            for b in range(k):
-                use = a == b or nn == 6
-                if nn == 3 and a > 0:
-                    use = False
-                if use:
-                    ta, ua = _tangents(el, m, f, el.nodes[a])
+            if nn == 6:
+                ta, ua = _tangents(el, m, f, el.nodes[a])
+                for b in range(k):
                     tb, ub = _tangents(el, m, f, el.nodes[b])
                     g = _unit(wp.cross(ta, ub))
                     b_lo = wp.min(b_lo, g)
                     b_hi = wp.max(b_hi, g)
+            elif nn == 4 or a == 0:  # a corner's own normal (tri3: its one normal)
+                ta, ua = _tangents(el, m, f, el.nodes[a])
+                g = _unit(wp.cross(ta, ua))
+                b_lo = wp.min(b_lo, g)
+                b_hi = wp.max(b_hi, g)
     lo[f] = b_lo
     hi[f] = b_hi
     h = real(0.0)
