@@ -2,7 +2,7 @@
 
     python benchmarks/suite.py scenes                 # gmsh scenes -> benchmarks/scenes/*.npz
     python benchmarks/suite.py gpu --log2 20          # CUDA machine with Warp: ours vs wp.Mesh
-    python benchmarks/suite.py cpu --log2 16          # CPU: ours vs fcpw and libigl
+    python benchmarks/suite.py cpu --log2 16          # CPU: ours vs fcpw, libigl, Warp's BVH
     python benchmarks/suite.py table --machine h100 [--run ID]   # tables from results/suite_*
 
 Scenes (sizes from --log2 k, 2^k nodes per surface where the scene has two surfaces):
@@ -283,6 +283,7 @@ def run_cpu(a):
     import arraycontact_warp as acw
     import fcpw
     import igl
+    from peers_warp import mesh_peers
 
     quiet_warp()
     meta = dict(_meta(a), device="cpu: " + (platform.processor() or platform.machine()))
@@ -309,6 +310,9 @@ def run_cpu(a):
 
         t_fcpw = _median_time(fcpw_run, a.repeats)
         t_igl = _median_time(igl_run, max(a.repeats // 2, 1))
+        # Warp's own BVH on its CPU device (wp.Mesh, mesh_query_point_no_sign within d_max;
+        # one launch, which Warp runs on one core).
+        bvh = mesh_peers(m, scene.slave, d_max, repeats=a.repeats, device="cpu")
         ours = {}
         for dtype in ("float32", "float64"):
             # The one-shot call a user makes: plan (Morton order, trees) and detect.
@@ -347,6 +351,8 @@ def run_cpu(a):
             **ours,
             fcpw_s=t_fcpw,
             libigl_s=t_igl,
+            warp_bvh_build_query_s=bvh["build_query"][1],
+            warp_bvh_refit_query_s=bvh["refit_query"][1],
             errors=errors(c, scene, a.check, "float32"),
             active=int(c.active.sum()),
         )
@@ -442,6 +448,20 @@ def table(a):
                     f"{new_ms}{1e3 * r['fcpw_s']:.1f} ms | {1e3 * r['libigl_s']:.1f} ms | "
                     f"{r['vs_fcpw']:.2f} | {new_ratio}{e['miss_rate']:.0%} | "
                     f"{e['wrong_face_rate']:.0%} |"
+                )
+        if mode == "cpu" and all("warp_bvh_build_query_s" in r for r in recs):
+            print(
+                "\nWarp's BVH on the CPU device (`wp.Mesh`, one launch: Warp runs it on one "
+                "core; ours splits its per-slave launches over the cores), same run:\n\n"
+                "| scene | wp.Mesh build + query | refit + query | ours / build + query | "
+                "ours / refit + query |\n|---|---|---|---|---|"
+            )
+            for r in recs:
+                ours = r["vs_fcpw"] * r["fcpw_s"]
+                b, f = r["warp_bvh_build_query_s"], r["warp_bvh_refit_query_s"]
+                print(
+                    f"| {r['scene']} | {1e3 * b:.1f} ms | {1e3 * f:.1f} ms | {ours / b:.2f} | "
+                    f"{ours / f:.2f} |"
                 )
         if a.brief:
             return
