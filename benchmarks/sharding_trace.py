@@ -20,7 +20,6 @@ import os
 import shutil
 import sys
 import tempfile
-import time
 
 import numpy as np
 
@@ -34,6 +33,7 @@ def run(out, search="warp"):
     import jax
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
+    from sharding import _timed
 
     from arraycontact import scenes
 
@@ -50,14 +50,8 @@ def run(out, search="warp"):
             p = acj.plan(s.master, s.slave, dtype=np.float32, mesh=mesh, search=search)
             rows = NamedSharding(mesh, P("space"))
             sl, pts = jax.device_put(sl, rows), jax.device_put(pts, rows)
-        for _ in range(3):
-            jax.block_until_ready(acj.detect(p, sl, pts))
-        times = []
-        for _ in range(10):
-            t = time.perf_counter()
-            jax.block_until_ready(acj.detect(p, sl, pts))
-            times.append(time.perf_counter() - t)
-        print(f"{search} {name}: {np.median(times) * 1e3:.2f} ms a call (median of 10)", flush=True)
+        _, _, median = _timed(lambda p=p, sl=sl, pts=pts: acj.detect(p, sl, pts), 10)
+        print(f"{search} {name}: {median * 1e3:.2f} ms a call (median of 10)", flush=True)
         tmp = tempfile.mkdtemp()
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
             for _ in range(CALLS):

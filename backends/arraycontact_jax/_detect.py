@@ -678,7 +678,8 @@ def warp_plan(
         box=box,
     )
     # The inputs come in the JAX plan's frame: the kernels subtract the difference.
-    p.origin = p.origin - np.asarray(origin)
+    origin = np.asarray(origin)
+    p.origin = p.origin - origin
     if tie is not None:
         c = p.constants
         p.constants = c._replace(tie=tie, slack=c.slack + max(tie - c.tie, 0.0))
@@ -687,11 +688,10 @@ def warp_plan(
         # and captures the plan's own CUDA graph, which inside jax_callable's capture would
         # happen within another (on an H100 the JAX program then failed with an illegal
         # address whenever a Warp self-contact detection had run before in the process).
-        xm = master.points - np.asarray(origin)
         if self_contact:
-            acw.detect_self(p, xm)
+            acw.detect_self(p, master.points - origin)
         else:
-            acw.detect(p, slave_x - np.asarray(origin), xm)
+            acw.detect(p, slave_x - origin, master.points - origin)
     return p
 
 
