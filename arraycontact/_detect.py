@@ -29,7 +29,7 @@ from ._surface import (
     normal_boxes,
     validate_points,
 )
-from ._xp import expand, norm
+from ._xp import expand, norm, segment_min
 
 MODES = ("exact", "node")
 BACKENDS = ("numpy", "jax", "warp")
@@ -325,17 +325,22 @@ def run_stages(
         face = m.nf_ids[xp.where(valid, m.nf_offsets[nd[seg]] + rank, 0)]
         counts.update(attached=n_att)
     lap("candidates")
-    xi, point, diff, feature, local, conv = _projection.project(
-        xp,
-        element,
-        slave_x,
-        m.nodes_x,
-        m.faces,
-        slave,
-        face,
-        iterations=st.iterations,
-        tol=sc.tol,
-    )
+    args = (xp, element, slave_x, m.nodes_x, m.faces, slave, face)
+    if st.mode == "exact" and own is None and element.name != "tri3":
+        # Curved faces' projections are iterative: only pairs that may hold the closest
+        # point (within the tie band, rounding included) are projected. (Self-contact keeps
+        # every pair: a nearer pair may turn out inadmissible.)
+        lo, hi = _projection.distance_bounds(*args)
+        best = segment_min(xp, xp.where(valid, hi, np.inf), slave, n)
+        valid = valid & (lo <= best[slave] + 2 * sc.slack)
+        # (JAX: room for half the candidate slots, which the busiest slave sizes)
+        room = max(int(slave.shape[0]) // 2, 1)
+        projected = _projection.project_kept(
+            *args, valid, room, iterations=st.iterations, tol=sc.tol
+        )
+    else:
+        projected = _projection.project(*args, iterations=st.iterations, tol=sc.tol)
+    xi, point, diff, feature, local, conv = projected
     if own is not None:
         valid = valid & _admissible(xp, element, m, own, slave, face, xi, st.mode)
     lap("projection")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._elements import EDGE, FACE, VERTEX, interpolate, shape_functions, shape_second_derivatives
-from ._xp import fori, lead
+from ._xp import einsum, fori, lead, rows_dot
 
 
 def _dot(a, b, xp):
@@ -106,7 +106,7 @@ def closest_point_edge(element, r, xe, xp=np, steps=12):
     ts = np.array([0.0, 0.5, 1.0])
     samples = nodes[a][:, None] + ts[None, :, None] * (nodes[b] - nodes[a])[:, None]  # [E, 3, 2]
     n = shape_functions(element, samples.reshape(-1, 2)).reshape(len(a), 3, -1)
-    x = xp.einsum("etn,...nk->...etk", xp.asarray(n, dtype=xe.dtype), xe)  # [..., E, 3, 3]
+    x = einsum(xp, "etn,...nk->...etk", xp.asarray(n, dtype=xe.dtype), xe)  # [..., E, 3, 3]
     x0, xm, x1 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
     p0 = x0 - r[..., None, :]
     p1, p2 = 4 * xm - 3 * x0 - x1, 2 * (x0 + x1) - 4 * xm
@@ -184,7 +184,7 @@ def surely_convex(element, r, xe, xp=np):
     kernels' twin, arraycontact_warp._geometry.surely_convex, for both bounds)."""
     z = np.asarray(element.corners, np.float64)
     w = [np.full(4, 0.25), 0.25 * z[:, 0], 0.25 * z[:, 1], 0.25 * z[:, 0] * z[:, 1]]
-    _, a1, a2, a3 = (xp.einsum("c,...ck->...k", xp.asarray(v, xe.dtype), xe) for v in w)
+    _, a1, a2, a3 = (einsum(xp, "c,...ck->...k", xp.asarray(v, xe.dtype), xe) for v in w)
 
     def norm(v):
         return xp.sqrt(xp.sum(v * v, -1))
@@ -192,7 +192,7 @@ def surely_convex(element, r, xe, xp=np):
     low = norm(xp.cross(a1, a2)) - norm(xp.cross(a1, a3)) - norm(xp.cross(a3, a2))
     trace = xp.maximum(xp.sum((a1 + a3) ** 2, -1), xp.sum((a1 - a3) ** 2, -1))
     trace = trace + xp.maximum(xp.sum((a2 + a3) ** 2, -1), xp.sum((a2 - a3) ** 2, -1))
-    c = xp.max(xp.abs(xp.einsum("...ck,...k->...c", xe - r[..., None, :], a3)), -1)
+    c = xp.max(xp.abs(einsum(xp, "...ck,...k->...c", xe - r[..., None, :], a3)), -1)
     cheap = (low > 0) & (low * low > 1.01 * trace * c)
     # det H = |x_xi x x_eta|^2 - 2 (x_xi . x_eta) c - c^2, of degree 2 in xi and in eta:
     # positive over the square where its Bernstein coefficients are (values on a 3 x 3 grid).
@@ -226,7 +226,7 @@ def start_option_one(element, r, xe, xp=np):
     """Seed 003 start (I): the closest of the corners and the centre, in natural coordinates."""
     cand = np.concatenate([element.corners, element.centre[None]], 0)  # [k+1, 2]
     n = xp.asarray(shape_functions(element, cand), dtype=xe.dtype)  # [k+1, nn]
-    x = xp.einsum("cn,...nk->...ck", n, xe)
+    x = einsum(xp, "cn,...nk->...ck", n, xe)
     d = xp.sum((x - r[..., None, :]) ** 2, -1)
     best = xp.argmin(d, axis=-1)
     return xp.asarray(cand, dtype=xe.dtype)[best]
@@ -276,21 +276,21 @@ def closest_point_face(
         # xi [..., 2] or [..., c, 2] (several candidates per face)
         n = shape_functions(element, xi, xp)
         if xi.ndim == r.ndim + 1:
-            x = xp.einsum("...cn,...nk->...ck", n, xe)
+            x = einsum(xp, "...cn,...nk->...ck", n, xe)
             return xp.sum((r[..., None, :] - x) ** 2, -1)
-        x = xp.einsum("...n,...nk->...k", n, xe)
+        x = einsum(xp, "...n,...nk->...k", n, xe)
         return xp.sum((r - x) ** 2, -1)
 
     def derivatives(xi):
         x, dx = interpolate(element, xe, xi, xp)
         d = r - x
-        g = -xp.einsum("...ka,...k->...a", dx, d)
-        gn = xp.einsum("...ka,...kb->...ab", dx, dx)
+        g = -einsum(xp, "...ka,...k->...a", dx, d)
+        gn = einsum(xp, "...ka,...kb->...ab", dx, dx)
         if element.linear and element.kind == "tri":
             h = gn
         else:
-            d2 = xp.einsum("...ns,...nk->...ks", shape_second_derivatives(element, xi, xp), xe)
-            c = xp.einsum("...ks,...k->...s", d2, d)
+            d2 = einsum(xp, "...ns,...nk->...ks", shape_second_derivatives(element, xi, xp), xe)
+            c = einsum(xp, "...ks,...k->...s", d2, d)
             h = gn - xp.stack(
                 [xp.stack([c[..., 0], c[..., 1]], -1), xp.stack([c[..., 1], c[..., 2]], -1)], -2
             )
@@ -307,13 +307,13 @@ def closest_point_face(
         # p + c is cubic in that of xi instead of quadratic: one derivative evaluation fewer.
         # (Zero on tri3, whose X'' is zero.)
         _, dx = interpolate(element, xe, xi, xp)
-        d2 = xp.einsum("...ns,...nk->...ks", shape_second_derivatives(element, xi, xp), xe)
-        jp = xp.einsum("...ka,...a->...k", dx, p)
+        d2 = einsum(xp, "...ns,...nk->...ks", shape_second_derivatives(element, xi, xp), xe)
+        jp = einsum(xp, "...ka,...a->...k", dx, p)
         m0 = d2[..., 0] * p[..., 0:1] + d2[..., 1] * p[..., 1:2]  # X''(e_xi, p)
         m1 = d2[..., 1] * p[..., 0:1] + d2[..., 2] * p[..., 1:2]  # X''(e_eta, p)
         xpp = m0 * p[..., 0:1] + m1 * p[..., 1:2]
         c = 2 * xp.stack([_dot(m0, jp, xp), _dot(m1, jp, xp)], -1)
-        c = c + xp.einsum("...ka,...k->...a", dx, xpp)
+        c = c + einsum(xp, "...ka,...k->...a", dx, xpp)
         return p - _solve2(h, 0.5 * c, xp)
 
     def multipliers(g, w):
@@ -353,7 +353,7 @@ def closest_point_face(
         p0 = -_solve2(hq, g, xp)
         # Only for a Newton step that stays on the face: far outside, the correction of a poor
         # model step is no better and can stall the ratio test.
-        inside = ((xi + p0) @ A.T - b >= 0).all(-1)
+        inside = (rows_dot(xp, xi + p0, A) - b >= 0).all(-1)
         p0 = xp.where(inside[..., None], better(xi, p0, chebyshev(xi, p0, hq)), p0)
         p1 = xp.take_along_axis(p_edges, xp.asarray(ce)[j1][..., None, None], -2)[..., 0, :]
         return xp.where((nw == 0)[..., None], p0, xp.where((nw == 1)[..., None], p1, 0 * p0))
@@ -365,7 +365,7 @@ def closest_point_face(
     def residual(g, w, scale):
         lam = multipliers(g, w)
         lam_w = xp.where(w, lam, 0)
-        proj = g - xp.einsum("...j,ja->...a", lam_w, A)
+        proj = g - einsum(xp, "...j,ja->...a", lam_w, A)
         kkt = xp.sqrt(xp.sum(proj**2, -1)) / scale
         neg = xp.min(xp.where(w, lam, np.inf), -1)
         kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / scale, 0))
@@ -389,8 +389,8 @@ def closest_point_face(
         w = xp.where(drop[..., None], w_drop, w)
         p = xp.where(drop[..., None], p_drop, step(xi, g, h, gn, w, p_edges))
         # Ratio test against the constraints outside the working set.
-        ap = p @ A.T
-        slack = xi @ A.T - b
+        ap = rows_dot(xp, p, A)
+        slack = rows_dot(xp, xi, A) - b
         alpha_j = xp.where((ap < 0) & ~w, _safe_div(-slack, ap, xp), np.inf)
         alpha_j = xp.maximum(alpha_j, 0)
         jb = xp.argmin(alpha_j, -1)
@@ -411,14 +411,14 @@ def closest_point_face(
             xi + xp.take_along_axis(p_edges, xp.asarray(ce)[jb][..., None, None], -2)[..., 0, :]
         )
         new = xp.where(blocked[..., None], on_edge, new)
-        w = w | (blocked[..., None] & (xp.abs(new @ A.T - b) <= feasible_tol))
+        w = w | (blocked[..., None] & (xp.abs(rows_dot(xp, new, A) - b) <= feasible_tol))
         w = w | ((ar == jb[..., None]) & blocked[..., None])
         return xp.where(done[..., None], xi, new), w, done, iters
 
     def sqp_iteration(it, state):
         xi, w, done, iters = state
         g, h, gn, scale = derivatives(xi)
-        w = xp.abs(xi @ A.T - b) <= feasible_tol
+        w = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
         kkt, _ = residual(g, w, scale)
         newly = (kkt <= tol) & ~done
         iters = xp.where(newly, it + 1, iters)
@@ -428,7 +428,7 @@ def closest_point_face(
         p_newton = -_solve2(hq, g, xp)
         cands = xp.stack([p_newton, chebyshev(xi, p_newton, hq)], -2)
         p_all = xp.concatenate([cands, edge_points(xi)], -2)  # [..., n_cand, 2]
-        feas = ((xi[..., None, :] + p_all) @ A.T - b >= -feasible_tol).all(-1)
+        feas = (rows_dot(xp, xi[..., None, :] + p_all, A) - b >= -feasible_tol).all(-1)
         # Choose by the true distance: the edge candidates are exact, the model's are not.
         f_all = objective(xi[..., None, :] + p_all)
         best = xp.argmin(xp.where(feas, f_all, np.inf), -1)
@@ -443,13 +443,15 @@ def closest_point_face(
         new = xi + alpha[..., None] * p
         return xp.where(done[..., None], xi, new), w, done, iters
 
-    w0 = xp.abs(xi0 @ A.T - b) <= feasible_tol
+    w0 = xp.abs(rows_dot(xp, xi0, A) - b) <= feasible_tol
     done0 = xp.zeros(xi0.shape[:-1], dtype=bool)
     iters0 = xp.zeros(xi0.shape[:-1], dtype=xp.int32)
     body = sqp_iteration if method == "sqp" else iteration
-    xi, w, done, iters = fori(xp, iterations, body, (xi0, w0, done0, iters0))
+    # Iterations after every pair is done change nothing (a done pair keeps its state).
+    state = (xi0, w0, done0, iters0)
+    xi, w, done, iters = fori(xp, iterations, body, state, stop=lambda s: xp.all(s[2]))
     if method == "sqp":
-        w = xp.abs(xi @ A.T - b) <= feasible_tol
+        w = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
     g, _, _, scale = derivatives(xi)
     kkt, _ = residual(g, w, scale)
     converged = kkt <= tol

@@ -27,7 +27,7 @@ from ._geometry import (
     start_option_two,
     surely_convex,
 )
-from ._xp import lead
+from ._xp import compact, einsum, is_numpy, lead, norm
 
 
 def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity, normal=None):
@@ -57,9 +57,65 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
         converged = xp.ones(r.shape[0], dtype=bool)
     else:
         xi, feature, local, converged = _best_of_starts(xp, element, r, xe, iterations, tol)
-    point = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
+    point = einsum(xp, "pn,pnk->pk", shape_functions(element, xi, xp), xe)
     diff = r - point  # slave minus closest point, exact of the frame's offset
     return xi, point + x0, diff, feature, local, converged
+
+
+def project_kept(xp, element, slave_x, nodes_x, faces, slave, face, keep, size, **kw):
+    """`project` of the pairs where `keep`, gathered first (the other pairs' outputs are zeros,
+    or any pair's own projection). JAX: into `size` static rows; where more pairs are kept,
+    every pair is projected (the same answers, today's cost)."""
+    n = slave.shape[0]
+
+    def of(idx):
+        out = project(xp, element, slave_x, nodes_x, faces, slave[idx], face[idx], **kw)
+        if is_numpy(xp):
+            full = [np.zeros((n,) + o.shape[1:], o.dtype) for o in out]
+            for a, o in zip(full, out):
+                a[idx] = o
+            return tuple(full)
+        # (compact's padding rows repeat pair 0: they write its own projection)
+        return tuple(xp.zeros((n,) + o.shape[1:], o.dtype).at[idx].set(o) for o in out)
+
+    if is_numpy(xp):
+        idx = np.nonzero(keep)[0]
+        return of(idx if len(idx) else np.zeros(min(n, 1), np.intp))  # (one pair keeps shapes)
+    import jax
+
+    idx, count = compact(xp, keep, size)
+    return jax.lax.cond(
+        count <= size,
+        lambda: of(idx),
+        lambda: project(xp, element, slave_x, nodes_x, faces, slave, face, **kw),
+    )
+
+
+def distance_bounds(xp, element, slave_x, nodes_x, faces, slave, face):
+    """Lower and upper bounds of each pair's distance without iterations, in the face's frame
+    as `project`. quad4: the distance to its triangles (0, 1, 2) and (0, 2, 3), give or take
+    |x0 - x1 + x2 - x3| / 4 (the bilinear face minus that piecewise linear one at the same
+    (u, v) in [0, 1]^2 is -v (1 - u) (x0 - x1 + x2 - x3) on the first triangle, likewise on
+    the second, and v (1 - u) <= 1/4 there: the two surfaces lie within that distance of each
+    other). Other faces: their ball (`Surface.face_bounds`) below, their nearest node (a
+    point of the face) above."""
+    xe = nodes_x[faces[face]]
+    x0 = xe[:, 0]
+    r = slave_x[slave] - x0
+    xe = xe - x0[:, None]
+    if element.name == "quad4":
+        zero = xp.zeros_like(r)
+        d = []
+        for b, c in ((1, 2), (2, 3)):
+            xi, _, _ = closest_point_triangle(r, zero, xe[:, b], xe[:, c], xp)
+            p = xi[:, 0:1] * xe[:, b] + xi[:, 1:2] * xe[:, c]
+            d.append(norm(xp, r - p))
+        d = xp.minimum(d[0], d[1])
+        twist = 0.25 * norm(xp, xe[:, 2] - xe[:, 1] - xe[:, 3])
+        return d - twist, d + twist
+    c = xp.mean(xe, 1)
+    radius = element.lebesgue * xp.max(norm(xp, xe - c[:, None]), -1)
+    return norm(xp, r - c) - radius, xp.min(norm(xp, r[:, None] - xe), -1)
 
 
 def _best_of_starts(xp, element, r, xe, iterations, tol):
@@ -74,30 +130,50 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     bilinear quad can have two (tests/test_self_contact.py's crumpled quad4 sheet): its
     lattice start counts only where `surely_convex` does not prove one minimum (the Warp
     kernels skip it there, and every back end gives the same answer)."""
-    starts = [start_option_one(element, r, xe, xp)]
-    if element.linear:
-        starts.append(_lattice_start(xp, element, r, xe))
-    else:
-        starts.append(start_option_two(element, r, xe, xp))
+    kw = dict(iterations=iterations, tol=tol)
+    first = start_option_one(element, r, xe, xp)
+    if not element.linear:
         k = element.n_corners
+        starts = [first, start_option_two(element, r, xe, xp)]
         starts += [
-            xp.zeros_like(starts[0]) + lead(xp, xp.asarray(element.nodes[i], xe.dtype), r.ndim)
+            xp.zeros_like(first) + lead(xp, xp.asarray(element.nodes[i], xe.dtype), r.ndim)
             for i in range(k, 2 * k)
         ]
         starts.append(_lattice_start(xp, element, r, xe))
+        return _edges(xp, element, r, xe, *_closest_start(xp, element, r, xe, starts, **kw))
+    convex = surely_convex(element, r, xe, xp)
+
+    def one():
+        return closest_point_face(element, r, xe, first, xp=xp, **kw)[:4]
+
+    def two():
+        # The lattice start only where one start is not proven enough (as Warp).
+        starts = [first, _lattice_start(xp, element, r, xe)]
+        return _closest_start(xp, element, r, xe, starts, ~convex, **kw)
+
+    if is_numpy(xp):
+        res = one() if convex.all() else two()
+    else:  # (both branches run under vmap)
+        import jax
+
+        res = jax.lax.cond(xp.all(convex), one, two)
+    return _edges(xp, element, r, xe, *res)
+
+
+def _closest_start(xp, element, r, xe, starts, last=None, **kw):
+    """closest_point_face's first four outputs from the closest of `starts` (the first on a
+    tie; the last start only where `last`, when given)."""
     # All starts as one batch: one traced iteration loop on JAX, not one per start.
     n_s, n_p = len(starts), r.shape[0]
     rs = xp.reshape(xp.broadcast_to(r, (n_s,) + r.shape), (-1, 3))
     xes = xp.reshape(xp.broadcast_to(xe, (n_s,) + xe.shape), (-1,) + xe.shape[1:])
-    res = closest_point_face(
-        element, rs, xes, xp.concatenate(starts), iterations=iterations, tol=tol, xp=xp
-    )
-    x = xp.einsum("pn,pnk->pk", shape_functions(element, res[0], xp), xes)
+    res = closest_point_face(element, rs, xes, xp.concatenate(starts), xp=xp, **kw)
+    x = einsum(xp, "pn,pnk->pk", shape_functions(element, res[0], xp), xes)
     d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
-    if element.linear:  # the lattice start only where one start is not proven enough (as Warp)
-        d = xp.stack([d[0], xp.where(surely_convex(element, r, xe, xp), xp.inf, d[1])])
-    best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)  # the first start on a tie
-    return _edges(xp, element, r, xe, *(v[best] for v in res[:4]))
+    if last is not None:
+        d = xp.concatenate([d[:-1], xp.where(last, d[-1], xp.inf)[None]])
+    best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)
+    return tuple(v[best] for v in res[:4])
 
 
 def _lattice_start(xp, element, r, xe, n=5):
@@ -108,7 +184,7 @@ def _lattice_start(xp, element, r, xe, n=5):
     g = np.stack(np.meshgrid(s, s, indexing="ij"), -1).reshape(-1, 2)
     if element.kind == "tri":
         g = g[g.sum(1) <= 0.9 + 1e-9]
-    x = xp.einsum("cn,pnk->pck", xp.asarray(shape_functions(element, g), xe.dtype), xe)
+    x = einsum(xp, "cn,pnk->pck", xp.asarray(shape_functions(element, g), xe.dtype), xe)
     best = xp.argmin(xp.sum((x - r[:, None]) ** 2, -1), -1)
     return xp.asarray(g, xe.dtype)[best]
 
@@ -119,7 +195,7 @@ def _edges(xp, element, r, xe, xi, feature, local, converged):
     lie on an edge no start's Newton path reaches; on a degenerate quad4 (a collapsed edge,
     coincident nodes) Newton can stop at a stationary corner of the parametrisation. The
     edges cannot be missed either way."""
-    x = xp.einsum("pn,pnk->pk", shape_functions(element, xi, xp), xe)
+    x = einsum(xp, "pn,pnk->pk", shape_functions(element, xi, xp), xe)
     e_xi, e_f, e_loc, e_d = closest_point_edges(element, r, xe, xp)
     use = e_d <= xp.sum((r - x) ** 2, -1)
     return (

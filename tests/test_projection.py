@@ -12,7 +12,7 @@ from arraycontact._geometry import (
     start_option_one,
     start_option_two,
 )
-from arraycontact._projection import _best_of_starts
+from arraycontact._projection import _best_of_starts, distance_bounds, project, project_kept
 
 
 def _face(element, noise, seed):
@@ -172,3 +172,87 @@ def test_degenerate_triangles_do_not_divide_by_zero():
         xi, feat, loc = closest_point_triangle(p, a, b, c)
     x = a + xi[:, :1] * (b - a) + xi[:, 1:] * (c - a)
     assert np.allclose(np.linalg.norm(x - p, axis=1), [1.0, 0.5, 1.0])
+
+
+@pytest.mark.parametrize("element", ["quad4", "tri6", "quad8", "quad9"])
+def test_distance_bounds_hold_the_reference_distance(element):
+    """The bounds that decide which pairs a detection projects hold the brute-force
+    reference's distance between them, on distorted and curved faces at every distance."""
+    e = get_element(element)
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + (0.05, 0.3)[trial % 2] * rng.normal(
+            size=(e.nodes_per_face, 3)
+        )
+        q = _points_near(e, 200, trial) * (1, 1, 4)[trial % 3]
+        face = np.arange(e.nodes_per_face)[None]
+        ref = ac.reference.closest_points(q, ac.Surface(pts, face, e.name))
+        ids = np.zeros(len(q), np.int64)
+        lo, hi = distance_bounds(np, e, q, pts, face, np.arange(len(q)), ids)
+        assert (lo <= ref.distance + 1e-12).all() and (hi >= ref.distance - 1e-12).all()
+
+
+def test_quad4_bounds_are_exact_on_a_flat_parallelogram():
+    """No twist (x0 - x1 + x2 - x3 = 0): the bilinear face is its two triangles, so both
+    bounds are the distance itself (the closed form of a point above a flat face)."""
+    e = get_element("quad4")
+    pts = np.array([[0.0, 0, 0], [2, 0.5, 0], [3, 2.5, 0], [1, 2, 0]])
+    q = np.array([[1.5, 1.2, 0.7], [1.5, 1.2, -2.0], [10.0, 1.0, 0.0]])
+    lo, hi = distance_bounds(np, e, q, pts, np.arange(4)[None], np.arange(3), np.zeros(3, int))
+    assert np.allclose(lo, hi) and np.allclose(lo[:2], [0.7, 2.0])
+
+
+@pytest.mark.parametrize("size", [64, 8])
+def test_project_kept_equals_project_on_the_kept_pairs(size):
+    """JAX: the kept pairs gathered into `size` rows (room for them) or, where more pairs are
+    kept (size 8), every pair projected: both give `project`'s answers on the kept pairs."""
+    import jax
+    import jax.numpy as jnp
+
+    e = get_element("quad4")
+    rng = np.random.default_rng(2)
+    nodes = np.c_[rng.uniform(0, 4, (40, 2)), 0.3 * rng.normal(size=40)]
+    faces = rng.integers(0, 40, (30, 4))
+    slave, face = rng.integers(0, 50, 96), rng.integers(0, 30, 96)
+    x = rng.normal(size=(50, 3)) + [2, 2, 0]
+    keep = rng.random(96) < 0.3
+    assert 8 < keep.sum() <= 64
+    kw = dict(iterations=12, tol=1e-10)
+    ref = project(np, e, x, nodes, faces, slave, face, **kw)
+    with jax.enable_x64(True):
+        args = [jnp.asarray(a) for a in (x, nodes, faces, slave, face, keep)]
+        got = project_kept(jnp, e, *args, size, **kw)
+    for r, g in zip(ref, got):
+        assert np.allclose(np.asarray(g)[keep], r[keep], atol=1e-9)
+    got = project_kept(np, e, x, nodes, faces, slave, face, keep, None, **kw)
+    for r, g in zip(ref, got):
+        assert np.allclose(g[keep], r[keep], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "spec, a, b",
+    [
+        ("...ka,...k->...a", (5, 7, 3, 2), (5, 7, 3)),
+        ("...ka,...kb->...ab", (5, 3, 2), (5, 3, 2)),
+        ("cn,...nk->...ck", (4, 9), (6, 9, 3)),
+        ("c,...ck->...k", (4,), (2, 5, 4, 3)),
+        ("etn,...nk->...etk", (3, 3, 9), (7, 9, 3)),
+        ("...j,ja->...a", (8, 4), (4, 2)),
+        ("cn,pnk->pck", (25, 4), (10, 4, 3)),
+        ("...k,mk->...m", (3, 5, 2), (4, 2)),
+    ],
+)
+def test_fused_einsum_equals_numpy(spec, a, b):
+    """The JAX spelling of the small contractions (a broadcast product and a sum, which XLA
+    fuses) gives np.einsum's values and shapes."""
+    import jax
+    import jax.numpy as jnp
+
+    from arraycontact._xp import einsum
+
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=a), rng.normal(size=b)
+    with jax.enable_x64(True):
+        got = np.asarray(einsum(jnp, spec, jnp.asarray(x), jnp.asarray(y)))
+    want = np.einsum(spec, x, y)
+    assert got.shape == want.shape and np.allclose(got, want, rtol=1e-13, atol=1e-13)
