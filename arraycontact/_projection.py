@@ -64,31 +64,35 @@ def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, to
 
 def project_kept(xp, element, slave_x, nodes_x, faces, slave, face, keep, size, **kw):
     """`project` of the pairs where `keep`, gathered first (the other pairs' outputs are zeros,
-    or any pair's own projection). JAX: into `size` static rows; where more pairs are kept,
-    every pair is projected (the same answers, today's cost)."""
+    or any pair's own projection). JAX: `size` static rows at a time, as many times as the
+    kept pairs need (once where they fit): one traced copy of the projection."""
     n = slave.shape[0]
-
-    def of(idx):
-        out = project(xp, element, slave_x, nodes_x, faces, slave[idx], face[idx], **kw)
-        if is_numpy(xp):
-            full = [np.zeros((n,) + o.shape[1:], o.dtype) for o in out]
-            for a, o in zip(full, out):
-                a[idx] = o
-            return tuple(full)
-        # (compact's padding rows repeat pair 0: they write its own projection)
-        return tuple(xp.zeros((n,) + o.shape[1:], o.dtype).at[idx].set(o) for o in out)
-
     if is_numpy(xp):
         idx = np.nonzero(keep)[0]
-        return of(idx if len(idx) else np.zeros(min(n, 1), np.intp))  # (one pair keeps shapes)
+        idx = idx if len(idx) else np.zeros(min(n, 1), np.intp)  # (one pair keeps shapes)
+        out = project(xp, element, slave_x, nodes_x, faces, slave[idx], face[idx], **kw)
+        full = [np.zeros((n,) + o.shape[1:], o.dtype) for o in out]
+        for a, o in zip(full, out):
+            a[idx] = o
+        return tuple(full)
     import jax
 
-    idx, count = compact(xp, keep, size)
-    return jax.lax.cond(
-        count <= size,
-        lambda: of(idx),
-        lambda: project(xp, element, slave_x, nodes_x, faces, slave, face, **kw),
-    )
+    chunks = -(-n // size)
+    idx, count = compact(xp, keep, chunks * size)  # (padding rows: pair 0, its own answer)
+
+    def part(c):
+        rows = jax.lax.dynamic_slice_in_dim(idx, c * size, size)
+        return rows, project(xp, element, slave_x, nodes_x, faces, slave[rows], face[rows], **kw)
+
+    shapes = jax.eval_shape(lambda: part(0)[1])
+    full = tuple(xp.zeros((n,) + o.shape[1:], o.dtype) for o in shapes)
+
+    def body(state):
+        c, full = state
+        rows, out = part(c)
+        return c + 1, tuple(a.at[rows].set(o) for a, o in zip(full, out))
+
+    return jax.lax.while_loop(lambda st: st[0] * size < count, body, (0, full))[1]
 
 
 def distance_bounds(xp, element, slave_x, nodes_x, faces, slave, face):

@@ -204,8 +204,8 @@ def test_quad4_bounds_are_exact_on_a_flat_parallelogram():
 
 @pytest.mark.parametrize("size", [64, 8])
 def test_project_kept_equals_project_on_the_kept_pairs(size):
-    """JAX: the kept pairs gathered into `size` rows (room for them) or, where more pairs are
-    kept (size 8), every pair projected: both give `project`'s answers on the kept pairs."""
+    """JAX: the kept pairs gathered into `size` rows, once (room for them) or several times
+    (size 8): both give `project`'s answers on the kept pairs, as NumPy's gather does."""
     import jax
     import jax.numpy as jnp
 
