@@ -424,3 +424,29 @@ def test_jax_gradients_and_overflow():
             jnp.stack([args[1], args[0]])
         )
         assert np.isfinite(np.asarray(batched[0])).all() and np.isinf(np.asarray(batched[1])).all()
+
+
+@pytest.mark.parametrize("element", ["tri3", "quad4"])
+def test_jax_search_gathers_the_busy_pairs(monkeypatch, element):
+    """The JAX search goes on with the pairs still searching gathered into 1/8 of the lanes
+    (here from 8 lanes up, so at every level the scene allows): each pair visits the same
+    boxes, so the answers are NumPy's, row for row."""
+    from arraycontact_jax import _sweep as js
+
+    monkeypatch.setattr(js, "MIN_LANES", 8)
+    lanes = []
+    run = js._run
+
+    def spy(element, state, inputs, t_tol):
+        lanes.append(state[1].shape[0])
+        return run(element, state, inputs, t_tol)
+
+    monkeypatch.setattr(js, "_run", spy)
+    st = scenes.closing_rough_surfaces(2**9, element=element, seed=7)
+    args = (st.slave_x0, st.slave_x1, st.master, st.master_x1)
+    c = ac.detect_swept(*args, backend="jax", dtype="float64")
+    assert len(lanes) >= 3 and lanes[1] == lanes[0] // 8  # gathered twice at least
+    n = ac.detect_swept(*args, backend="numpy")
+    assert np.array_equal(c.hit, n.hit) and np.array_equal(c.face, n.face)
+    np.testing.assert_allclose(c.toi[c.hit], n.toi[n.hit], rtol=0, atol=1e-12)
+    assert_swept_matches(c, st)

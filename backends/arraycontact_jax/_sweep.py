@@ -31,15 +31,19 @@ from arraycontact._sweep import (
 )
 from arraycontact._sweep import impact as swept_impact
 
+#: The search goes on with the pairs still searching alone, gathered into 1/SHRINK of the
+#: lanes, once no more of them are busy (and the batch has at least MIN_LANES lanes): a few
+#: pairs take hundreds of boxes where most take a few, and every lane of a lock step costs.
+SHRINK = 8
+MIN_LANES = 1024
+
 
 def roots(element, xe0, xe1, p0, p1, valid):
     """arraycontact._sweep.roots for P pairs (valid [P]: the pairs that exist). Returns toi
     [P] (inf: none), the contact box's centre (s, w) [P, 2], converged [P], visits [P]."""
     dt = np.dtype(xe0.dtype)
     P = p0.shape[0]
-    xa, va, p, v, dirs, margin, delta = pair_frame(element, xe0, xe1, p0, p1, jnp)
-    t_tol = T_TOL[dt]
-    ar = jnp.arange(P)
+    inputs = pair_frame(element, xe0, xe1, p0, p1, jnp)
     root = jnp.asarray([0, 1, 0, 1, 0, 1], dt)
     stack = jnp.zeros((P, DEPTH, 6), dt).at[:, 0].set(root)
     inf = jnp.asarray(jnp.inf, dt)
@@ -51,51 +55,91 @@ def roots(element, xe0, xe1, p0, p1, valid):
         jnp.zeros(P, jnp.int32),
         jnp.ones(P, bool),
     )
+    stack, sp, best, where, visits, conv = _run(element, state, inputs, T_TOL[dt])
+    return best, where, conv, visits
 
-    def body(state):
-        stack, sp, best, where, visits, conv = state
-        active = sp > 0
-        top = jnp.maximum(sp - 1, 0)
-        box = stack[ar, top]
-        visits = visits + active.astype(jnp.int32)
-        live = active & (box[:, 4] < best)
-        cp = control_points(element, xa, va, p, v, box, jnp)
-        out, extent, spread = examine(cp, dirs, margin, jnp)
-        empty, inside, kbox = krawczyk(element, xa, va, p, v, box, cp, margin, jnp)
-        out = out | empty | outside(element, box)
-        proven = ~out & inside
 
-        def contract(_, kb):
-            more = (kb[:, 5] - kb[:, 4] > t_tol) | straddles(element, kb)
-            kc = control_points(element, xa, va, p, v, kb, jnp)
-            kb2 = krawczyk(element, xa, va, p, v, kb, kc, margin, jnp)[2]
-            return jnp.where((proven & more)[:, None], kb2, kb)
+def _run(element, state, inputs, t_tol):
+    """Steps until no more than 1/SHRINK of the lanes are busy, then the busy pairs on their
+    own (recursively), put back in their rows. Each pair's steps are the same either way."""
+    size = state[1].shape[0]
+    m = size // SHRINK
+    until = m if m >= MIN_LANES else 0
 
-        kbox = jax.lax.fori_loop(0, CONTRACTIONS, contract, kbox)
-        out = out | (proven & outside(element, kbox))
-        proven = proven & ~out
-        box = jnp.where(proven[:, None], kbox, box)
-        small = extent <= delta
-        leaf = live & ~out & ((small & (box[:, 5] - box[:, 4] <= t_tol)) | proven)
-        full = live & ~out & ~leaf & (top + 2 > DEPTH)
-        hit = leaf | full
-        conv = conv & ~full
-        best = jnp.where(hit, box[:, 4], best)
-        centre = 0.5 * (box[:, jnp.array([0, 2])] + box[:, jnp.array([1, 3])])
-        where = jnp.where(hit[:, None], centre, where)
-        split = live & ~out & ~hit
-        axis = jnp.where(small, 2, jnp.argmax(spread, -1).astype(jnp.int32))
-        lo_c, hi_c = 2 * axis, 2 * axis + 1
-        mid = 0.5 * (box[ar, lo_c] + box[ar, hi_c])
-        cols = jnp.arange(6, dtype=jnp.int32)[None, :]
-        early = jnp.where(cols == hi_c[:, None], mid[:, None], box)
-        late = jnp.where(cols == lo_c[:, None], mid[:, None], box)
-        s1 = jnp.minimum(top + 1, DEPTH - 1)
-        stack = stack.at[ar, top].set(jnp.where(split[:, None], late, stack[ar, top]))
-        stack = stack.at[ar, s1].set(jnp.where(split[:, None], early, stack[ar, s1]))
-        sp = jnp.where(active, top + 2 * split.astype(jnp.int32), sp)
-        # Over budget: the earliest pending box (never late), then stop.
-        over = (visits > VISITS) & (sp > 0)
+    def busy(st):
+        b = st[1] > 0
+        return jnp.any(b) & (jnp.sum(b, dtype=jnp.int32) > until)
+
+    state = jax.lax.while_loop(busy, lambda st: _step(element, st, inputs, t_tol), state)
+    if not until:
+        return state
+    rows = jnp.nonzero(state[1] > 0, size=m, fill_value=size)[0]
+    at = jnp.minimum(rows, size - 1)
+    sub = jax.tree.map(lambda a: a[at], state)
+    sub = sub[:1] + (jnp.where(rows < size, sub[1], 0),) + sub[2:]  # the spare lanes: done
+    sub = _run(element, sub, jax.tree.map(lambda a: a[at], inputs), t_tol)
+    return jax.tree.map(lambda a, b: a.at[rows].set(b, mode="drop"), state, sub)
+
+
+def _step(element, state, inputs, t_tol):
+    """One box of every busy pair: arraycontact._sweep.roots' loop body."""
+    xa, va, p, v, dirs, margin, delta = inputs
+    stack, sp, best, where, visits, conv = state
+    P = sp.shape[0]
+    ar = jnp.arange(P)
+    inf = jnp.asarray(jnp.inf, best.dtype)
+    active = sp > 0
+    top = jnp.maximum(sp - 1, 0)
+    box = stack[ar, top]
+    visits = visits + active.astype(jnp.int32)
+    live = active & (box[:, 4] < best)
+    cp = control_points(element, xa, va, p, v, box, jnp)
+    out, extent, spread = examine(cp, dirs, margin, jnp)
+    empty, inside, kbox = krawczyk(element, xa, va, p, v, box, cp, margin, jnp)
+    out = out | empty | outside(element, box)
+    proven = ~out & inside
+
+    def more(kb):
+        return proven & ((kb[:, 5] - kb[:, 4] > t_tol) | straddles(element, kb))
+
+    def contract(c):
+        i, kb = c
+        kc = control_points(element, xa, va, p, v, kb, jnp)
+        kb2 = krawczyk(element, xa, va, p, v, kb, kc, margin, jnp)[2]
+        return i + 1, jnp.where(more(kb)[:, None], kb2, kb)
+
+    # Until no proven box needs more (most steps prove none), at most CONTRACTIONS times.
+    kbox = jax.lax.while_loop(
+        lambda c: (c[0] < CONTRACTIONS) & jnp.any(more(c[1])), contract, (0, kbox)
+    )[1]
+    out = out | (proven & outside(element, kbox))
+    proven = proven & ~out
+    box = jnp.where(proven[:, None], kbox, box)
+    small = extent <= delta
+    leaf = live & ~out & ((small & (box[:, 5] - box[:, 4] <= t_tol)) | proven)
+    full = live & ~out & ~leaf & (top + 2 > DEPTH)
+    hit = leaf | full
+    conv = conv & ~full
+    best = jnp.where(hit, box[:, 4], best)
+    centre = 0.5 * (box[:, jnp.array([0, 2])] + box[:, jnp.array([1, 3])])
+    where = jnp.where(hit[:, None], centre, where)
+    split = live & ~out & ~hit
+    axis = jnp.where(small, 2, jnp.argmax(spread, -1).astype(jnp.int32))
+    lo_c, hi_c = 2 * axis, 2 * axis + 1
+    mid = 0.5 * (box[ar, lo_c] + box[ar, hi_c])
+    cols = jnp.arange(6, dtype=jnp.int32)[None, :]
+    early = jnp.where(cols == hi_c[:, None], mid[:, None], box)
+    late = jnp.where(cols == lo_c[:, None], mid[:, None], box)
+    s1 = jnp.minimum(top + 1, DEPTH - 1)
+    stack = stack.at[ar, top].set(jnp.where(split[:, None], late, stack[ar, top]))
+    stack = stack.at[ar, s1].set(jnp.where(split[:, None], early, stack[ar, s1]))
+    sp = jnp.where(active, top + 2 * split.astype(jnp.int32), sp)
+    over = (visits > VISITS) & (sp > 0)
+
+    def budget(args):
+        # Over budget: the earliest pending box (never late), then stop. (Rare: a branch, so
+        # that a step does not read every pair's whole stack.)
+        best, where, conv, sp = args
         pend = jnp.where(
             jnp.arange(DEPTH, dtype=jnp.int32)[None, :] < sp[:, None], stack[:, :, 4], inf
         )
@@ -106,14 +150,12 @@ def roots(element, xe0, xe1, p0, p1, valid):
         where = jnp.where(
             earlier[:, None], 0.5 * (b[:, jnp.array([0, 2])] + b[:, jnp.array([1, 3])]), where
         )
-        conv = conv & ~over
-        sp = jnp.where(over, 0, sp)
-        return stack, sp, best, where, visits, conv
+        return best, where, conv & ~over, jnp.where(over, 0, sp)
 
-    stack, sp, best, where, visits, conv = jax.lax.while_loop(
-        lambda s: jnp.any(s[1] > 0), body, state
+    best, where, conv, sp = jax.lax.cond(
+        jnp.any(over), budget, lambda a: a, (best, where, conv, sp)
     )
-    return best, where, conv, visits
+    return stack, sp, best, where, visits, conv
 
 
 def _residual(element, z, xe0, xe1, p0, p1):
