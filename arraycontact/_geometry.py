@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._elements import EDGE, FACE, VERTEX, interpolate, shape_functions, shape_second_derivatives
-from ._xp import einsum, fori, lead, rows_dot
+from ._xp import einsum, fori, is_numpy, lead, rows_dot
 
 
 def _dot(a, b, xp):
@@ -239,7 +239,17 @@ def start_option_two(element, r, xe, xp=np):
 
 
 def closest_point_face(
-    element, r, xe, xi0, *, iterations, tol, xp=np, method="active_set", hessian="exact"
+    element,
+    r,
+    xe,
+    xi0,
+    *,
+    iterations,
+    tol,
+    xp=np,
+    method="active_set",
+    hessian="exact",
+    _resume=None,
 ):
     """Closest point on faces with nodes xe [P, nn, 3] to points r [P, 3]: seed 003 eq. (8).
 
@@ -443,13 +453,30 @@ def closest_point_face(
         new = xi + alpha[..., None] * p
         return xp.where(done[..., None], xi, new), w, done, iters
 
-    w0 = xp.abs(rows_dot(xp, xi0, A) - b) <= feasible_tol
+    if _resume is None:
+        w0 = xp.abs(rows_dot(xp, xi0, A) - b) <= feasible_tol
+        iters0, it0 = xp.zeros(xi0.shape[:-1], dtype=xp.int32), 0
+    else:  # (NumPy: the pairs not yet done, gathered: their working sets, counts, iteration)
+        w0, iters0, it0 = _resume
     done0 = xp.zeros(xi0.shape[:-1], dtype=bool)
-    iters0 = xp.zeros(xi0.shape[:-1], dtype=xp.int32)
     body = sqp_iteration if method == "sqp" else iteration
-    # Iterations after every pair is done change nothing (a done pair keeps its state).
     state = (xi0, w0, done0, iters0)
-    xi, w, done, iters = fori(xp, iterations, body, state, stop=lambda s: xp.all(s[2]))
+    busy = None
+    if is_numpy(xp):
+        # Iterations after every pair is done change nothing (a done pair keeps its state);
+        # once at most 1/8 of many pairs are left, they go on gathered (a few pairs that
+        # need every iteration were most of a quad8 surface's detection).
+        for it in range(it0, iterations):
+            left = np.flatnonzero(~state[2])
+            if not len(left):
+                break
+            if len(state[2]) >= 1024 and 8 * len(left) <= len(state[2]):
+                busy = left
+                break
+            state = body(it, state)
+        xi, w, done, iters = state
+    else:
+        xi, w, done, iters = fori(xp, iterations, body, state, stop=lambda s: xp.all(s[2]))
     if method == "sqp":
         w = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
     g, _, _, scale = derivatives(xi)
@@ -467,4 +494,19 @@ def closest_point_face(
     corner = xp.where((e1 + 1) % k == e2, e2, e1)
     feature = xp.where(nw == 0, FACE, xp.where(nw == 1, EDGE, VERTEX)).astype(xp.int32)
     local = xp.where(nw == 0, -1, xp.where(nw == 1, e1, corner)).astype(xp.int32)
-    return xi, feature, local, converged, iters, kkt
+    out = (xi, feature, local, converged, iters, kkt)
+    if busy is not None:
+        inner = closest_point_face(
+            element,
+            r[busy],
+            xe[busy],
+            xi[busy],
+            iterations=iterations,
+            tol=tol,
+            method=method,
+            hessian=hessian,
+            _resume=(w[busy], iters[busy], it),
+        )
+        for a, b_ in zip(out, inner):
+            a[busy] = b_
+    return out

@@ -256,3 +256,26 @@ def test_fused_einsum_equals_numpy(spec, a, b):
         got = np.asarray(einsum(jnp, spec, jnp.asarray(x), jnp.asarray(y)))
     want = np.einsum(spec, x, y)
     assert got.shape == want.shape and np.allclose(got, want, rtol=1e-13, atol=1e-13)
+
+
+def test_unfinished_pairs_go_on_gathered_with_the_same_answers():
+    """NumPy: once at most 1/8 of 1024 or more pairs still iterate, they go on gathered. Each
+    pair's arithmetic is its own, so the answers equal those of calls too small to gather
+    (chunks of 500 pairs), bit for bit."""
+    e = get_element("quad8")
+    rng = np.random.default_rng(4)
+    P = 3000
+    pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)]
+    xe = pts[None] + rng.normal(size=(P, e.nodes_per_face, 3)) * rng.choice([0.05, 0.3], (P, 1, 1))
+    r = rng.normal(size=(P, 3)) * [1.2, 1.2, 0.6]
+    xi0 = start_option_one(e, r, xe)
+    kw = dict(iterations=20, tol=1e-12)
+    whole = closest_point_face(e, r, xe, xi0, **kw)
+    left = [(whole[4] > k).sum() for k in range(kw["iterations"])]  # still iterating after k
+    assert any(0 < 8 * n <= P for n in left)  # so they were gathered
+    parts = [
+        closest_point_face(e, r[i : i + 500], xe[i : i + 500], xi0[i : i + 500], **kw)
+        for i in range(0, P, 500)
+    ]
+    for a, b in zip(whole, zip(*parts)):
+        assert np.array_equal(a, np.concatenate(b))
