@@ -16,7 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ._xp import lead
+from ._xp import einsum
 
 FACE, EDGE, VERTEX = 0, 1, 2
 
@@ -182,28 +182,19 @@ def _monomials(element, xi, xp, order):
     return cols[0] if order == 0 else xp.stack(cols, -1)  # [..., m] or [..., m, 2 or 3]
 
 
-def _fused(xp, a, b, a_axes, b_axes, axis):
-    """A contraction of small operands under JAX as a product and a sum over `axis` (after
-    new axes a_axes in a, b_axes in b), which XLA fuses with the arithmetic around it: on a GPU
-    each dot of tiny matrices batched over millions of points was a GEMM call of its own
-    (2-3x slower smooth outputs). NumPy takes matmul (einsum's broadcast loops were 1.4-3x
-    slower and most of the brute-force reference's time on curved faces)."""
-    a, b = xp.expand_dims(a, a_axes), xp.expand_dims(b, b_axes)
-    n = max(a.ndim, b.ndim)
-    return xp.sum(lead(xp, a, n) * lead(xp, b, n), axis)
-
-
 def shape_functions(element, xi, xp=np):
     """N [..., nn] at natural coordinates xi [..., 2]."""
     c = xp.asarray(element.coefficients, dtype=xi.dtype)
     m = _monomials(element, xi, xp, 0)
-    return m @ c.T if xp is np else _fused(xp, m, c, -2, (), -1)
+    # (NumPy: matmul; einsum's broadcast loops were 1.4-3x slower and most of the brute-force
+    # reference's time on curved faces. JAX: _xp.einsum, fused.)
+    return m @ c.T if xp is np else einsum(xp, "...m,nm->...n", m, c)
 
 
 def _derivatives(element, xi, xp, order):
     c = xp.asarray(element.coefficients, dtype=xi.dtype)
     m = _monomials(element, xi, xp, order)  # [..., m, k]
-    return c @ m if xp is np else _fused(xp, c, m, -1, -3, -2)
+    return c @ m if xp is np else einsum(xp, "nm,...mk->...nk", c, m)
 
 
 def shape_derivatives(element, xi, xp=np):
@@ -223,4 +214,4 @@ def interpolate(element, xe, xi, xp=np):
     dn = shape_derivatives(element, xi, xp)
     if xp is np:
         return (n[..., None, :] @ xe)[..., 0, :], np.swapaxes(xe, -1, -2) @ dn
-    return _fused(xp, n, xe, -1, (), -2), _fused(xp, dn, xe, -2, -1, -3)
+    return einsum(xp, "...n,...nk->...k", n, xe), einsum(xp, "...na,...nk->...ka", dn, xe)

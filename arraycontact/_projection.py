@@ -43,15 +43,19 @@ def candidate_faces(xp, tree, slave_x, rho, *, slack, capacity, normal=None):
     return slave, tree.ids[pos], valid, counts
 
 
+def _pair_frame(slave_x, nodes_x, faces, slave, face):
+    """Each pair in a frame at its face's first node: (that node, the slave, the face's nodes).
+    Nearby float32 values subtract exactly, so distances keep full precision relative to the
+    element size however far the scene is."""
+    xe = nodes_x[faces[face]]
+    x0 = xe[:, 0]
+    return x0, slave_x[slave] - x0, xe - x0[:, None]
+
+
 def project(xp, element, slave_x, nodes_x, faces, slave, face, *, iterations, tol):
     """Closest point of slave_x[slave] on faces[face]: xi, point, slave - point, feature,
     local, converged."""
-    # Each pair in a frame at its face's first node: nearby float32 values subtract exactly, so
-    # distances keep full precision relative to the element size however far the scene is.
-    xe = nodes_x[faces[face]]
-    x0 = xe[:, 0]
-    r = slave_x[slave] - x0
-    xe = xe - x0[:, None]
+    x0, r, xe = _pair_frame(slave_x, nodes_x, faces, slave, face)
     if element.name == "tri3":
         xi, feature, local = closest_point_triangle(r, xe[:, 0], xe[:, 1], xe[:, 2], xp)
         converged = xp.ones(r.shape[0], dtype=bool)
@@ -103,10 +107,7 @@ def distance_bounds(xp, element, slave_x, nodes_x, faces, slave, face):
     the second, and v (1 - u) <= 1/4 there: the two surfaces lie within that distance of each
     other). Other faces: their ball (`Surface.face_bounds`) below, their nearest node (a
     point of the face) above."""
-    xe = nodes_x[faces[face]]
-    x0 = xe[:, 0]
-    r = slave_x[slave] - x0
-    xe = xe - x0[:, None]
+    _, r, xe = _pair_frame(slave_x, nodes_x, faces, slave, face)
     if element.name == "quad4":
         zero = xp.zeros_like(r)
         d = []
