@@ -4,6 +4,7 @@ devices (2^20 a device), rough surfaces, float32.
 
     python benchmarks/sharding_trace.py run --out DIR [--search warp|jax]   # on the GPU
     python benchmarks/sharding_trace.py summary DIR         # GPU time a call per stream/kernel
+    python benchmarks/sharding_trace.py diff A B            # kernels of trace A against B
 
 `run` writes DIR/perfetto_<search>_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
 deep folders) and prints each case's median wall time of 10 calls.
@@ -50,8 +51,9 @@ def run(out, search="warp"):
             p = acj.plan(s.master, s.slave, dtype=np.float32, mesh=mesh, search=search)
             rows = NamedSharding(mesh, P("space"))
             sl, pts = jax.device_put(sl, rows), jax.device_put(pts, rows)
-        _, _, median = _timed(lambda p=p, sl=sl, pts=pts: acj.detect(p, sl, pts), 10)
-        print(f"{search} {name}: {median * 1e3:.2f} ms a call (median of 10)", flush=True)
+        c, _, median = _timed(lambda p=p, sl=sl, pts=pts: acj.detect(p, sl, pts), 10)
+        steps = {k: int(v) for k, v in c.counts.count.items() if k.endswith("steps")}
+        print(f"{search} {name}: {median * 1e3:.2f} ms a call (median of 10) {steps}", flush=True)
         tmp = tempfile.mkdtemp()
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
             for _ in range(CALLS):
@@ -62,21 +64,25 @@ def run(out, search="warp"):
         del p
 
 
+def _gpu_events(path):
+    """The trace's GPU events and the (pid, tid) -> name table."""
+    events = json.load(gzip.open(path))
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    names = {}
+    for e in events:
+        if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name"):
+            tid = e.get("tid") if e["name"] == "thread_name" else None
+            names[e["pid"], tid] = e["args"]["name"]
+    gpu = [e for e in events if e.get("ph") == "X" and "GPU" in names.get((e.get("pid"), None), "")]
+    return gpu, names
+
+
 def summary(folder, top=12):
     for path in sorted(glob.glob(os.path.join(folder, "perfetto_*.json.gz"))):
-        events = json.load(gzip.open(path))
-        events = events["traceEvents"] if isinstance(events, dict) else events
-        names = {}
-        for e in events:
-            if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name"):
-                names[e["pid"], e.get("tid") if e["name"] == "thread_name" else None] = e["args"][
-                    "name"
-                ]
+        events, names = _gpu_events(path)
         per_stream, per_kernel = collections.Counter(), collections.Counter()
         for e in events:
             proc = names.get((e.get("pid"), None), "")
-            if e.get("ph") != "X" or "GPU" not in proc:
-                continue
             stream = (proc, names.get((e["pid"], e["tid"]), str(e["tid"])))
             per_stream[stream] += e["dur"] / CALLS
             per_kernel[stream[0], e["name"][:70]] += e["dur"] / CALLS
@@ -87,17 +93,42 @@ def summary(folder, top=12):
             print(f"    {proc} {kernel}: {us:.1f} us")
 
 
+def diff(a, b, top=25):
+    """Kernels by name: launches and GPU time a call on the first GPU of trace a and of trace b,
+    the largest differences first (which kernels a part runs more of, or longer)."""
+    tables = []
+    for path in (a, b):
+        events, names = _gpu_events(path)
+        first = min(names[e["pid"], None] for e in events)
+        n, t = collections.Counter(), collections.Counter()
+        for e in events:
+            if names[e["pid"], None] == first:
+                n[e["name"][:60]] += 1 / CALLS
+                t[e["name"][:60]] += e["dur"] / CALLS
+        tables.append((n, t))
+        print(
+            f"{os.path.basename(path)} ({first}): {sum(n.values()):.0f} kernels, "
+            f"{sum(t.values()) / 1e3:.2f} ms a call"
+        )
+    (na, ta), (nb, tb) = tables
+    keys = sorted(set(ta) | set(tb), key=lambda k: -abs(tb[k] - ta[k]))
+    for k in keys[:top]:
+        print(f"  {tb[k] - ta[k]:+8.1f} us  {na[k]:6.1f} -> {nb[k]:6.1f} launches  {k}")
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=["run", "summary"])
-    ap.add_argument("folder", nargs="?", default=None)
+    ap.add_argument("what", choices=["run", "summary", "diff"])
+    ap.add_argument("folder", nargs="*", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--search", choices=["warp", "jax"], default="warp")
     a = ap.parse_args()
     if a.what == "run":
         run(a.out or os.environ["OUT"], a.search)
+    elif a.what == "diff":
+        diff(*a.folder)
     else:
-        summary(a.folder)
+        summary(a.folder[0])
 
 
 if __name__ == "__main__":

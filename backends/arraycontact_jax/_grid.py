@@ -100,7 +100,10 @@ def scan(
     state = (
         jnp.full(n, top, jnp.int32),
         jnp.full(n, flat.root, jnp.int32),
-        jnp.zeros((n, top + 1), jnp.int32),
+        # (the pending masks, W = 8 bits, in bytes: with int32 masks a detection took 7 %
+        # longer at 2^20 on an H100, uniform rough surfaces, and a stack column more, 11 %:
+        # the step is memory-bound)
+        jnp.zeros((n, top + 1), jnp.uint8),
         jnp.zeros((n, top + 1), jnp.int32),
         reach,
         done,
@@ -138,13 +141,14 @@ def scan(
         down = jnp.any(keep, -1) & ~leaf
         rest = jnp.sum(jnp.where(keep, bits, 0), -1, dtype=jnp.int32) & ~jnp.left_shift(1, near)
         at = levels == (k - 1)[:, None]
-        stack_down = jnp.where(at, rest[:, None], stack)
+        stack_down = jnp.where(at, rest[:, None].astype(jnp.uint8), stack)
         base_down = jnp.where(at, row[:, None], base)
         # Else the next pending entry: the lowest level >= k with pending children.
         kk = jnp.min(jnp.where((stack != 0) & (levels >= k[:, None]), levels, top), -1)
         at = jnp.minimum(kk, top)[:, None]
-        left = jnp.take_along_axis(stack, at, 1)[:, 0]
-        stack_up = jnp.where(levels == kk[:, None], (left & (left - 1))[:, None], stack)
+        left = jnp.take_along_axis(stack, at, 1)[:, 0].astype(jnp.int32)
+        popped = (left & (left - 1)).astype(jnp.uint8)
+        stack_up = jnp.where(levels == kk[:, None], popped[:, None], stack)
         up = jnp.where(down, row, jnp.take_along_axis(base, at, 1)[:, 0])
         row_new = flat.down[up, jnp.where(down, near, lowest[left])]
         finished = ~down & (kk >= top)
