@@ -193,6 +193,41 @@ def test_scans_on_fewer_lanes_equal_numpy(monkeypatch):
         jax.clear_caches()
 
 
+@pytest.mark.parametrize("element", ["tri3", "quad4"])
+def test_scan_kernel_equals_the_while_loop(monkeypatch, element):
+    """The scans as the Pallas kernel (GPUs; here interpreted): the same contacts as the
+    while_loop scans and as NumPy, the same counts (candidates, steps of the busiest slave;
+    so the plan's capacities too), on a graded scene; and under vmap (tri3)."""
+    import arraycontact_jax._grid as jg
+
+    s = scenes.graded_surfaces(2**8, ratio=100.0, seed=3, element=element)
+    xs, xm = jnp.asarray(s.slave), jnp.asarray(s.master.points)
+    out = {}
+    try:
+        for kernel in (False, True):
+            monkeypatch.setattr(jg, "INTERPRET", kernel)
+            jax.clear_caches()
+            p = acj.plan(s.master, s.slave)
+            out[kernel] = (p.capacity, acj.detect(p, xs, xm))
+        if element == "tri3":  # (a second compilation of each: the tri3 scene alone)
+            shifted = jnp.stack([xm, xm + jnp.asarray([[0.05, 0.0, 0.1]])])
+            both = jax.vmap(acj.detect, in_axes=(None, None, 0))(p, xs, shifted)
+            second = acj.detect(p, xs, shifted[1])
+    finally:
+        jax.clear_caches()
+    (cap_w, c_w), (cap_k, c_k) = out[False], out[True]
+    assert cap_k == cap_w and not bool(c_k.overflow)
+    assert {k: int(v) for k, v in c_k.counts.count.items()} == {
+        k: int(v) for k, v in c_w.counts.count.items()
+    }
+    for k in ("active", "face", "feature", "master_node", "status", "gap", "xi"):
+        assert np.array_equal(getattr(c_k, k), getattr(c_w, k), equal_nan=True), k
+    _compare(c_k, ac.detect(s.slave, s.master, backend="numpy"))
+    if element == "tri3":
+        for k in ("face", "feature", "status"):
+            assert np.array_equal(getattr(both, k)[1], getattr(second, k)), k
+
+
 @pytest.mark.parametrize("which", ["rough", "crumpled"])
 def test_quad4_exact_equals_numpy(which):
     """Bilinear faces: the JAX detection projects only the pairs whose distance bounds may

@@ -13,6 +13,10 @@ one. Pending entries are tested again when their turn comes, against the reach a
 A slave that has nothing left idles until the last one is done: the loop runs as many steps
 as the busiest slave needs (a few tens: the entries within its reach).
 
+On a GPU the scans run as one Pallas kernel instead (`_kernel_scan`, below: each block of 32
+slaves steps on its own, its state in registers), with the same answers and counts; the
+while_loop runs elsewhere (the CPU) and for self-contact.
+
 Memory: O(n) state plus, for the face scan, K candidate slots a slave (K planned from a
 device-side count, reported as the capacity "face_candidates"). The closest-node scan stores
 nothing: a first scan finds the smallest distance, a second (with a reach of that distance plus
@@ -49,6 +53,10 @@ class Flat(NamedTuple):
 
 
 def flatten(tree: Tree) -> Flat:
+    # Built first: left to XLA, the layout below was fused with the tree's reductions into
+    # one loop that took 2.4 ms at 2^20 (H100) where the Pallas scan reads it whole.
+    arrays = jax.lax.optimization_barrier((tree.lo, tree.hi, tree.rep, tree.nlo, tree.nhi))
+    tree = tree._replace(**dict(zip(("lo", "hi", "rep", "nlo", "nhi"), arrays)))
     top = len(tree.lo) - 1
     rows, downs, offset = [], [], [0]
     for k in range(top):
@@ -239,9 +247,15 @@ def closest_node(
     inf = jnp.full(n, jnp.inf, slave_x.dtype)
     own = None if self_contact is None else self_contact[:2]
     carry = (inf, jnp.full(n, BIG, jnp.int32), inf, jnp.zeros(n, bool))
-    (dmin, best, _, unsure), _, steps = scan(
-        flat, slave_x, reach, slack, nearest, carry, None, normal, extra=own
-    )
+    kernel = _pallas_ok(normal)
+    consts = tuple(jnp.asarray(v, slave_x.dtype) for v in (slack, tie, d_max))
+    if kernel:
+        (dmin, best, _, unsure), steps = _kernel_scan(flat, ids, slave_x, reach, consts, "nearest")
+        unsure = unsure != 0
+    else:
+        (dmin, best, _, unsure), _, steps = scan(
+            flat, slave_x, reach, slack, nearest, carry, None, normal, extra=own
+        )
     dmin = jnp.where(dmin <= d_max, dmin, jnp.inf)
     has = dmin < jnp.inf
 
@@ -255,10 +269,15 @@ def closest_node(
     again = has & unsure
     band = jnp.where(again, dmin + slack, 0)
     extra = (None, None, dmin) if own is None else (*own, dmin)
-    best2, _, steps2 = scan(
-        flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), again, normal,
-        extra=extra,
-    )  # fmt: skip
+    if kernel:
+        (best2,), steps2 = _kernel_scan(
+            flat, ids, slave_x, band, consts, "smallest_id", active=again, extra=dmin
+        )
+    else:
+        best2, _, steps2 = scan(
+            flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), again,
+            normal, extra=extra,
+        )  # fmt: skip
     best = jnp.where(again, best2, best)
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
@@ -303,6 +322,235 @@ def _collect(tree, slave_x, rho, slack, K, normal, shrink=True):
         found = found.at[rows, jnp.where(keep, slot, K)].set(pos, mode="drop")
         return found, count + jnp.sum(keep, -1, dtype=jnp.int32)
 
+    if _pallas_ok(normal):
+        consts = tuple(jnp.asarray(v, slave_x.dtype) for v in (slack, 0, 0))
+        (found, count), steps = _kernel_scan(
+            flat, tree.ids, slave_x, rho, consts, "collect", k=max(K, 1), shrink=shrink
+        )
+        return found[:, :K], count, steps
     carry = (jnp.zeros((n, K), jnp.int32), jnp.zeros(n, jnp.int32))
     (found, count), _, steps = scan(flat, slave_x, rho, slack, collect, carry, None, normal, shrink)
     return found, count, steps
+
+
+# The scans as one Pallas (Triton) kernel on GPUs: a program walks a block of BLOCK slaves,
+# its state in registers, each block stepping until its own busiest slave is done (the
+# while_loop above reads and writes every slave's state in memory at every step until the
+# busiest slave of all is done). The same step, written per child (W lists of [BLOCK]
+# vectors: no reductions across an axis, which Pallas' Triton lowering lacks in part), and
+# the same answers. H100, 2^20 rough nodes, the closest-node scan's first pass: 5.2 ms in
+# the while_loop, 0.53 ms as a kernel.
+BLOCK = 32
+#: Off: the while_loop everywhere (a switch for A/B runs). INTERPRET: the kernel on any
+#: platform, interpreted (the tests' way to run it on the CPU).
+PALLAS = True
+INTERPRET = False
+
+
+def _pallas_ok(normal):
+    """Whether the kernel runs the scan: on a GPU, not self-contact (whose normal test the
+    kernel does not have), while JAX has Pallas' Triton back end (deprecated in JAX 0.11 for
+    Mosaic GPU: without it, the while_loop)."""
+    if not (PALLAS and normal is None and (INTERPRET or jax.default_backend() == "gpu")):
+        return False
+    try:
+        from jax.experimental.pallas import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _kernel_scan(flat, ids, q, reach, consts, kind, *, active=None, extra=None, k=1, shrink=True):
+    """One scan per slave of q [n, 3] from reach [n] (active [n]: the others are done before
+    the first step). kind "nearest": the first pass of closest_node ((dmin, best, best_d,
+    unsure) as its `nearest`); "smallest_id": its second (`extra`: dmin [n]); "collect":
+    _collect's first k candidates (found [n, k], count [n]). consts: (slack, tie, d_max).
+    Returns (outputs, steps of the busiest slave)."""
+    from jax.experimental import pallas as pl
+
+    n = q.shape[0]
+    dt = q.dtype
+    pad = -n % BLOCK
+    rows = n + pad
+    if active is None:
+        active = jnp.ones(n, bool)
+    lanes = [q[:, 0], q[:, 1], q[:, 2], reach.astype(dt)]
+    lanes += [jnp.zeros(n, dt) if extra is None else extra.astype(dt)]
+    lanes = [jnp.pad(v, (0, pad)) for v in lanes] + [jnp.pad(active, (0, pad)).astype(jnp.int32)]
+    top, root, n_ids = flat.top, flat.root, ids.shape[0]
+    inf = float("inf")
+
+    def kernel(groups, down, ids_r, consts_r, qx_r, qy_r, qz_r, reach_r, extra_r, act_r, *outs):
+        slack, tie, d_max = consts_r[0], consts_r[1], consts_r[2]
+        qx, qy, qz = qx_r[...], qy_r[...], qz_r[...]
+        zero = jnp.zeros_like(act_r[...])
+        big = zero + BIG
+        finf = jnp.zeros_like(qx) + inf
+
+        def step(s):
+            kk_, row, stack, base, rch, done, carry, steps = s
+            busy = done == 0
+            leaf = kk_ == 1
+            at = row * (9 * W)
+            d2, dr, filled, rank = [], [], [], []
+            for j in range(W):
+                c = [groups[at + (i * W + j)] for i in range(9)]
+                gx = jnp.maximum(jnp.maximum(c[0] - qx, qx - c[3]), 0)
+                gy = jnp.maximum(jnp.maximum(c[1] - qy, qy - c[4]), 0)
+                gz = jnp.maximum(jnp.maximum(c[2] - qz, qz - c[5]), 0)
+                f = (c[0] <= c[3]) & (c[1] <= c[4]) & (c[2] <= c[5])
+                ex, ey, ez = c[6] - qx, c[7] - qy, c[8] - qz
+                d2.append(gx * gx + gy * gy + gz * gz)
+                dr.append(jnp.where(f, jnp.sqrt(ex * ex + ey * ey + ez * ez), inf))
+                filled.append(f)
+                cx = 0.5 * (c[0] + c[3]) - qx
+                cy = 0.5 * (c[1] + c[4]) - qy
+                cz = 0.5 * (c[2] + c[5]) - qz
+                rank.append(jnp.where(d2[j] == 0, -1 / (1 + cx * cx + cy * cy + cz * cz), d2[j]))
+            if shrink:
+                low = dr[0]
+                for j in range(1, W):
+                    low = jnp.minimum(low, dr[j])
+                rch = jnp.where(busy, jnp.minimum(rch, low + slack), rch)
+            keep = [filled[j] & (d2[j] <= rch * rch) & busy for j in range(W)]
+            items = [keep[j] & leaf for j in range(W)]
+            pos = [row * W + j for j in range(W)]
+            carry = visit(carry, pos, items, dr, (tie, d_max))
+            # Descend to the nearest child, the others pending at their level.
+            best_r, near, bits = finf, zero + W, zero
+            for j in range(W):
+                rj = jnp.where(keep[j], rank[j], inf)
+                better = rj < best_r
+                near = jnp.where(better, j, near)
+                best_r = jnp.where(better, rj, best_r)
+                bits = bits | jnp.where(keep[j], zero + (1 << j), zero)
+            go_down = (bits != 0) & ~leaf
+            near = jnp.minimum(near, W - 1)
+            rest = bits & ~jnp.left_shift(1, near)
+            # Else the next pending entry: the lowest level >= k with pending children.
+            lvl = zero + top
+            for j in reversed(range(top + 1)):
+                lvl = jnp.where((stack[j] != 0) & (kk_ <= j), j, lvl)
+            left, b_at = zero, zero
+            for j in range(top + 1):
+                left = jnp.where(lvl == j, stack[j], left)
+                b_at = jnp.where(lvl == j, base[j], b_at)
+            low_bit = zero
+            for j in reversed(range(W)):
+                low_bit = jnp.where((left >> j) & 1 == 1, j, low_bit)
+            up = jnp.where(go_down, row, b_at)
+            row_new = down[up * W + jnp.where(go_down, near, low_bit)]
+            finished = ~go_down & (lvl >= top)
+            stay = ~busy | finished
+            popped = left & (left - 1)
+            stack = tuple(
+                jnp.where(
+                    stay,
+                    sj,
+                    jnp.where(
+                        go_down, jnp.where(kk_ - 1 == j, rest, sj), jnp.where(lvl == j, popped, sj)
+                    ),
+                )  # fmt: skip
+                for j, sj in enumerate(stack)
+            )
+            base = tuple(jnp.where(~stay & go_down & (kk_ - 1 == j), row, bj)
+                         for j, bj in enumerate(base))  # fmt: skip
+            kk_ = jnp.where(stay, kk_, jnp.where(go_down, kk_ - 1, lvl))
+            row = jnp.where(stay, row, row_new)
+            done = jnp.where(stay, zero + 1, zero)
+            return kk_, row, stack, base, rch, done, carry, steps + busy.astype(jnp.int32)
+
+        if kind == "nearest":
+
+            def visit(carry, pos, items, dist, scal):
+                tie, d_max = scal
+                dmin, best, best_d, unsure = carry
+                d = [jnp.where(items[j], dist[j], inf) for j in range(W)]
+                node = [ids_r[jnp.minimum(p, n_ids - 1)] for p in pos]
+                low = dmin
+                for j in range(W):
+                    low = jnp.minimum(low, d[j])
+                band = jnp.minimum(low + tie, d_max)
+                step_id = big
+                for j in range(W):
+                    step_id = jnp.minimum(step_id, jnp.where(d[j] <= band, node[j], BIG))
+                step_d = finf
+                for j in range(W):
+                    step_d = jnp.minimum(step_d, jnp.where(node[j] == step_id, d[j], inf))
+                kept = best_d <= band
+                unsure = unsure | (~kept & (best < BIG) & (dmin <= band)).astype(jnp.int32)
+                best_d = jnp.where(kept & (best < step_id), best_d, step_d)
+                best = jnp.where(kept, jnp.minimum(best, step_id), step_id)
+                return low, best, best_d, unsure
+
+            carry = (finf, big, finf, zero)
+        elif kind == "smallest_id":
+            dmin_x = extra_r[...]
+
+            def visit(best, pos, items, dist, scal):
+                tie, d_max = scal
+                for j in range(W):
+                    ok = items[j] & (dist[j] <= dmin_x + tie) & (dist[j] <= d_max)
+                    node = ids_r[jnp.minimum(pos[j], n_ids - 1)]
+                    best = jnp.minimum(best, jnp.where(ok, node, BIG))
+                return best
+
+            carry = big
+        else:
+            from jax.experimental.pallas import triton as plt
+
+            found_r = outs[0]
+            local = jax.lax.broadcasted_iota(jnp.int32, (BLOCK,), 0) * k  # each slave's k slots
+
+            def visit(count, pos, items, dist, scal):
+                for j in range(W):
+                    put = items[j] & (count < k)
+                    plt.store(found_r.at[local + jnp.minimum(count, k - 1)], pos[j], mask=put)
+                    count = count + items[j].astype(jnp.int32)
+                return count
+
+            carry = zero
+        state = (zero + top, zero + root, (zero,) * (top + 1), (zero,) * (top + 1),
+                 reach_r[...], 1 - act_r[...], carry, zero)  # fmt: skip
+        state = jax.lax.while_loop(lambda s: jnp.min(s[5]) == 0, step, state)
+        carry, steps = state[6], state[7]
+        res = carry if isinstance(carry, tuple) else (carry,)
+        rest_outs = outs[1:] if kind == "collect" else outs
+        for o, v in zip(rest_outs, res + (steps,)):
+            o[...] = v.astype(o.dtype)
+
+    blk = pl.BlockSpec((BLOCK,), lambda i: (i,))
+    whole = pl.no_block_spec
+    i32 = jnp.int32
+    if kind == "nearest":
+        shapes = [(rows, dt), (rows, i32), (rows, dt), (rows, i32)]
+    elif kind == "smallest_id":
+        shapes = [(rows, i32)]
+    else:
+        shapes = [(rows * k, i32), (rows, i32)]
+    shapes.append((rows, i32))  # steps
+    specs = [blk] * len(shapes)
+    if kind == "collect":
+        specs[0] = pl.BlockSpec((BLOCK * k,), lambda i: (i,))
+    kw = {}
+    if not INTERPRET:
+        from jax.experimental.pallas import triton as plt
+
+        kw["compiler_params"] = plt.CompilerParams(num_warps=1, num_stages=1)
+    outs = pl.pallas_call(
+        kernel,
+        out_shape=tuple(jax.ShapeDtypeStruct((s,), d) for s, d in shapes),
+        grid=(rows // BLOCK,),
+        in_specs=[whole] * 4 + [blk] * 6,
+        out_specs=tuple(specs),
+        interpret=INTERPRET,
+        **kw,
+    )(flat.groups.reshape(-1), flat.down.reshape(-1), ids, jnp.stack(consts).astype(dt), *lanes)
+    steps = jnp.max(outs[-1][:n], initial=0)
+    outs = outs[:-1]
+    if kind == "collect":
+        count = outs[1][:n]
+        found = outs[0].reshape(rows, k)[:n]
+        valid = jnp.arange(k, dtype=i32)[None, :] < count[:, None]
+        return (jnp.where(valid, found, 0), count), steps
+    return tuple(o[:n] for o in outs), steps
