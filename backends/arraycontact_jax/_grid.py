@@ -370,8 +370,8 @@ def _kernel_scan(flat, ids, q, reach, consts, kind, *, active=None, extra=None, 
 
     n = q.shape[0]
     dt = q.dtype
-    pad = -n % BLOCK
-    rows = n + pad
+    rows = max(n + (-n % BLOCK), BLOCK)  # (a block at least: no empty grid)
+    pad = rows - n
     if active is None:
         active = jnp.ones(n, bool)
     lanes = [q[:, 0], q[:, 1], q[:, 2], reach.astype(dt)]
