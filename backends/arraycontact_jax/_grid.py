@@ -450,7 +450,7 @@ def _kernel_scan(flat, ids, q, reach, consts, kind, *, active=None, extra=None, 
                     jnp.where(
                         go_down, jnp.where(kk_ - 1 == j, rest, sj), jnp.where(lvl == j, popped, sj)
                     ),
-                )  # fmt: skip
+                )
                 for j, sj in enumerate(stack)
             )
             base = tuple(jnp.where(~stay & go_down & (kk_ - 1 == j), row, bj)
