@@ -126,3 +126,46 @@ def test_parts_trees_padded_to_common_levels_keep_their_answers():
         d = np.linalg.norm(q[:, None] - x[p][None], axis=-1)
         np.testing.assert_allclose(np.asarray(dist), d.min(1), rtol=1e-12, atol=1e-12)
         assert np.array_equal(np.asarray(node), d.argmin(1))
+
+
+@pytest.mark.parametrize("kind", ["clusters", "repeated"])
+def test_scan_kernel_against_brute_force(monkeypatch, kind):
+    """The scans as the Pallas kernel (GPUs; interpreted here): the closest node with a wide
+    tie band (the second pass too) as brute force's, and without shrinking the reach (the
+    sharded plan's halos) every item within the reach, each once."""
+    import arraycontact_jax._grid as jg
+    import jax
+    import jax.numpy as jnp
+
+    monkeypatch.setattr(jg, "INTERPRET", True)
+    rng = np.random.default_rng(4)
+    x = grid_points(kind, rng)
+    lo = x.min(0)
+    keys = _grid.morton_keys(x, lo, float((x.max(0) - lo).max()))
+    order = np.argsort(keys, kind="stable")
+    groups = _grid.grouping(keys[order])
+    xs = (x - lo)[order]
+    q = x[rng.integers(0, len(x), 100)] + rng.normal(size=(100, 3)) * 1e-3 - lo
+    d = np.linalg.norm(q[:, None] - (x - lo)[None], axis=-1)
+    tie, reach = 1e-2 * np.ptp(x), 0.05 * np.ptp(x)
+    within = d <= reach
+    k = int(within.sum(1).max())
+    with jax.enable_x64(True):
+        jtree = _grid.build(jnp, jnp.asarray(order, jnp.int32), *(jnp.asarray(xs),) * 3,
+                            groups=groups)  # fmt: skip
+        node, dist, _ = jg.closest_node(
+            jnp, jtree, None, jnp.asarray(q), d_max=np.inf, tie=tie, slack=tie + 1e-9 * np.ptp(x)
+        )
+        rho = jnp.full(len(q), reach)
+        _, item, valid, counts = jg.candidate_faces(
+            jnp, jtree, jnp.asarray(q), rho, slack=0.0, capacity={"face_candidates": k},
+            shrink=False,
+        )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(dist), d.min(1), rtol=1e-12, atol=1e-12)
+    tied = d <= d.min(1, keepdims=True) + tie
+    assert np.array_equal(np.asarray(node), tied.argmax(1))
+    assert int(counts["face_candidates"]) == k
+    item, valid = np.asarray(item).reshape(len(q), k), np.asarray(valid).reshape(len(q), k)
+    for i in range(len(q)):
+        got = np.sort(item[i][valid[i]])
+        assert np.array_equal(got, np.flatnonzero(within[i])), i
