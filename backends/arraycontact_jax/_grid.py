@@ -246,13 +246,13 @@ def closest_node(
     reach = _shrinks_to(d_max, slack, n, slave_x.dtype)
     inf = jnp.full(n, jnp.inf, slave_x.dtype)
     own = None if self_contact is None else self_contact[:2]
-    carry = (inf, jnp.full(n, BIG, jnp.int32), inf, jnp.zeros(n, bool))
     kernel = _pallas_ok(normal)
     consts = tuple(jnp.asarray(v, slave_x.dtype) for v in (slack, tie, d_max))
     if kernel:
         (dmin, best, _, unsure), steps = _kernel_scan(flat, ids, slave_x, reach, consts, "nearest")
         unsure = unsure != 0
     else:
+        carry = (inf, jnp.full(n, BIG, jnp.int32), inf, jnp.zeros(n, bool))
         (dmin, best, _, unsure), _, steps = scan(
             flat, slave_x, reach, slack, nearest, carry, None, normal, extra=own
         )
@@ -268,12 +268,12 @@ def closest_node(
     # no two nodes lie within `tie` of each other's distance).
     again = has & unsure
     band = jnp.where(again, dmin + slack, 0)
-    extra = (None, None, dmin) if own is None else (*own, dmin)
     if kernel:
         (best2,), steps2 = _kernel_scan(
             flat, ids, slave_x, band, consts, "smallest_id", active=again, extra=dmin
         )
     else:
+        extra = (None, None, dmin) if own is None else (*own, dmin)
         best2, _, steps2 = scan(
             flat, slave_x, band, slack, smallest_id, jnp.full(n, BIG, jnp.int32), again,
             normal, extra=extra,
@@ -336,9 +336,10 @@ def _collect(tree, slave_x, rho, slack, K, normal, shrink=True):
 # The scans as one Pallas (Triton) kernel on GPUs: a program walks a block of BLOCK slaves,
 # its state in registers, each block stepping until its own busiest slave is done (the
 # while_loop above reads and writes every slave's state in memory at every step until the
-# busiest slave of all is done). The same step, written per child (W lists of [BLOCK]
-# vectors: no reductions across an axis, which Pallas' Triton lowering lacks in part), and
-# the same answers. H100, 2^20 rough nodes, the closest-node scan's first pass: 5.2 ms in
+# busiest slave of all is done). The same step as `scan`'s (a change to one is a change to
+# both: the tests compare them), written per child (W lists of [BLOCK] vectors: no
+# reductions across an axis, which Pallas' Triton lowering lacks in part), and the same
+# answers. H100, 2^20 rough nodes, the closest-node scan's first pass: 5.2 ms in
 # the while_loop, 0.53 ms as a kernel.
 BLOCK = 32
 #: Off: the while_loop everywhere (a switch for A/B runs). INTERPRET: the kernel on any
