@@ -315,6 +315,8 @@ def run_stages(
             normal=None if own is None else own[1],
         )
         counts.update(n_pairs)
+        # (the JAX search's pairs: K slots a slave, in slave order)
+        slots = slave.shape[0] // max(n, 1) if getattr(search, "SLOTS", False) else None
     else:
         # Node mode: the faces attached to the closest node (seed 000 section 2.2).
         has_node = node >= 0
@@ -324,6 +326,7 @@ def run_stages(
         slave = seg
         face = m.nf_ids[xp.where(valid, m.nf_offsets[nd[seg]] + rank, 0)]
         counts.update(attached=n_att)
+        slots = None
     lap("candidates")
     args = (xp, element, slave_x, m.nodes_x, m.faces, slave, face)
     if element.name != "tri3":
@@ -333,7 +336,7 @@ def run_stages(
         # pair may turn out inadmissible, a farther one be the face the node projects on.)
         if st.mode == "exact" and own is None:
             lo, hi = _projection.distance_bounds(*args)
-            best = segment_min(xp, xp.where(valid, hi, np.inf), slave, n)
+            best = segment_min(xp, xp.where(valid, hi, np.inf), slave, n, slots=slots)
             valid = valid & (lo <= best[slave] + 2 * sc.slack)
         # (JAX: projected as many slaves' worth of pairs at a time, about 3 rounds on rough
         # quad4 surfaces, whose slaves keep 2.7 of their 8 candidate slots)
@@ -351,7 +354,7 @@ def run_stages(
     dist = norm(xp, diff)
     status = xp.zeros(n, dtype=np.int32) + int(Status.OK)
     if st.mode == "exact":
-        pick, has = _select.select_closest(xp, n, slave, face, valid, dist, tie)
+        pick, has = _select.select_closest(xp, n, slave, face, valid, dist, tie, slots)
         active = has & (dist[pick] <= sc.d_max)
     else:
         onface = valid & (feature == int(Feature.FACE))

@@ -220,8 +220,12 @@ def test_scan_kernel_equals_the_while_loop(monkeypatch, element):
     assert {k: int(v) for k, v in c_k.counts.count.items()} == {
         k: int(v) for k, v in c_w.counts.count.items()
     }
-    for k in ("active", "face", "feature", "master_node", "status", "gap", "xi"):
-        assert np.array_equal(getattr(c_k, k), getattr(c_w, k), equal_nan=True), k
+    for k in ("active", "face", "feature", "master_node", "status"):
+        assert np.array_equal(getattr(c_k, k), getattr(c_w, k)), k
+    # (the float fields come from the same faces by the same code, in two programs that XLA
+    # may fuse apart: equal to rounding)
+    for k in ("gap", "xi"):
+        np.testing.assert_allclose(getattr(c_k, k), getattr(c_w, k), rtol=0, atol=1e-12, err_msg=k)
     _compare(c_k, ac.detect(s.slave, s.master, backend="numpy"))
     if element == "tri3":
         for k in ("face", "feature", "status"):

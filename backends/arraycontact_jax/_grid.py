@@ -282,6 +282,10 @@ def closest_node(
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
 
+#: candidate_faces' pairs are K slots a slave, in slave order (run_stages reduces them as rows)
+SLOTS = True
+
+
 def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=None, shrink=True):
     """Candidate (slave, face) pairs: the faces whose box is within the slave's reach (rho,
     shrunk by the scan to the nearest surface point it meets; self-contact, `normal` given:
