@@ -37,6 +37,30 @@ def closest_point_triangle(p, a, b, c, xp=np):
     d3, d4 = _dot(ab, bp, xp), _dot(ac, bp, xp)
     cp = p - c
     d5, d6 = _dot(ab, cp, xp), _dot(ac, cp, xp)
+    v, w, feature, local = _triangle_regions(d1, d2, d3, d4, d5, d6, xp)
+    return xp.stack([v, w], -1), feature, local
+
+
+def triangle_distance(r, e1, e2, xp=np):
+    """The distance from points r to triangles (0, e1, e2), each a tuple of its 3 coordinate
+    arrays (the Pallas kernels' layout: no axis of 3), by closest_point_triangle's regions and
+    arithmetic: the distance of `project` to rounding (the fused multiply-adds a compiler
+    may form)."""
+
+    def dot(u, v):
+        return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+    bp = tuple(r[i] - e1[i] for i in range(3))
+    cp = tuple(r[i] - e2[i] for i in range(3))
+    d = (dot(e1, r), dot(e2, r), dot(e1, bp), dot(e2, bp), dot(e1, cp), dot(e2, cp))
+    v, w, _, _ = _triangle_regions(*d, xp)
+    g = [r[i] - v * e1[i] - w * e2[i] for i in range(3)]
+    return xp.sqrt(dot(g, g))
+
+
+def _triangle_regions(d1, d2, d3, d4, d5, d6, xp):
+    """closest_point_triangle's regions from the dot products of the edges ab, ac with ap,
+    bp, cp: v, w, feature, local."""
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     # Each of va, vb, vc is a difference of two products, zero where p projects onto an edge:
     # within its rounding (a fused multiply-add, as XLA and the Warp kernels may compute it,
@@ -71,7 +95,7 @@ def closest_point_triangle(p, a, b, c, xp=np):
         v, w = xp.where(cond, rv, v), xp.where(cond, rw, w)
         feature = xp.where(cond, f, feature)
         local = xp.where(cond, loc, local)
-    return xp.stack([v, w], -1), feature, local
+    return v, w, feature, local
 
 
 def _solve2(m, r, xp):

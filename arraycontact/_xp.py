@@ -64,10 +64,13 @@ def rows_dot(xp, x, a):
 def segment_min(xp, data, ids, n, sorted=False, slots=None):
     """Minimum of `data` per segment id (the dtype's largest value for an empty segment).
     sorted: the ids are non-decreasing (a reduce over runs on NumPy, a hint on JAX). slots:
-    the ids are each segment's `slots` rows in turn (a row reduction, no scatter)."""
-    if slots is not None:
-        big = np.inf if data.dtype.kind == "f" else np.iinfo(data.dtype).max
-        return xp.min(data.reshape(n, slots), 1, initial=big)
+    the ids are each segment's `slots` rows in turn (reduced as columns, no scatter)."""
+    if slots is not None:  # (column by column: see _select.select_closest)
+        rows = data.reshape(n, slots)
+        out = rows[:, 0]
+        for j in range(1, slots):
+            out = xp.minimum(out, rows[:, j])
+        return out
     if is_numpy(xp):
         big = np.inf if data.dtype.kind == "f" else np.iinfo(data.dtype).max
         out = np.full(n, big, data.dtype)

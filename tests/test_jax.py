@@ -232,6 +232,45 @@ def test_scan_kernel_equals_the_while_loop(monkeypatch, element):
             assert np.array_equal(getattr(both, k)[1], getattr(second, k)), k
 
 
+def test_candidate_distances_are_the_reference_distances(monkeypatch):
+    """The triangles' candidate slots with their distances (measured by the kernel, here
+    interpreted, and after the while_loop): each slave's faces are candidate_faces', each
+    slot's distance the brute-force reference's from the slave to its face."""
+    import arraycontact_jax._grid as jg
+    from arraycontact_jax._detect import build_grids, master_geometry
+
+    from arraycontact.reference import _closest_on_faces
+
+    s = scenes.graded_surfaces(2**8, ratio=100.0, seed=5)
+    p = acj.plan(s.master, s.slave)
+    st, sc, cap = p.static, p.constants, dict(p.capacity)
+    xs = jnp.asarray(s.slave - np.asarray(p.origin))
+    xm = jnp.asarray(s.master.points - np.asarray(p.origin))
+    m = master_geometry(jnp, st.element, p.topology, xm)
+    tree = build_grids(jnp, st, m).face
+    node, dn, _ = jg.closest_node(jnp, build_grids(jnp, st, m).node, m.nodes_x, xs,
+                                  d_max=sc.d_max, tie=sc.tie, slack=sc.slack)  # fmt: skip
+    rho = jnp.minimum(dn, sc.d_max) + sc.slack
+    _, want, valid_w, _ = jg.candidate_faces(jnp, tree, xs, rho, slack=sc.slack, capacity=cap)
+    n, k = len(s.slave), cap["face_candidates"]
+    want, valid_w = np.asarray(want).reshape(n, k), np.asarray(valid_w).reshape(n, k)
+    for kernel in (False, True):
+        monkeypatch.setattr(jg, "INTERPRET", kernel)
+        slave, face, valid, dist, counts = jg.candidate_distances(
+            jnp, tree, xs, rho, m.nodes_x, m.faces, slack=sc.slack, capacity=cap
+        )
+        face, valid = np.asarray(face).reshape(n, k), np.asarray(valid).reshape(n, k)
+        dist = np.asarray(dist).reshape(n, k)
+        assert np.array_equal(valid, valid_w) and valid.sum() > n
+        assert np.array_equal(np.where(valid, face, -1), np.where(valid_w, want, -1))
+        assert np.isinf(dist[~valid]).all()
+        i, j = np.nonzero(valid)
+        _, d2 = _closest_on_faces(
+            s.master.element, s.slave[i], s.master.points[s.master.faces[face[i, j]]]
+        )
+        np.testing.assert_allclose(dist[i, j], np.sqrt(d2), rtol=1e-10, atol=1e-12)
+
+
 @pytest.mark.parametrize("which", ["rough", "crumpled"])
 def test_quad4_exact_equals_numpy(which):
     """Bilinear faces: the JAX detection projects only the pairs whose distance bounds may

@@ -11,8 +11,11 @@ from arraycontact._geometry import (
     closest_point_triangle,
     start_option_one,
     start_option_two,
+    triangle_distance,
 )
 from arraycontact._projection import _best_of_starts, distance_bounds, project, project_kept
+from arraycontact._select import select_closest
+from arraycontact.reference import _closest_on_faces
 
 
 def _face(element, noise, seed):
@@ -172,6 +175,55 @@ def test_degenerate_triangles_do_not_divide_by_zero():
         xi, feat, loc = closest_point_triangle(p, a, b, c)
     x = a + xi[:, :1] * (b - a) + xi[:, 1:] * (c - a)
     assert np.allclose(np.linalg.norm(x - p, axis=1), [1.0, 0.5, 1.0])
+
+
+def test_triangle_distance_is_the_reference_distance():
+    """The per-coordinate distance the JAX search measures its candidates with: the brute-force
+    reference's, on random, sliver, collinear and coincident triangles, from points near and
+    far, in every region (and the tuple layout: one array per coordinate)."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    tri = rng.normal(size=(n, 3, 3))
+    tri[0::7, 2] = tri[0::7, 0] + 0.5 * (tri[0::7, 1] - tri[0::7, 0])  # collinear
+    tri[1::7, 1:] = tri[1::7, :1]  # coincident corners
+    tri[2::7, 2] = tri[2::7, 1] + 1e-6 * rng.normal(size=(len(tri[2::7]), 3))  # slivers
+    scale = 10.0 ** rng.uniform(-3, 1, n)[:, None]
+    p = tri.mean(1) + scale * rng.normal(size=(n, 3))
+    p[3::7] = tri[3::7, 0]  # on a corner
+    x0 = tri[:, 0]
+    cols = [[a[:, i] for i in range(3)] for a in (p - x0, tri[:, 1] - x0, tri[:, 2] - x0)]
+    with np.errstate(all="raise"):
+        got = triangle_distance(*cols)
+    # project's closest point, to rounding
+    xi, _, _ = closest_point_triangle(p - x0, 0 * x0, tri[:, 1] - x0, tri[:, 2] - x0)
+    x = x0 + xi[:, :1] * (tri[:, 1] - x0) + xi[:, 1:] * (tri[:, 2] - x0)
+    np.testing.assert_allclose(got, np.linalg.norm(p - x, axis=1), rtol=1e-12, atol=1e-14)
+    # The reference's distance: to rounding, but on slivers (whose interior solution loses
+    # digits to cancellation, as project's does) to a millionth of the longest edge.
+    _, d2 = _closest_on_faces(get_element("tri3"), p, tri)
+    edge = np.linalg.norm(tri - np.roll(tri, 1, 1), axis=-1).max(1)
+    err = np.abs(got - np.sqrt(d2))
+    assert (err <= 1e-6 * edge).all()
+    sliver = np.zeros(n, bool)
+    sliver[2::7] = True
+    np.testing.assert_allclose(got[~sliver], np.sqrt(d2[~sliver]), rtol=1e-10, atol=1e-12)
+
+
+def test_select_over_slots_equals_the_segment_reduction():
+    """The selection over K slots a slave (the JAX search's layout, reduced column by column):
+    the pair the segment reductions pick, with the tie rule (within `tie` of the smallest
+    distance, the smallest face id, then the first pair), empty slots and slaves without any."""
+    rng = np.random.default_rng(12)
+    n, k, tie = 500, 7, 0.05
+    dist = rng.choice([1.0, 1.02, 1.04, 1.1, 2.0], size=n * k) + rng.uniform(0, 1e-3, n * k)
+    face = rng.integers(0, 20, n * k).astype(np.int32)
+    valid = rng.uniform(size=n * k) < 0.6
+    valid[: 5 * k] = False  # slaves without a candidate
+    slave = np.repeat(np.arange(n), k)
+    want = select_closest(np, n, slave, face, valid, dist, tie)
+    got = select_closest(np, n, slave, face, valid, dist, tie, slots=k)
+    assert np.array_equal(got[1], want[1]) and got[1].sum() < n
+    assert np.array_equal(got[0], want[0])
 
 
 @pytest.mark.parametrize("element", ["quad4", "tri6", "quad8", "quad9"])

@@ -51,7 +51,7 @@ from arraycontact._detect import (
 from arraycontact._elements import get_element
 from arraycontact._grid import consecutive, grouping, morton_keys, morton_order
 from arraycontact._prepare import Prepared
-from arraycontact._surface import Surface, bounds, validate_points
+from arraycontact._surface import Surface, bounds, node_normals, validate_points
 from arraycontact._sweep import FEATURE_TOL, T_TOL, feature_of
 
 from . import _grid, _sweep
@@ -591,11 +591,17 @@ def local_detect(p: Plan, topo, slave_points, master_points):
     s, xm = local(slave_points), local(master_points)
     st, sc = p.static, p.constants
     ids = topo.slave_nodes
+    vertex = None
     if p.search is not None:
         out = p.search(jax.lax.stop_gradient(s), jax.lax.stop_gradient(xm), ids)
         counts = {}
     else:
-        m = master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm))
+        # The node pseudo-normals, once for the search (classification) and, differentiable,
+        # the smooth outputs (whose own gathers of the faces around each slave's vertex took
+        # 1.1 ms at 2^20 on an H100; the scatter's gradient is a gather).
+        vertex = node_normals(get_element(st.element), topo.faces, xm, jnp)
+        normals = jax.lax.stop_gradient(vertex)
+        m = master_geometry(jnp, st.element, topo, jax.lax.stop_gradient(xm), normals)
         grids = build_grids(jnp, st, m)
         out, counts = run_stages(
             jnp,
@@ -622,6 +628,7 @@ def local_detect(p: Plan, topo, slave_points, master_points):
         out["xi"],
         out["gap"],
         sc.tie,
+        vertex,
     )
     nan = jnp.asarray(jnp.nan, dtype)
 

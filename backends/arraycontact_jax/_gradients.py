@@ -143,20 +143,24 @@ def padded_node_faces(master):
     return table
 
 
-def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_surface):
+def smooth(element, slave_x, nodes_x, topo, face, feature, local, xi, gap, on_surface, vertex=None):
     """Differentiable xi, point, gap, normal of the search's answer ([n] rows).
 
     `face`, `feature`, `local` come from the search; `xi` and `gap` are its values, used as the
     Newton start and for the sign (without gradient); a slave within `on_surface` of an edge or
     vertex counts as on it, with the feature's pseudo-normal (differentiable). Rows without a
-    face are computed on face 0 at its centre (finite, then masked by the caller)."""
+    face are computed on face 0 at its centre (finite, then masked by the caller). vertex:
+    the nodes' pseudo-normals [n_points, 3] from nodes_x (differentiable), where the caller
+    has them."""
     ok = face >= 0
     face = jnp.where(ok, face, 0)
     feature = jnp.where(ok, feature, FACE)
     xi = jnp.where(ok[:, None], xi, jnp.asarray(element.centre, slave_x.dtype))
     sign = jax.lax.stop_gradient(jnp.where(ok & (gap < 0), -1.0, 1.0)).astype(slave_x.dtype)
     faces = topo.faces
-    if topo.node_faces is not None:
+    if vertex is not None:
+        pass
+    elif topo.node_faces is not None:
         vertex = partial(vertex_normals, element, nodes_x, faces, topo.node_faces)
     else:
         vertex = node_normals(element, faces, nodes_x, jnp)
