@@ -64,7 +64,8 @@ def _timed(f, repeats):
 
 def _exchange_only(p):
     """The sharded detection's all_to_alls on the plan's routes (the rows that cross
-    devices), without the detection: one for the coordinates, one for the answers."""
+    devices), without the detection: one for the coordinates, one for the answers and the
+    counts."""
     import jax
     import jax.numpy as jnp
     from arraycontact_jax import _shard
@@ -79,7 +80,8 @@ def _exchange_only(p):
         cap = ex["s_take"].shape[0]
         vals_f = jnp.zeros((cap, 10), dtype) + r_s[0, :1, :1]
         vals_i = jnp.zeros((cap, 5), jnp.int32) + r_m[0, :1, :1].astype(jnp.int32)
-        r_f, r_i = _shard._home(vals_f, vals_i, ex, axis)
+        counts = {"count": jnp.zeros(4, jnp.int32), "motion": jnp.zeros(2, dtype)}
+        r_f, r_i, _ = _shard._home(vals_f, vals_i, ex, axis, counts)
         return (jnp.sum(r_f) + jnp.sum(r_i))[None]
 
     f = jax.jit(

@@ -19,7 +19,7 @@ device d holds rows [d B, (d + 1) B). Inside shard_map each device
    scene's constants (d_max, tolerances, frame), so every row is the one-device answer (the
    search in JAX, or with search="warp" the part's own Warp plan on the device);
 3. sends each answer back to the device holding the slave's row (one all_to_all, the integer
-   fields riding with the float ones) and reduces the counts (pmax).
+   fields and the counts riding with the float ones; each device takes the largest count).
 
 Gradients flow through the gathers and all_to_alls as through the one-device detection. The
 halos hold as long as slaves and master nodes move less than the partition's margin from the
@@ -639,17 +639,14 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
             ints.append(fields["finer"])
         ints = jnp.stack([jnp.asarray(a, jnp.int32) for a in ints], -1)
         floats = jnp.concatenate([fields[k].reshape(s.shape[0], -1) for k, _ in _FLOATS], -1)
-        f_blk, i_blk = _home(floats, ints, ex, axis)
         # Motion since the plan (halo check): the slaves this device holds, its master rows.
         dm = jnp.where(ex["m_used"], _norm(jax.lax.stop_gradient(m_blk) - ref_m), 0)
         motion = [jnp.max(dm)]
         if not self_contact:  # (a self-contact slave's motion is its node's)
             ds = _norm(jax.lax.stop_gradient(s_blk) - ex["s_ref"].astype(s_blk.dtype))
             motion.append(jnp.max(jnp.where(ex["s_used"], ds, 0)))
-        # One reduction a dtype (the counts', the motions'): a collective is a sync between
-        # the devices, whatever it carries.
         counts["halo_motion"] = jnp.stack(motion)
-        counts = _pmax(counts, axis)
+        f_blk, i_blk, counts = _home(floats, ints, ex, axis, counts)
         motion = counts.pop("halo_motion")
         counts["halo_motion"] = motion[-1] + p.lebesgue * motion[0]
         return f_blk, i_blk, counts
@@ -660,7 +657,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         in_specs=(spec, spec, spec, spec),
         out_specs=(spec, spec, P()),
         # The one-device stages build their while_loop carries from constants; the counts
-        # are pmax-reduced, hence the same on every device.
+        # are every device's largest (sent to all), hence the same on every device.
         check_vma=False,
     )(p.local.topology, p.exchange, xs, xm)
     n = p.n_slaves
@@ -686,34 +683,48 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
     return contacts_of(fields, slave_ids, p, counts, p.capacity)
 
 
-def _pmax(values, axis):
-    """`{k: pmax(v)}` with one pmax for the values of each dtype."""
-    values = {k: jnp.asarray(v) for k, v in values.items()}
-    out = {}
-    # (in a fixed order: every process of a multi-host run must trace the same collectives)
-    for dt in sorted({v.dtype for v in values.values()}, key=str):
-        names = sorted(k for k, v in values.items() if v.dtype == dt)
-        flat = jnp.concatenate([values[k].reshape(-1) for k in names])
-        flat = jax.lax.pmax(flat, axis)
-        ends = np.cumsum([values[k].size for k in names])
-        for k, a, b in zip(names, np.r_[0, ends[:-1]], ends):
-            out[k] = flat[a:b].reshape(values[k].shape)
-    return out
-
-
 def _norm(v):
     return jnp.sqrt(jnp.sum(v * v, -1))
 
 
-def _home(floats, ints, ex, axis):
+def _home(floats, ints, ex, axis, counts):
     """Rows of a part's slaves (floats [cap, w], ints [cap, k]) back to the devices holding
-    them: [b_s, w] and [b_s, k] blocks (`_gather` reversed). One all_to_all: a collective
-    waits for every device, so each one costs the devices' skew. The int32 fields ride as
-    floats, split in two 16-bit halves (exact in float32, whose integers end at 2^24)."""
+    them: [b_s, w] and [b_s, k] blocks (`_gather` reversed), and the largest of every
+    device's `counts` (a dict of int or float arrays), which ride along as extra rows: one
+    all_to_all, no collective of their own (each collective waits for every device, so each
+    one costs the devices' skew). The int32 values ride as floats, split in two 16-bit
+    halves (exact in float32, whose integers end at 2^24)."""
     dt = floats.dtype
-    vals = jnp.concatenate([floats, (ints // 65536).astype(dt), (ints % 65536).astype(dt)], 1)
-    recv = jax.lax.all_to_all(vals[ex["s_back"]], axis, 0, 0)
-    out = jnp.concatenate([vals, recv.reshape(-1, vals.shape[1])])[ex["s_home"]]
-    w, k = floats.shape[1], ints.shape[1]
-    halves = out[:, w:].astype(jnp.int32)
-    return out[:, :w], halves[:, :k] * 65536 + halves[:, k:]
+
+    def halves(a):
+        return [(a // 65536).astype(dt), (a % 65536).astype(dt)]
+
+    vals = jnp.concatenate([floats, *halves(ints)], 1)
+    w = vals.shape[1]
+    names = sorted(counts)
+    parts = [jnp.asarray(counts[k]).reshape(-1) for k in names]
+    flat = jnp.concatenate(
+        [h for a in parts for h in (halves(a) if a.dtype.kind in "iu" else [a.astype(dt)])]
+    )
+    extra = -(-flat.shape[0] // w)
+    flat = jnp.pad(flat, (0, extra * w - flat.shape[0])).reshape(1, extra, w)
+    send = vals[ex["s_back"]]  # [D, C, w]
+    d, c = send.shape[0], send.shape[1]
+    send = jnp.concatenate([send, jnp.broadcast_to(flat, (d, extra, w))], 1)
+    recv = jax.lax.all_to_all(send, axis, 0, 0)
+    got = recv[:, c:].reshape(d, -1)  # [D, ...]: each device's counts
+    out_counts, col = {}, 0
+    for k, a in zip(names, parts):
+        m = a.shape[0]
+        if a.dtype.kind in "iu":
+            v = got[:, col : col + m].astype(a.dtype) * 65536
+            v = v + got[:, col + m : col + 2 * m].astype(a.dtype)
+            col += 2 * m
+        else:
+            v = got[:, col : col + m].astype(a.dtype)
+            col += m
+        out_counts[k] = jnp.max(v, 0).reshape(jnp.shape(counts[k]))
+    out = jnp.concatenate([vals, recv[:, :c].reshape(-1, w)])[ex["s_home"]]
+    k = ints.shape[1]
+    ints_out = out[:, floats.shape[1] :].astype(jnp.int32)
+    return out[:, : floats.shape[1]], ints_out[:, :k] * 65536 + ints_out[:, k:], out_counts
