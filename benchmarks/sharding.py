@@ -90,8 +90,9 @@ def _exchange_only(p):
         )
     )
     b_s, b_m = p.blocks
-    xs = jnp.zeros((n_dev * b_s, 3), dtype)
-    xm = jnp.zeros((n_dev * b_m, 3), dtype)
+    rows = jax.sharding.NamedSharding(p.mesh, P(axis))  # (as detect gets them: no resharding)
+    xs = jax.device_put(jnp.zeros((n_dev * b_s, 3), dtype), rows)
+    xm = jax.device_put(jnp.zeros((n_dev * b_m, 3), dtype), rows)
     return lambda: f(p.exchange, xs, xm)
 
 

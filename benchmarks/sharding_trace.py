@@ -5,6 +5,7 @@ devices (2^20 a device), rough surfaces, float32.
     python benchmarks/sharding_trace.py run --out DIR [--search warp|jax]   # on the GPU
     python benchmarks/sharding_trace.py summary DIR         # GPU time a call per stream/kernel
     python benchmarks/sharding_trace.py diff A B            # kernels of trace A against B
+    python benchmarks/sharding_trace.py collectives         # the collectives alone, all devices
 
 `run` writes DIR/perfetto_<search>_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
 deep folders) and prints each case's median wall time of 10 calls.
@@ -21,6 +22,7 @@ import os
 import shutil
 import sys
 import tempfile
+import time
 
 import numpy as np
 
@@ -116,15 +118,59 @@ def diff(a, b, top=25):
         print(f"  {tb[k] - ta[k]:+8.1f} us  {na[k]:6.1f} -> {nb[k]:6.1f} launches  {k}")
 
 
+def collectives(repeats=50):
+    """Median wall time of a jitted shard_map over all devices doing only: +1 (the launch),
+    a pmax of a scalar, one all_to_all of C rows of 20 float32 to each device, two in a
+    row (a detection's exchange in and home)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    devs = jax.devices()
+    d = len(devs)
+    mesh = Mesh(np.array(devs), ("x",))
+
+    def timed(f, a):
+        jax.block_until_ready(f(a))
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            jax.block_until_ready(f(a))
+            ts.append(time.perf_counter() - t)
+        return float(np.median(ts)) * 1e3
+
+    def sm(body):
+        spec = P("x")
+        return jax.jit(jax.shard_map(body, mesh=mesh, in_specs=spec, out_specs=spec))
+
+    def rows(n):
+        return jax.device_put(jnp.zeros((d * n, 20), jnp.float32), NamedSharding(mesh, P("x")))
+
+    def a2a(a):
+        return jax.lax.all_to_all(a.reshape(d, -1, 20), "x", 0, 0).reshape(-1, 20)
+
+    print(f"{d} x {devs[0].device_kind}, median of {repeats} calls")
+    print(f"  +1 only: {timed(sm(lambda a: a + 1), rows(1024)):.3f} ms")
+    t = timed(sm(lambda a: a + jax.lax.pmax(jnp.max(a), "x")), rows(1024))
+    print(f"  pmax of a scalar: {t:.3f} ms")
+    for c in (64, 600, 5000, 50000):
+        print(f"  all_to_all, C = {c}: {timed(sm(lambda a: a2a(a) + 1), rows(d * c)):.3f} ms")
+    t = timed(sm(lambda a: a2a(a2a(a) + 1)), rows(d * 600))
+    print(f"  two all_to_alls, C = 600: {t:.3f} ms")
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=["run", "summary", "diff"])
+    ap.add_argument("what", choices=["run", "summary", "diff", "collectives"])
     ap.add_argument("folder", nargs="*", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--search", choices=["warp", "jax"], default="warp")
     a = ap.parse_args()
     if a.what == "run":
         run(a.out or os.environ["OUT"], a.search)
+    elif a.what == "collectives":
+        collectives()
     elif a.what == "diff":
         diff(*a.folder)
     else:
