@@ -181,3 +181,10 @@ def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
         same = c.face[a] == ref.face[a]
         assert same.all(), f"{(~same).sum()} faces differ from the tie rule's choice"
     return ref
+
+
+def pytest_collection_modifyitems(config, items):
+    """The two four-device sharding tests (about 2 minutes each, a child process apiece)
+    first: pytest-xdist hands out the files in this order, so the two workers start one each
+    and fill the rest in around them instead of waiting on them at the end."""
+    items.sort(key=lambda item: "test_sharding" not in item.nodeid)

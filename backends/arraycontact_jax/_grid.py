@@ -18,7 +18,9 @@ slaves steps on its own, its state in registers), with the same answers and coun
 while_loop runs elsewhere (the CPU) and for self-contact.
 
 Memory: O(n) state plus, for the face scan, K candidate slots a slave (K planned from a
-device-side count, reported as the capacity "face_candidates"). The closest-node scan stores
+device-side count, reported as the capacity "face_candidates"); on triangles each slot also
+holds its distance (`candidate_distances`: the tie rule then picks a slot from them and only
+that face is projected). The closest-node scan stores
 nothing: a first scan finds the smallest distance, a second (with a reach of that distance plus
 the tie band) the smallest node id within the band.
 """
