@@ -285,7 +285,8 @@ def closest_node(
     return jnp.where(has, best, -1), dmin, {"node_scan_steps": steps + steps2}
 
 
-#: candidate_faces' pairs are K slots a slave, in slave order (run_stages reduces them as rows)
+#: candidate_faces' pairs are K slots a slave, in slave order (run_stages reduces over the
+#: slots, with no scatter)
 SLOTS = True
 
 
@@ -312,8 +313,8 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=Non
 def candidate_distances(xp, tree: Tree, slave_x, rho, nodes_x, faces, *, slack, capacity):
     """`candidate_faces` of triangles (faces [F, 3] on nodes_x) with each slot's distance from
     its slave to its face (inf in the empty slots): (slave, face, valid, distance, counts).
-    The kernel measures them as it finds the faces; the while_loop's faces are measured
-    after it, by the same function (arraycontact._geometry.triangle_distance)."""
+    The kernel measures them after its scan, the while_loop's after it, by the same function
+    (arraycontact._geometry.triangle_distance)."""
     n = slave_x.shape[0]
     K = capacity["face_candidates"]
     flat = flatten(tree)
