@@ -183,8 +183,17 @@ def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
     return ref
 
 
+#: The longest test files (2-core machine: the two four-device sharding files about 2 minutes
+#: each, the next four 1-2 minutes), longest first.
+LONGEST = ("test_sharding", "test_jax.py", "test_jax_gradients", "test_detect", "test_self_contact")
+
+
 def pytest_collection_modifyitems(config, items):
-    """The two four-device sharding tests (about 2 minutes each, a child process apiece)
-    first: pytest-xdist hands out the files in this order, so the two workers start one each
-    and fill the rest in around them instead of waiting on them at the end."""
-    items.sort(key=lambda item: "test_sharding" not in item.nodeid)
+    """The longest files first: pytest-xdist (--dist loadfile) hands out whole files in this
+    order, so the two workers fill the short ones in at the end instead of one of them
+    waiting on a long file there."""
+
+    def rank(item):
+        return next((i for i, f in enumerate(LONGEST) if f in item.nodeid), len(LONGEST))
+
+    items.sort(key=rank)
