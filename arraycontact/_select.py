@@ -22,19 +22,14 @@ def select_closest(xp, n, slave, face, valid, dist, tie, slots=None):
     on an H100, 3.3 ms on a graded mesh of 36 slots a slave; XLA's row reductions over
     [n, 12] took 0.63 ms)."""
     if slots is not None:
-        d = xp.where(valid, dist, np.inf).reshape(n, slots)
-        f = face.reshape(n, slots)
-        cols = range(slots)
-        dmin = d[:, 0]
-        for j in cols:
-            dmin = xp.minimum(dmin, d[:, j])
-        near = [d[:, j] <= dmin + tie for j in cols]  # (an empty slot: infinite)
-        best_face = xp.zeros(n, f.dtype) + BIG
-        for j in cols:
-            best_face = xp.minimum(best_face, xp.where(near[j], f[:, j], BIG))
+        d = xp.where(valid, dist, np.inf)
+        dmin = segment_min(xp, d, slave, n, slots=slots)
+        near = (d.reshape(n, slots) <= dmin[:, None] + tie).reshape(-1)  # (empty: infinite)
+        best_face = segment_min(xp, xp.where(near, face, BIG), slave, n, slots=slots)
+        near, f = near.reshape(n, slots), face.reshape(n, slots)
         first = xp.zeros(n, np.int32)
-        for j in reversed(cols):
-            first = xp.where(near[j] & (f[:, j] == best_face), j, first)
+        for j in reversed(range(slots)):
+            first = xp.where(near[:, j] & (f[:, j] == best_face), j, first)
         has = dmin < np.inf
         pick = xp.arange(n, dtype=np.int32) * slots + first
         return xp.where(has, pick, 0), has

@@ -296,18 +296,19 @@ def candidate_faces(xp, tree: Tree, slave_x, rho, *, slack, capacity, normal=Non
     those that may face it), K = capacity["face_candidates"]
     slots a slave. Returns (slave [n K], face [n K], valid [n K], counts); the count is the
     largest number of candidates of one slave (above K: overflow, the extra ones dropped)."""
-    n = slave_x.shape[0]
     K = capacity["face_candidates"]
     found, count, steps = _collect(tree, slave_x, rho, slack, K, normal, shrink)
-    valid = (jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]).reshape(-1)
-    face = tree.ids[found.reshape(-1)]
+    return _slot_pairs(tree.ids[found], count, steps)
+
+
+def _slot_pairs(face, count, steps):
+    """The K slots a slave of face ids [n, K] with their count [n] as (slave, face, valid)
+    pairs [n K] (an empty slot: face 0) and the counts."""
+    n, K = face.shape
+    valid = jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]
+    counts = {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps}
     slave = jnp.repeat(jnp.arange(n), K)
-    return (
-        slave,
-        face,
-        valid,
-        {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps},
-    )
+    return slave, jnp.where(valid, face, 0).reshape(-1), valid.reshape(-1), counts
 
 
 def candidate_distances(xp, tree: Tree, slave_x, rho, nodes_x, faces, *, slack, capacity):
@@ -315,13 +316,11 @@ def candidate_distances(xp, tree: Tree, slave_x, rho, nodes_x, faces, *, slack, 
     its slave to its face (inf in the empty slots): (slave, face, valid, distance, counts).
     The kernel measures them after its scan, the while_loop's after it, by the same function
     (arraycontact._geometry.triangle_distance)."""
-    n = slave_x.shape[0]
     K = capacity["face_candidates"]
-    flat = flatten(tree)
     if _pallas_ok(None):
         consts = tuple(jnp.asarray(v, slave_x.dtype) for v in (slack, 0, 0))
         (face, dist, count), steps = _kernel_scan(
-            flat, tree.ids, slave_x, rho, consts, "collect", k=max(K, 1),
+            flatten(tree), tree.ids, slave_x, rho, consts, "collect", k=max(K, 1),
             geometry=(nodes_x, faces),
         )  # fmt: skip
         face, dist = face[:, :K], dist[:, :K]
@@ -333,11 +332,8 @@ def candidate_distances(xp, tree: Tree, slave_x, rho, nodes_x, faces, *, slack, 
         e1 = [x[..., 1, i] - x[..., 0, i] for i in range(3)]
         e2 = [x[..., 2, i] - x[..., 0, i] for i in range(3)]
         dist = triangle_distance(r, e1, e2, jnp)
-    valid = jnp.arange(K, dtype=jnp.int32)[None, :] < count[:, None]
-    counts = {"face_candidates": jnp.max(count, initial=0), "face_scan_steps": steps}
-    dist = jnp.where(valid, dist, jnp.inf).reshape(-1)
-    slave = jnp.repeat(jnp.arange(n), K)
-    return slave, jnp.where(valid, face, 0).reshape(-1), valid.reshape(-1), dist, counts
+    slave, face, valid, counts = _slot_pairs(face, count, steps)
+    return slave, face, valid, jnp.where(valid, dist.reshape(-1), jnp.inf), counts
 
 
 def candidate_counts(tree: Tree, slave_x, rho, *, slack, normal=None, shrink=True):
