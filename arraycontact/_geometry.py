@@ -298,6 +298,9 @@ def closest_point_face(
     Returns xi, feature, local, converged (KKT residual <= tol), iterations used (the first
     iteration after which the KKT conditions held) and the final KKT residual (in natural
     coordinates: the projected gradient scaled by 1/|J|^2)."""
+    if element.name == "quad4" and method == "active_set" and hessian == "exact":
+        if not is_numpy(xp) and _resume is None:  # (the same steps, fused: see its docstring)
+            return _closest_point_bilinear(r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
     A = xp.asarray(element.constraints_a, dtype=xe.dtype)  # [m, 2]
     # b and the constraint indices as rows over the leading axes of xi0 (explicit broadcasts).
     b = lead(xp, xp.asarray(element.constraints_b, dtype=xe.dtype), xi0.ndim)
@@ -534,3 +537,222 @@ def closest_point_face(
         for a, b_ in zip(out, inner):
             a[busy] = b_
     return out
+
+
+def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
+    """`closest_point_face`'s active-set method on bilinear faces (quad4), the same steps
+    written on one array a coordinate: x = a0 + a1 u + a2 v + a3 u v, so the tangents, the
+    Hessian (x_uu = x_vv = 0, x_uv = a3) and the square's four constraints are closed forms.
+    Why: under JAX on a GPU the generic code's small axes (nodes, coordinates, constraints)
+    become reductions and transposes, about 60 kernels an iteration (1.6 ms an iteration at
+    2^20 pairs on an H100, most of the quad4 detection); elementwise arrays fuse into one (83
+    us an iteration; the quad4 detection 24.4 -> 11.3 ms). NumPy keeps the generic code.
+    Constraints j = 0..3: u >= -1, u <= 1, v >= -1, v <= 1 (element.constraints_a), edge
+    EDGE_OF[j] of each."""
+    dt = xe.dtype
+    eps = float(np.finfo(dt).eps)
+    feasible_tol = 64 * eps
+    tiny = float(np.finfo(dt).tiny)
+    inf = np.inf
+    A = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))  # b = -1 for every row
+    EDGE_OF = (3, 1, 0, 2)
+    X = [tuple(xe[..., i, k] for k in range(3)) for i in range(4)]
+    R = tuple(r[..., k] for k in range(3))
+
+    def comb(c):
+        return tuple(0.25 * (c[0] * X[0][k] + c[1] * X[1][k] + c[2] * X[2][k] + c[3] * X[3][k])
+                     for k in range(3))  # fmt: skip
+
+    a0, a1, a2, a3 = (
+        comb((1, 1, 1, 1)),
+        comb((-1, 1, 1, -1)),
+        comb((-1, -1, 1, 1)),
+        comb((1, -1, 1, -1)),
+    )
+
+    def dot(p, q):
+        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+
+    def residual_vec(u, v):  # r - x(u, v)
+        return tuple(R[k] - (a0[k] + a1[k] * u + a2[k] * v + a3[k] * (u * v)) for k in range(3))
+
+    def objective(u, v):
+        d = residual_vec(u, v)
+        return dot(d, d)
+
+    def tangents(u, v):
+        return (tuple(a1[k] + a3[k] * v for k in range(3)),
+                tuple(a2[k] + a3[k] * u for k in range(3)))  # fmt: skip
+
+    def derivatives(u, v):
+        d = residual_vec(u, v)
+        xu, xv = tangents(u, v)
+        g = (-dot(xu, d), -dot(xv, d))
+        gn = (dot(xu, xu), dot(xu, xv), dot(xv, xv))  # symmetric: (00, 01, 11)
+        h = (gn[0], gn[1] - dot(a3, d), gn[2])
+        scale = xp.maximum(gn[0] + gn[2], tiny)
+        return g, h, gn, scale
+
+    def solve(m, rhs):  # _solve2 on a symmetric (00, 01, 11)
+        det = m[0] * m[2] - m[1] * m[1]
+        return (_safe_div(rhs[0] * m[2] - m[1] * rhs[1], det, xp),
+                _safe_div(m[0] * rhs[1] - m[1] * rhs[0], det, xp))  # fmt: skip
+
+    def chebyshev(u, v, p, hq):
+        xu, xv = tangents(u, v)
+        jp = tuple(xu[k] * p[0] + xv[k] * p[1] for k in range(3))
+        m0 = tuple(a3[k] * p[1] for k in range(3))  # X''(e_u, p)
+        m1 = tuple(a3[k] * p[0] for k in range(3))  # X''(e_v, p)
+        xpp = tuple(m0[k] * p[0] + m1[k] * p[1] for k in range(3))
+        c = (2 * dot(m0, jp) + dot(xu, xpp), 2 * dot(m1, jp) + dot(xv, xpp))
+        s = solve(hq, (0.5 * c[0], 0.5 * c[1]))
+        return (p[0] - s[0], p[1] - s[1])
+
+    def first_true(w):  # argmax of the flags: the first set one, 0 if none
+        return xp.where(w[0], 0, xp.where(w[1], 1, xp.where(w[2], 2, xp.where(w[3], 3, 0))))
+
+    def last_true(w):
+        return xp.where(w[3], 3, xp.where(w[2], 2, xp.where(w[1], 1, xp.where(w[0], 0, 3))))
+
+    def pick(j, vals):  # vals[j] for a per-pair index j in 0..3
+        return xp.where(
+            j == 0, vals[0], xp.where(j == 1, vals[1], xp.where(j == 2, vals[2], vals[3]))
+        )
+
+    def argmin4(vals):  # the first smallest
+        j, best = xp.zeros(vals[0].shape, np.int32), vals[0]
+        for i in (1, 2, 3):
+            less = vals[i] < best
+            j, best = xp.where(less, i, j), xp.where(less, vals[i], best)
+        return j, best
+
+    def count(w):
+        return (
+            w[0].astype(np.int32)
+            + w[1].astype(np.int32)
+            + w[2].astype(np.int32)
+            + w[3].astype(np.int32)
+        )
+
+    def multipliers(g, w):
+        nw = count(w)
+        j1, j2 = first_true(w), last_true(w)
+        a1x, a1y = pick(j1, [a[0] for a in A]), pick(j1, [a[1] for a in A])
+        a2x, a2y = pick(j2, [a[0] for a in A]), pick(j2, [a[1] for a in A])
+        lam1 = a1x * g[0] + a1y * g[1]  # |a|^2 = 1
+        det = a1x * a2y - a2x * a1y  # [a1 a2] lam = g (Cramer, as _solve2)
+        b0 = _safe_div(g[0] * a2y - a2x * g[1], det, xp)
+        b1 = _safe_div(a1x * g[1] - a1y * g[0], det, xp)
+        l1 = xp.where(nw == 2, b0, lam1)
+        l2 = xp.where(nw == 2, b1, inf)
+        lam = []
+        for j in range(4):
+            lj = xp.where(j1 == j, l1, inf)
+            lj = xp.where((j2 == j) & (nw == 2), l2, lj)
+            lam.append(xp.where(w[j], lj, inf))
+        return lam
+
+    def residual(g, w, scale):
+        lam = multipliers(g, w)
+        pu, pv = g[0], g[1]
+        for j in range(4):
+            lw = xp.where(w[j], lam[j], 0)
+            pu, pv = pu - lw * A[j][0], pv - lw * A[j][1]
+        kkt = xp.sqrt(pu * pu + pv * pv) / scale
+        neg = xp.minimum(xp.minimum(lam[0], lam[1]), xp.minimum(lam[2], lam[3]))
+        kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / scale, 0))
+        return kkt, lam
+
+    def slack(j, u, v):  # A_j . xi - b_j
+        return A[j][0] * u + A[j][1] * v + 1.0
+
+    def edge_points(u, v):
+        # The exact closest point of each edge (corner e to corner e + 1) as a step from xi.
+        ends = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
+        out = []
+        for e in range(4):
+            s, t_ = ends[e], ends[(e + 1) % 4]
+            x0, x1 = X[e], X[(e + 1) % 4]
+            ue = tuple(x1[k] - x0[k] for k in range(3))
+            p0 = tuple(x0[k] - R[k] for k in range(3))
+            t = xp.clip(_safe_div(-dot(p0, ue), dot(ue, ue), xp), 0, 1)
+            out.append((s[0] + t * (t_[0] - s[0]) - u, s[1] + t * (t_[1] - s[1]) - v))
+        return out
+
+    def better(u, v, p, q):
+        use = objective(u + q[0], v + q[1]) < objective(u + p[0], v + p[1])
+        return (xp.where(use, q[0], p[0]), xp.where(use, q[1], p[1]))
+
+    def step(u, v, g, h, gn, w, p_edges):
+        nw = count(w)
+        j1 = first_true(w)
+        pd = (h[0] > 0) & (h[0] * h[2] - h[1] ** 2 > 0)
+        hq = tuple(xp.where(pd, h[i], gn[i]) for i in range(3))
+        s = solve(hq, g)
+        p0 = (-s[0], -s[1])
+        inside = slack(0, u + p0[0], v + p0[1]) >= 0
+        for j in (1, 2, 3):
+            inside = inside & (slack(j, u + p0[0], v + p0[1]) >= 0)
+        b = better(u, v, p0, chebyshev(u, v, p0, hq))
+        p0 = (xp.where(inside, b[0], p0[0]), xp.where(inside, b[1], p0[1]))
+        e1 = pick(j1, EDGE_OF)
+        p1 = (pick(e1, [p[0] for p in p_edges]), pick(e1, [p[1] for p in p_edges]))
+        return tuple(
+            xp.where(nw == 0, p0[i], xp.where(nw == 1, p1[i], 0 * p0[i])) for i in range(2)
+        )
+
+    def iteration(it, state):
+        u, v, w, done, iters = state
+        g, h, gn, scale = derivatives(u, v)
+        kkt, lam = residual(g, w, scale)
+        newly = (kkt <= tol) & ~done
+        iters = xp.where(newly, it + 1, iters)
+        done = done | newly
+        jmin, lmin = argmin4(lam)
+        drop = (lmin < 0) & ~done
+        w_drop = tuple(w[j] & ~((jmin == j) & drop) for j in range(4))
+        p_edges = edge_points(u, v)
+        p_drop = step(u, v, g, h, gn, w_drop, p_edges)
+        am = (pick(jmin, [a[0] for a in A]), pick(jmin, [a[1] for a in A]))
+        drop = drop & (am[0] * p_drop[0] + am[1] * p_drop[1] >= 0)
+        w = tuple(xp.where(drop, w_drop[j], w[j]) for j in range(4))
+        p_keep = step(u, v, g, h, gn, w, p_edges)
+        p = tuple(xp.where(drop, p_drop[i], p_keep[i]) for i in range(2))
+        # Ratio test against the constraints outside the working set.
+        alpha_j = []
+        for j in range(4):
+            ap = A[j][0] * p[0] + A[j][1] * p[1]
+            a = xp.where((ap < 0) & ~w[j], _safe_div(-slack(j, u, v), ap, xp), inf)
+            alpha_j.append(xp.maximum(a, 0))
+        jb, amin = argmin4(alpha_j)
+        alpha = xp.minimum(amin, 1.0)
+        f0 = objective(u, v)
+        f_tol = 16 * eps * (f0 + scale)
+        for _ in range(4):
+            grow = objective(u + alpha * p[0], v + alpha * p[1]) > f0 + f_tol
+            alpha = xp.where(grow, 0.5 * alpha, alpha)
+        blocked = (amin <= alpha) & ~done
+        nu, nv = u + alpha * p[0], v + alpha * p[1]
+        eb = pick(jb, EDGE_OF)
+        nu = xp.where(blocked, u + pick(eb, [q[0] for q in p_edges]), nu)
+        nv = xp.where(blocked, v + pick(eb, [q[1] for q in p_edges]), nv)
+        w = tuple(
+            w[j] | (blocked & (xp.abs(slack(j, nu, nv)) <= feasible_tol)) | ((jb == j) & blocked)
+            for j in range(4)
+        )
+        return xp.where(done, u, nu), xp.where(done, v, nv), w, done, iters
+
+    u0, v0 = xi0[..., 0], xi0[..., 1]
+    w0 = tuple(xp.abs(slack(j, u0, v0)) <= feasible_tol for j in range(4))
+    state = (u0, v0, w0, xp.zeros(u0.shape, bool), xp.zeros(u0.shape, np.int32))
+    u, v, w, done, iters = fori(xp, iterations, iteration, state, stop=lambda s: xp.all(s[3]))
+    g, _, _, scale = derivatives(u, v)
+    kkt, _ = residual(g, w, scale)
+    converged = kkt <= tol
+    iters = xp.where(done, iters, iterations + 1)
+    nw = count(w)
+    e1, e2 = pick(first_true(w), EDGE_OF), pick(last_true(w), EDGE_OF)
+    corner = xp.where((e1 + 1) % 4 == e2, e2, e1)
+    feature = xp.where(nw == 0, FACE, xp.where(nw == 1, EDGE, VERTEX)).astype(np.int32)
+    local = xp.where(nw == 0, -1, xp.where(nw == 1, e1, corner)).astype(np.int32)
+    return xp.stack([u, v], -1), feature, local, converged, iters, kkt

@@ -1,5 +1,7 @@
 """Property-based invariances: translation, rotation, scaling, permutation of nodes and faces."""
 
+import functools
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -10,13 +12,14 @@ from arraycontact.reference import _closest_on_faces
 
 MASTER, SLAVE = random_scene(7, "tri3", n=5)
 MASTER_Q, SLAVE_Q = random_scene(8, "quad4", n=4)
-BASE = {
-    b: {
-        e: ac.detect(s, m, backend=b)
-        for e, (m, s) in {"tri3": (MASTER, SLAVE), "quad4": (MASTER_Q, SLAVE_Q)}.items()
-    }
-    for b in ("numpy", "jax")
-}
+
+
+@functools.cache
+def _base(backend, element):
+    """The untransformed scene's contacts (computed when first needed, not at collection:
+    every pytest-xdist worker collects this file, one of them runs it)."""
+    m, s = (MASTER, SLAVE) if element == "tri3" else (MASTER_Q, SLAVE_Q)
+    return ac.detect(s, m, backend=backend)
 
 
 def _rotation(seed):
@@ -46,7 +49,7 @@ transforms = st.tuples(
 
 def _check(backend, seed, log_shift, log_scale, element):
     master, slave = (MASTER, SLAVE) if element == "tri3" else (MASTER_Q, SLAVE_Q)
-    base = BASE[backend][element]
+    base = _base(backend, element)
     rng = np.random.default_rng(seed)
     rot = _rotation(seed)
     scale = 10.0**log_scale

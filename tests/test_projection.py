@@ -331,3 +331,44 @@ def test_unfinished_pairs_go_on_gathered_with_the_same_answers():
     ]
     for a, b in zip(whole, zip(*parts)):
         assert np.array_equal(a, np.concatenate(b))
+
+
+def test_bilinear_solver_takes_the_generic_steps():
+    """JAX's quad4 solver (`_closest_point_bilinear`: the active-set method on one array a
+    coordinate, closed-form tangents) against the generic `closest_point_face` (NumPy) on flat,
+    warped and strongly warped quads, collapsed edges and coincident corners, from points near
+    and far: the same features and local ids, the same convergence and xi within the KKT
+    tolerance's reach on proper quads, and the same distance to rounding everywhere (where an
+    edge is collapsed, the parametrisation is singular: a rounding can cost a pair its
+    convergence within the iterations, not its distance)."""
+    import jax
+    import jax.numpy as jnp
+
+    from arraycontact._geometry import _closest_point_bilinear
+
+    e = get_element("quad4")
+    rng = np.random.default_rng(21)
+    P = 6000
+    xe = np.c_[e.nodes, np.zeros(4)][None] + rng.normal(scale=0.3, size=(P, 4, 3))
+    xe[:, :, 2] += rng.choice([0.0, 0.3, 1.5], (P, 1)) * rng.normal(size=(P, 4))
+    xe[0::11, 1] = xe[0::11, 0]  # a collapsed edge
+    xe[1::11, 1:] = xe[1::11, :1]  # every corner at one point
+    r = rng.normal(scale=1.5, size=(P, 3))
+    r[2::11] = xe[2::11, 3]  # on a corner
+    xi0 = start_option_one(e, r, xe)
+    kw = dict(iterations=12, tol=1e-10)
+    want = closest_point_face(e, r, xe, xi0, **kw)
+    with jax.enable_x64(True):
+        got = jax.jit(lambda a, b, c: _closest_point_bilinear(a, b, c, xp=jnp, **kw))(r, xe, xi0)
+        got = [np.asarray(g) for g in got]
+    assert np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2])
+    proper = np.ones(P, bool)
+    proper[0::11] = proper[1::11] = False
+    assert np.array_equal(got[3][proper], want[3][proper]) and want[3][proper].all()
+    assert np.abs(got[0] - want[0])[proper].max() < 1e-8
+
+    def distance(xi):
+        x = np.einsum("pn,pnk->pk", shape_functions(e, xi), xe)
+        return np.linalg.norm(x - r, axis=1)
+
+    np.testing.assert_allclose(distance(got[0]), distance(want[0]), rtol=1e-10, atol=1e-12)
