@@ -539,6 +539,158 @@ def closest_point_face(
     return out
 
 
+def _vdot(p, q):
+    """p . q of vectors held as 3-tuples of arrays (one array a coordinate)."""
+    return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+
+
+def _bilinear_parts(r, xe):
+    """Points r [..., 3] and bilinear faces xe [..., 4, 3] one array a coordinate: R, the
+    corners X[i] and the coefficients a0..a3 of x(u, v) = a0 + a1 u + a2 v + a3 u v."""
+    X = [tuple(xe[..., i, k] for k in range(3)) for i in range(4)]
+    R = tuple(r[..., k] for k in range(3))
+
+    def comb(c):
+        return tuple(0.25 * (c[0] * X[0][k] + c[1] * X[1][k] + c[2] * X[2][k] + c[3] * X[3][k])
+                     for k in range(3))  # fmt: skip
+
+    a = comb((1, 1, 1, 1)), comb((-1, 1, 1, -1)), comb((-1, -1, 1, 1)), comb((1, -1, 1, -1))
+    return R, X, a
+
+
+def _bilinear_d2(R, a, u, v):
+    """|r - x(u, v)|^2."""
+    d = tuple(R[k] - (a[0][k] + a[1][k] * u + a[2][k] * v + a[3][k] * (u * v)) for k in range(3))
+    return _vdot(d, d)
+
+
+def _first_smallest(vals, xp):
+    """The index of the first smallest of a list of arrays, and that value."""
+    j, best = xp.zeros(vals[0].shape, np.int32), vals[0]
+    for i in range(1, len(vals)):
+        less = vals[i] < best
+        j, best = xp.where(less, i, j), xp.where(less, vals[i], best)
+    return j, best
+
+
+def bilinear_best_of_starts(r, xe, *, iterations, tol, xp):
+    """`_projection._best_of_starts` on bilinear faces (quad4) under JAX, one array a
+    coordinate as `_closest_point_bilinear` (for the same reason: the generic code's axes of
+    3 and 4 cost a kernel each, about 0.9 ms a round of 2^20 pairs on an H100): start option
+    I, the lattice start where `surely_convex`'s two bounds do not prove one minimum, the
+    closer of their Newton results (the first on a tie), then the edges' exact closest point
+    where at most as far. The same choices as the generic code."""
+    R, X, a = _bilinear_parts(r, xe)
+    corners = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
+    # Start option I: the closest of the corners and the centre.
+    d = [_vdot(*[tuple(X[i][k] - R[k] for k in range(3))] * 2) for i in range(4)]
+    d.append(_bilinear_d2(R, a, 0.0, 0.0))
+    j, _ = _first_smallest(d, xp)
+    cand = corners + ((0.0, 0.0),)
+    first = [sum(xp.where(j == i, c[q], 0.0) for i, c in enumerate(cand)) for q in range(2)]
+    first = xp.stack(first, -1).astype(xe.dtype)
+    convex = _bilinear_surely_convex(R, X, a, xp)
+    kw = dict(iterations=iterations, tol=tol, xp=xp)
+
+    def one():
+        return _closest_point_bilinear(r, xe, first, **kw)[:4]
+
+    def two():
+        # The lattice start (arraycontact._projection._lattice_start: the closest of a 5 x 5
+        # lattice), both starts in one batch, the lattice's result only where not convex.
+        s = np.linspace(-0.8, 0.8, 5)
+        lat = [(u, v) for u in s for v in s]
+        j, _ = _first_smallest([_bilinear_d2(R, a, u, v) for u, v in lat], xp)
+        start = [sum(xp.where(j == i, c[q], 0.0) for i, c in enumerate(lat)) for q in range(2)]
+        start = xp.stack(start, -1).astype(xe.dtype)
+        both = _closest_point_bilinear(
+            xp.concatenate([r, r]), xp.concatenate([xe, xe]), xp.concatenate([first, start]), **kw
+        )
+        n = r.shape[0]
+        d0 = _bilinear_d2(R, a, both[0][:n, 0], both[0][:n, 1])
+        d1 = _bilinear_d2(R, a, both[0][n:, 0], both[0][n:, 1])
+        take = ~convex & (d1 < d0)
+        return tuple(
+            xp.where(take.reshape(take.shape + (1,) * (o.ndim - 1)), o[n:], o[:n]) for o in both[:4]
+        )
+
+    import jax
+
+    xi, feature, local, converged = jax.lax.cond(xp.all(convex), one, two)
+    # The edges (closest_point_edges: the first smallest of the four exact projections).
+    ts, ds = [], []
+    for e in range(4):
+        x0, x1 = X[e], X[(e + 1) % 4]
+        ue = tuple(x1[k] - x0[k] for k in range(3))
+        p0 = tuple(x0[k] - R[k] for k in range(3))
+        t = xp.clip(_safe_div(-_vdot(p0, ue), _vdot(ue, ue), xp), 0, 1)
+        q = tuple(p0[k] + t * ue[k] for k in range(3))
+        ts.append(t)
+        ds.append(_vdot(q, q))
+    e, e_d = _first_smallest(ds, xp)
+    t = sum(xp.where(e == i, ts[i], 0.0) for i in range(4))
+    e_xi = []
+    for q in range(2):
+        s0 = sum(xp.where(e == i, corners[i][q], 0.0) for i in range(4))
+        s1 = sum(xp.where(e == i, corners[(i + 1) % 4][q], 0.0) for i in range(4))
+        e_xi.append(s0 + t * (s1 - s0))
+    e_f = xp.where((t <= 0) | (t >= 1), VERTEX, EDGE).astype(np.int32)
+    e_loc = xp.where(t >= 1, (e + 1) % 4, e).astype(np.int32)
+    use = e_d <= _bilinear_d2(R, a, xi[..., 0], xi[..., 1])
+    return (
+        xp.where(use[..., None], xp.stack(e_xi, -1).astype(xe.dtype), xi),
+        xp.where(use, e_f, feature),
+        xp.where(use, e_loc, local),
+        converged | use,
+    )
+
+
+def _bilinear_surely_convex(R, X, a, xp):
+    """`surely_convex` (its docstring says why) one array a coordinate."""
+    _, a1, a2, a3 = a
+
+    def cross(p, q):
+        return (p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0])
+
+    def norm(v):
+        return xp.sqrt(_vdot(v, v))
+
+    def sq(p, q, s):  # |p + s q|^2
+        return _vdot(*[tuple(p[k] + s * q[k] for k in range(3))] * 2)
+
+    low = norm(cross(a1, a2)) - norm(cross(a1, a3)) - norm(cross(a3, a2))
+    trace = xp.maximum(sq(a1, a3, 1), sq(a1, a3, -1)) + xp.maximum(sq(a2, a3, 1), sq(a2, a3, -1))
+    c = [xp.abs(_vdot(tuple(X[i][k] - R[k] for k in range(3)), a3)) for i in range(4)]
+    c = xp.maximum(xp.maximum(c[0], c[1]), xp.maximum(c[2], c[3]))
+    cheap = (low > 0) & (low * low > 1.01 * trace * c)
+    b0 = tuple(a[0][k] - R[k] for k in range(3))
+    g = (-1.0, 0.0, 1.0)
+    f, size = [], 0
+    for s in g:
+        row = []
+        for t in g:
+            xs = tuple(a1[k] + t * a3[k] for k in range(3))
+            xt = tuple(a2[k] + s * a3[k] for k in range(3))
+            cr = cross(xs, xt)
+            nn = _vdot(cr, cr)
+            b = _vdot(xs, xt)
+            cc = _vdot(tuple(b0[k] + s * a1[k] + t * a2[k] + (s * t) * a3[k] for k in range(3)), a3)
+            row.append(nn - 2 * b * cc - cc * cc)
+            size = xp.maximum(size, nn + 2 * xp.abs(b * cc) + cc * cc)
+        f.append(row)
+
+    def mid(f0, fm, f1):
+        return 2 * fm - 0.5 * (f0 + f1)
+
+    cm = [mid(*row) for row in f]
+    coefs = [f[0][0], f[0][2], f[2][0], f[2][2], cm[0], cm[2], mid(*cm)]
+    coefs += [mid(f[0][0], f[1][0], f[2][0]), mid(f[0][2], f[1][2], f[2][2])]
+    least = coefs[0]
+    for v in coefs[1:]:
+        least = xp.minimum(least, v)
+    return cheap | (least > 0.01 * size)
+
+
 def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     """`closest_point_face`'s active-set method on bilinear faces (quad4), the same steps
     written on one array a coordinate: x = a0 + a1 u + a2 v + a3 u v, so the tangents, the
@@ -556,22 +708,8 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     inf = np.inf
     A = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))  # b = -1 for every row
     EDGE_OF = (3, 1, 0, 2)
-    X = [tuple(xe[..., i, k] for k in range(3)) for i in range(4)]
-    R = tuple(r[..., k] for k in range(3))
-
-    def comb(c):
-        return tuple(0.25 * (c[0] * X[0][k] + c[1] * X[1][k] + c[2] * X[2][k] + c[3] * X[3][k])
-                     for k in range(3))  # fmt: skip
-
-    a0, a1, a2, a3 = (
-        comb((1, 1, 1, 1)),
-        comb((-1, 1, 1, -1)),
-        comb((-1, -1, 1, 1)),
-        comb((1, -1, 1, -1)),
-    )
-
-    def dot(p, q):
-        return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+    R, X, (a0, a1, a2, a3) = _bilinear_parts(r, xe)
+    dot = _vdot
 
     def residual_vec(u, v):  # r - x(u, v)
         return tuple(R[k] - (a0[k] + a1[k] * u + a2[k] * v + a3[k] * (u * v)) for k in range(3))
@@ -618,13 +756,6 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
         return xp.where(
             j == 0, vals[0], xp.where(j == 1, vals[1], xp.where(j == 2, vals[2], vals[3]))
         )
-
-    def argmin4(vals):  # the first smallest
-        j, best = xp.zeros(vals[0].shape, np.int32), vals[0]
-        for i in (1, 2, 3):
-            less = vals[i] < best
-            j, best = xp.where(less, i, j), xp.where(less, vals[i], best)
-        return j, best
 
     def count(w):
         return (
@@ -708,7 +839,7 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
         newly = (kkt <= tol) & ~done
         iters = xp.where(newly, it + 1, iters)
         done = done | newly
-        jmin, lmin = argmin4(lam)
+        jmin, lmin = _first_smallest(lam, xp)
         drop = (lmin < 0) & ~done
         w_drop = tuple(w[j] & ~((jmin == j) & drop) for j in range(4))
         p_edges = edge_points(u, v)
@@ -724,7 +855,7 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
             ap = A[j][0] * p[0] + A[j][1] * p[1]
             a = xp.where((ap < 0) & ~w[j], _safe_div(-slack(j, u, v), ap, xp), inf)
             alpha_j.append(xp.maximum(a, 0))
-        jb, amin = argmin4(alpha_j)
+        jb, amin = _first_smallest(alpha_j, xp)
         alpha = xp.minimum(amin, 1.0)
         f0 = objective(u, v)
         f_tol = 16 * eps * (f0 + scale)

@@ -11,6 +11,7 @@ from arraycontact._geometry import (
     closest_point_triangle,
     start_option_one,
     start_option_two,
+    surely_convex,
     triangle_distance,
 )
 from arraycontact._projection import _best_of_starts, distance_bounds, project, project_kept
@@ -333,28 +334,69 @@ def test_unfinished_pairs_go_on_gathered_with_the_same_answers():
         assert np.array_equal(a, np.concatenate(b))
 
 
+def _quads(P, seed):
+    """Flat, warped and strongly warped quads, collapsed edges (rows 0::11) and coincident
+    corners (1::11), and points near and far, some on a corner (2::11)."""
+    e = get_element("quad4")
+    rng = np.random.default_rng(seed)
+    xe = np.c_[e.nodes, np.zeros(4)][None] + rng.normal(scale=0.3, size=(P, 4, 3))
+    xe[:, :, 2] += rng.choice([0.0, 0.3, 1.5], (P, 1)) * rng.normal(size=(P, 4))
+    xe[0::11, 1] = xe[0::11, 0]
+    xe[1::11, 1:] = xe[1::11, :1]
+    r = rng.normal(scale=1.5, size=(P, 3))
+    r[2::11] = xe[2::11, 3]
+    proper = np.ones(P, bool)
+    proper[0::11] = proper[1::11] = False
+    return e, xe, r, proper
+
+
+def _quad_distance(e, xe, r, xi):
+    x = np.einsum("pn,pnk->pk", shape_functions(e, xi), xe)
+    return np.linalg.norm(x - r, axis=1)
+
+
+def test_bilinear_best_of_starts_makes_the_generic_choices():
+    """JAX's quad4 `_best_of_starts` (`bilinear_best_of_starts`: the starts, the convexity
+    bounds, the lattice start and the edges on one array a coordinate) against the generic
+    code in NumPy: the same features, local ids and convergence on proper quads, xi within the
+    KKT tolerance's reach, the same distance everywhere; warped quads take the lattice start
+    (both branches of its cond run)."""
+    import jax
+    import jax.numpy as jnp
+
+    e, xe, r, proper = _quads(6000, 22)
+    kw = dict(iterations=12, tol=1e-10)
+    want = _best_of_starts(np, e, r, xe, **kw)
+    assert not surely_convex(e, r, xe).all()  # the lattice start's branch
+    with jax.enable_x64(True):
+        f = jax.jit(lambda a, b: _best_of_starts(jnp, e, a, b, **kw))
+        got = [np.asarray(g) for g in f(r, xe)]
+        flat = [np.asarray(g) for g in f(r[proper][:100], xe[proper][:100] * [1, 1, 0])]
+    assert np.array_equal(got[1][proper], want[1][proper])
+    assert np.array_equal(got[2][proper], want[2][proper])
+    assert np.array_equal(got[3][proper], want[3][proper])
+    assert np.abs(got[0] - want[0])[proper].max() < 1e-8
+    np.testing.assert_allclose(
+        _quad_distance(e, xe, r, got[0]), _quad_distance(e, xe, r, want[0]), rtol=1e-10, atol=1e-12
+    )
+    # Flat quads: every pair proven convex (the one-start branch)
+    flat_want = _best_of_starts(np, e, r[proper][:100], xe[proper][:100] * [1, 1, 0], **kw)
+    assert np.array_equal(flat[1], flat_want[1]) and np.abs(flat[0] - flat_want[0]).max() < 1e-8
+
+
 def test_bilinear_solver_takes_the_generic_steps():
     """JAX's quad4 solver (`_closest_point_bilinear`: the active-set method on one array a
-    coordinate, closed-form tangents) against the generic `closest_point_face` (NumPy) on flat,
-    warped and strongly warped quads, collapsed edges and coincident corners, from points near
-    and far: the same features and local ids, the same convergence and xi within the KKT
-    tolerance's reach on proper quads, and the same distance to rounding everywhere (where an
-    edge is collapsed, the parametrisation is singular: a rounding can cost a pair its
+    coordinate, closed-form tangents) against the generic `closest_point_face` (NumPy) from
+    start option I: the same features and local ids, the same convergence and xi within the
+    KKT tolerance's reach on proper quads, and the same distance to rounding everywhere (where
+    an edge is collapsed, the parametrisation is singular: a rounding can cost a pair its
     convergence within the iterations, not its distance)."""
     import jax
     import jax.numpy as jnp
 
     from arraycontact._geometry import _closest_point_bilinear
 
-    e = get_element("quad4")
-    rng = np.random.default_rng(21)
-    P = 6000
-    xe = np.c_[e.nodes, np.zeros(4)][None] + rng.normal(scale=0.3, size=(P, 4, 3))
-    xe[:, :, 2] += rng.choice([0.0, 0.3, 1.5], (P, 1)) * rng.normal(size=(P, 4))
-    xe[0::11, 1] = xe[0::11, 0]  # a collapsed edge
-    xe[1::11, 1:] = xe[1::11, :1]  # every corner at one point
-    r = rng.normal(scale=1.5, size=(P, 3))
-    r[2::11] = xe[2::11, 3]  # on a corner
+    e, xe, r, proper = _quads(6000, 21)
     xi0 = start_option_one(e, r, xe)
     kw = dict(iterations=12, tol=1e-10)
     want = closest_point_face(e, r, xe, xi0, **kw)
@@ -362,13 +404,8 @@ def test_bilinear_solver_takes_the_generic_steps():
         got = jax.jit(lambda a, b, c: _closest_point_bilinear(a, b, c, xp=jnp, **kw))(r, xe, xi0)
         got = [np.asarray(g) for g in got]
     assert np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2])
-    proper = np.ones(P, bool)
-    proper[0::11] = proper[1::11] = False
     assert np.array_equal(got[3][proper], want[3][proper]) and want[3][proper].all()
     assert np.abs(got[0] - want[0])[proper].max() < 1e-8
-
-    def distance(xi):
-        x = np.einsum("pn,pnk->pk", shape_functions(e, xi), xe)
-        return np.linalg.norm(x - r, axis=1)
-
-    np.testing.assert_allclose(distance(got[0]), distance(want[0]), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(
+        _quad_distance(e, xe, r, got[0]), _quad_distance(e, xe, r, want[0]), rtol=1e-10, atol=1e-12
+    )
