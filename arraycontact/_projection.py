@@ -27,6 +27,7 @@ from ._geometry import (
     start_option_one,
     start_option_two,
     surely_convex,
+    triangle_distance,
 )
 from ._xp import compact, einsum, is_numpy, lead, norm
 
@@ -110,14 +111,13 @@ def distance_bounds(xp, element, slave_x, nodes_x, faces, slave, face):
     point of the face) above."""
     _, r, xe = _pair_frame(slave_x, nodes_x, faces, slave, face)
     if element.name == "quad4":
-        zero = xp.zeros_like(r)
-        d = []
-        for b, c in ((1, 2), (2, 3)):
-            xi, _, _ = closest_point_triangle(r, zero, xe[:, b], xe[:, c], xp)
-            p = xi[:, 0:1] * xe[:, b] + xi[:, 1:2] * xe[:, c]
-            d.append(norm(xp, r - p))
-        d = xp.minimum(d[0], d[1])
-        twist = 0.25 * norm(xp, xe[:, 2] - xe[:, 1] - xe[:, 3])
+        # One array a coordinate (triangle_distance): the [P, 3] layout's axes of 3 cost a
+        # JAX kernel each (0.9 ms at 2^20 pairs on an H100).
+        R = tuple(r[:, k] for k in range(3))
+        X = [tuple(xe[:, i, k] for k in range(3)) for i in (1, 2, 3)]
+        d = xp.minimum(triangle_distance(R, X[0], X[1], xp), triangle_distance(R, X[1], X[2], xp))
+        t = [X[1][k] - X[0][k] - X[2][k] for k in range(3)]
+        twist = 0.25 * xp.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
         return d - twist, d + twist
     c = xp.mean(xe, 1)
     radius = element.lebesgue * xp.max(norm(xp, xe - c[:, None]), -1)

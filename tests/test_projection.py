@@ -258,7 +258,10 @@ def test_quad4_bounds_are_exact_on_a_flat_parallelogram():
 @pytest.mark.parametrize("size", [64, 8])
 def test_project_kept_equals_project_on_the_kept_pairs(size):
     """JAX: the kept pairs gathered into `size` rows, once (room for them) or several times
-    (size 8): both give `project`'s answers on the kept pairs, as NumPy's gather does."""
+    (size 8): both give JAX `project`'s answers on the kept pairs, as NumPy's gather gives
+    NumPy's: the closest point on every kept pair, xi, feature and local id on those whose
+    four nodes differ (random node ids make degenerate quads too, with coincident corners
+    and edges, whose xi and edge ids are ambiguous: a rounding names another)."""
     import jax
     import jax.numpy as jnp
 
@@ -272,11 +275,13 @@ def test_project_kept_equals_project_on_the_kept_pairs(size):
     assert 8 < keep.sum() <= 64
     kw = dict(iterations=12, tol=1e-10)
     ref = project(np, e, x, nodes, faces, slave, face, **kw)
+    distinct = (np.diff(np.sort(faces, 1), axis=1) > 0).all(1)[face]
     with jax.enable_x64(True):
         args = [jnp.asarray(a) for a in (x, nodes, faces, slave, face, keep)]
         got = project_kept(jnp, e, *args, size, **kw)
-    for r, g in zip(ref, got):
-        assert np.allclose(np.asarray(g)[keep], r[keep], atol=1e-9)
+    for k, (r, g) in enumerate(zip(ref, got)):
+        rows = keep if k in (1, 2) else keep & distinct  # (point and slave - point)
+        assert np.allclose(np.asarray(g)[rows], r[rows], atol=1e-9)
     got = project_kept(np, e, x, nodes, faces, slave, face, keep, None, **kw)
     for r, g in zip(ref, got):
         assert np.allclose(g[keep], r[keep], atol=1e-12)
