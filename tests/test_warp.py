@@ -735,6 +735,7 @@ def test_device_topology_equals_the_surfaces(name):
         topology,
     )
 
+    from arraycontact._grid import morton_keys
     from arraycontact._grid import morton_order as host_morton
     from arraycontact._select import boundary_topology
 
@@ -777,13 +778,16 @@ def test_device_topology_equals_the_surfaces(name):
     for a, b in zip(fresh.node_faces + fresh.node_box, m.node_faces + m.node_box):
         np.testing.assert_array_equal(a, b)
     assert fresh.closed == m.closed
-    # Morton orders on the device equal arraycontact._grid.morton_order's.
+    # Morton orders on the device equal arraycontact._grid.morton_order's, and their sorted
+    # keys morton_keys' (the JAX plan groups its trees from them).
     lo, extent = m.node_box[0] - 0.3, 1.7 * float((m.node_box[1] - m.node_box[0]).max())
-    got = morton_order(t.points, t.nodes, t.n_nodes, lo, extent, DEVICE)
+    got, keys = morton_order(t.points, t.nodes, t.n_nodes, lo, extent, DEVICE, keys_too=True)
     np.testing.assert_array_equal(got, host_morton(m.points[m.nodes], lo, extent))
+    np.testing.assert_array_equal(keys, morton_keys(m.points[m.nodes[got]], lo, extent))
     ids = iota(m.n_faces, m.n_faces, DEVICE)
-    got = morton_order(t.centres, ids, m.n_faces, lo, extent, DEVICE)
+    got, keys = morton_order(t.centres, ids, m.n_faces, lo, extent, DEVICE, keys_too=True)
     np.testing.assert_array_equal(got, host_morton(m.face_bounds[0], lo, extent))
+    np.testing.assert_array_equal(keys, morton_keys(m.face_bounds[0][got], lo, extent))
     from arraycontact_jax._gradients import MAX_VALENCE, padded_node_faces
 
     np.testing.assert_array_equal(

@@ -568,9 +568,10 @@ def _morton64(
     order[t] = t
 
 
-def morton_order(x, ids, n: int, lo, extent: float, device):
+def morton_order(x, ids, n: int, lo, extent: float, device, keys_too=False):
     """arraycontact._grid.morton_order of the rows x[ids[:n]] (x: float64 on the device) on
-    the device: positions into ids, as a host array (one stable radix sort)."""
+    the device: positions into ids, as a host array (one stable radix sort); keys_too: also
+    their sorted keys (arraycontact._grid.morton_keys'), as a host array."""
     keys = wp.empty(2 * max(n, 1), dtype=wp.int64, device=device)
     order = wp.empty(2 * max(n, 1), dtype=int, device=device)
     scale = (1 << 21) / max(float(extent), np.finfo(float).tiny)
@@ -579,6 +580,8 @@ def morton_order(x, ids, n: int, lo, extent: float, device):
         _morton64, n, inputs=[x, ids, lo, wp.float64(scale)], outputs=[keys, order], device=device
     )
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=63)
+    if keys_too:
+        return order[:n].numpy(), keys[:n].numpy()
     return order[:n].numpy()
 
 
