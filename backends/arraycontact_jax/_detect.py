@@ -628,7 +628,6 @@ def local_detect(p: Plan, topo, slave_points, master_points):
         feature,
         out["local"],
         out["xi"],
-        out["gap"],
         sc.tie,
         vertex,
     )
