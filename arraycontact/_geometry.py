@@ -206,44 +206,7 @@ def surely_convex(element, r, xe, xp=np):
     at most their largest values at a corner (c is bilinear). 1% spare covers the rounding.
     Where that fails, det H > 0 over the square by its Bernstein coefficients (see the Warp
     kernels' twin, arraycontact_warp._geometry.surely_convex, for both bounds)."""
-    z = np.asarray(element.corners, np.float64)
-    w = [np.full(4, 0.25), 0.25 * z[:, 0], 0.25 * z[:, 1], 0.25 * z[:, 0] * z[:, 1]]
-    _, a1, a2, a3 = (einsum(xp, "c,...ck->...k", xp.asarray(v, xe.dtype), xe) for v in w)
-
-    def norm(v):
-        return xp.sqrt(xp.sum(v * v, -1))
-
-    low = norm(xp.cross(a1, a2)) - norm(xp.cross(a1, a3)) - norm(xp.cross(a3, a2))
-    trace = xp.maximum(xp.sum((a1 + a3) ** 2, -1), xp.sum((a1 - a3) ** 2, -1))
-    trace = trace + xp.maximum(xp.sum((a2 + a3) ** 2, -1), xp.sum((a2 - a3) ** 2, -1))
-    c = xp.max(xp.abs(einsum(xp, "...ck,...k->...c", xe - r[..., None, :], a3)), -1)
-    cheap = (low > 0) & (low * low > 1.01 * trace * c)
-    # det H = |x_xi x x_eta|^2 - 2 (x_xi . x_eta) c - c^2, of degree 2 in xi and in eta:
-    # positive over the square where its Bernstein coefficients are (values on a 3 x 3 grid).
-    b0 = xp.mean(xe, -2) - r
-    g = (-1.0, 0.0, 1.0)
-    f, size = [], 0
-    for s in g:
-        row = []
-        for t in g:
-            xs, xt = a1 + t * a3, a2 + s * a3
-            nn = xp.sum(xp.cross(xs, xt) ** 2, -1)
-            b = xp.sum(xs * xt, -1)
-            cc = xp.sum((b0 + s * a1 + t * a2 + (s * t) * a3) * a3, -1)
-            row.append(nn - 2 * b * cc - cc * cc)
-            size = xp.maximum(size, nn + 2 * xp.abs(b * cc) + cc * cc)
-        f.append(row)
-
-    def mid(f0, fm, f1):
-        return 2 * fm - 0.5 * (f0 + f1)
-
-    c = [mid(*row) for row in f]
-    coefs = [f[0][0], f[0][2], f[2][0], f[2][2], c[0], c[2], mid(*c)]
-    coefs += [mid(f[0][0], f[1][0], f[2][0]), mid(f[0][2], f[1][2], f[2][2])]
-    least = coefs[0]
-    for v in coefs[1:]:
-        least = xp.minimum(least, v)
-    return cheap | (least > 0.01 * size)
+    return _bilinear_surely_convex(*_bilinear_parts(r, xe), xp)
 
 
 def start_option_one(element, r, xe, xp=np):
@@ -558,6 +521,25 @@ def _bilinear_parts(r, xe):
     return R, X, a
 
 
+#: quad4's corners in natural coordinates; edge e runs from corner e to corner e + 1.
+_SQUARE = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
+
+
+def _bilinear_edges(R, X, xp):
+    """Each edge's exact closest point to r (`closest_point_edge` on a straight edge): its
+    parameter t from corner e (0) to corner e + 1 (1), and the squared distance, per edge."""
+    ts, ds = [], []
+    for e in range(4):
+        x0, x1 = X[e], X[(e + 1) % 4]
+        ue = tuple(x1[k] - x0[k] for k in range(3))
+        p0 = tuple(x0[k] - R[k] for k in range(3))
+        t = xp.clip(_safe_div(-_vdot(p0, ue), _vdot(ue, ue), xp), 0, 1)
+        q = tuple(p0[k] + t * ue[k] for k in range(3))
+        ts.append(t)
+        ds.append(_vdot(q, q))
+    return ts, ds
+
+
 def _bilinear_d2(R, a, u, v):
     """|r - x(u, v)|^2."""
     d = tuple(R[k] - (a[0][k] + a[1][k] * u + a[2][k] * v + a[3][k] * (u * v)) for k in range(3))
@@ -581,7 +563,7 @@ def bilinear_best_of_starts(r, xe, *, iterations, tol, xp):
     closer of their Newton results (the first on a tie), then the edges' exact closest point
     where at most as far. The same choices as the generic code."""
     R, X, a = _bilinear_parts(r, xe)
-    corners = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
+    corners = _SQUARE
     # Start option I: the closest of the corners and the centre.
     d = [_vdot(*[tuple(X[i][k] - R[k] for k in range(3))] * 2) for i in range(4)]
     d.append(_bilinear_d2(R, a, 0.0, 0.0))
@@ -623,15 +605,7 @@ def bilinear_best_of_starts(r, xe, *, iterations, tol, xp):
 
     xi, feature, local, converged = jax.lax.cond(xp.all(convex), one, two)
     # The edges (closest_point_edges: the first smallest of the four exact projections).
-    ts, ds = [], []
-    for e in range(4):
-        x0, x1 = X[e], X[(e + 1) % 4]
-        ue = tuple(x1[k] - x0[k] for k in range(3))
-        p0 = tuple(x0[k] - R[k] for k in range(3))
-        t = xp.clip(_safe_div(-_vdot(p0, ue), _vdot(ue, ue), xp), 0, 1)
-        q = tuple(p0[k] + t * ue[k] for k in range(3))
-        ts.append(t)
-        ds.append(_vdot(q, q))
+    ts, ds = _bilinear_edges(R, X, xp)
     e, e_d = _first_smallest(ds, xp)
     t = sum(xp.where(e == i, ts[i], 0.0) for i in range(4))
     e_xi = []
@@ -651,7 +625,8 @@ def bilinear_best_of_starts(r, xe, *, iterations, tol, xp):
 
 
 def _bilinear_surely_convex(R, X, a, xp):
-    """`surely_convex` (its docstring says why) one array a coordinate."""
+    """`surely_convex` (its docstring says why), one array a coordinate: the NumPy code and
+    the JAX quad4 projection (`bilinear_best_of_starts`) both run it."""
     _, a1, a2, a3 = a
 
     def cross(p, q):
@@ -802,16 +777,13 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     def slack(j, u, v):  # A_j . xi - b_j
         return A[j][0] * u + A[j][1] * v + 1.0
 
+    edge_t, _ = _bilinear_edges(R, X, xp)  # (independent of the iterate: once)
+
     def edge_points(u, v):
         # The exact closest point of each edge (corner e to corner e + 1) as a step from xi.
-        ends = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
         out = []
-        for e in range(4):
-            s, t_ = ends[e], ends[(e + 1) % 4]
-            x0, x1 = X[e], X[(e + 1) % 4]
-            ue = tuple(x1[k] - x0[k] for k in range(3))
-            p0 = tuple(x0[k] - R[k] for k in range(3))
-            t = xp.clip(_safe_div(-dot(p0, ue), dot(ue, ue), xp), 0, 1)
+        for e, t in enumerate(edge_t):
+            s, t_ = _SQUARE[e], _SQUARE[(e + 1) % 4]
             out.append((s[0] + t * (t_[0] - s[0]) - u, s[1] + t * (t_[1] - s[1]) - v))
         return out
 

@@ -329,7 +329,7 @@ def plan(
     node_ids = master.nodes[node_order]
     node_groups, face_groups = consecutive(len(node_ids)), consecutive(len(face_ids))
     if search == "jax":  # the trees' groups, from the keys in the orders found
-        if node_keys is None:  # (the device's keys are these, sorted: 0.3 s at 2^20 here)
+        if node_keys is None:  # (the device sorted these already: 0.31 s at 2^20, 2-core CPU)
             node_keys = morton_keys(master.points[node_ids], lo, extent)
             face_keys = morton_keys(centres[face_ids], lo, extent)
         node_groups, face_groups = grouping(node_keys), grouping(face_keys)
