@@ -731,9 +731,9 @@ class SweptSetup:
     slave_rows: np.ndarray  # slaves whose segment meets the faces' capture boxes' box
     face_ids: np.ndarray  # faces whose capture box meets the slaves' segments' box, Morton
     origin: np.ndarray  # local frame origin (float64)
-    lo: np.ndarray  # capture boxes of face_ids [m, 3] (local frame, grown by pad)
+    lo: np.ndarray  # capture boxes of face_ids [m, 3] (local frame, grown: capture_pads)
     hi: np.ndarray
-    pad: float  # the contact tolerance and rounding the boxes are grown by (local frame)
+    rel: float  # a segment grows by rel times its length (capture_pads)
     groups: tuple = ()  # the face tree's slots per level (_grid.grouping)
 
 
@@ -750,14 +750,17 @@ def swept_setup(x0, x1, master: Surface, m1, dtype) -> SweptSetup | None:
     lo, hi = capture_boxes(e, master.points[master.faces], m1[master.faces])
     s_lo, s_hi = np.minimum(x0, x1), np.maximum(x0, x1)
     scale = max(np.abs(np.r_[lo, hi, s_lo, s_hi]).max(), np.finfo(float).tiny)
-    eps = float(np.finfo(dtype).eps)
-    # A pair is a contact when the node comes within SPACE_RTOL * scale of the face (plus
-    # rounding): the boxes are grown by that, so no such pair is left out.
-    pad = 4 * (_sweep.SPACE_RTOL[np.dtype(dtype)] + 4 * _sweep.ROUND * eps) * scale
+    # A pair is a contact when the node comes within SPACE_RTOL of the face (relative to the
+    # pair's size, plus rounding): the boxes and segments are grown by that, so no such pair
+    # is left out.
+    rel, rounding = _sweep.capture_pads(dtype)
+    lo, hi = _sweep.grown_boxes(lo, hi, rel, rounding * scale)
+    grow = rel * np.linalg.norm(x1 - x0, axis=-1, keepdims=True)
+    s_lo, s_hi = s_lo - grow, s_hi + grow
     if len(x0) == 0 or len(lo) == 0:
         return None
-    box_lo = np.maximum(s_lo.min(0), lo.min(0)) - pad
-    box_hi = np.minimum(s_hi.max(0), hi.max(0)) + pad
+    box_lo = np.maximum(s_lo.min(0), lo.min(0))
+    box_hi = np.minimum(s_hi.max(0), hi.max(0))
     if (box_lo > box_hi).any():
         return None
     rows = np.nonzero(((s_lo <= box_hi) & (s_hi >= box_lo)).all(1))[0]
@@ -767,8 +770,7 @@ def swept_setup(x0, x1, master: Surface, m1, dtype) -> SweptSetup | None:
     origin = box_lo if np.dtype(dtype) == np.float32 else np.zeros(3)
     extent = float((box_hi - box_lo).max())
     fids, groups = ordered(fids, 0.5 * (lo[fids] + hi[fids]), box_lo, extent)
-    lo, hi = lo[fids] - origin - pad, hi[fids] - origin + pad
-    return SweptSetup(rows, fids, origin, lo, hi, pad, groups)
+    return SweptSetup(rows, fids, origin, lo[fids] - origin, hi[fids] - origin, rel, groups)
 
 
 def _swept_inputs(slave_x0, slave_x1, master, master_x1):
@@ -806,7 +808,8 @@ def _swept_numpy(x0, x1, master, m1, su: SweptSetup, dtype, chunk=1 << 13):
     lo, hi = su.lo.astype(dtype), su.hi.astype(dtype)
     tree = _grid.build(np, su.face_ids, lo, hi, lo, groups=su.groups)
     lap("grid")
-    mid, half = 0.5 * (p0 + p1), 0.5 * norm(np, p1 - p0)
+    # The ball around the segment grown by rel times its length.
+    mid, half = 0.5 * (p0 + p1), (0.5 + su.rel) * norm(np, p1 - p0)
     slaves, fids = [], []
     for i in range(0, len(p0), chunk):
         s, entry, _, _ = _grid.query(

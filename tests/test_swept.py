@@ -450,3 +450,62 @@ def test_jax_search_gathers_the_busy_pairs(monkeypatch, element):
     assert np.array_equal(c.hit, n.hit) and np.array_equal(c.face, n.face)
     np.testing.assert_allclose(c.toi[c.hit], n.toi[n.hit], rtol=0, atol=1e-12)
     assert_swept_matches(c, st)
+
+
+@pytest.mark.parametrize("element", ["tri3", "quad4"])
+def test_capture_pads_cover_every_contact_the_search_reports(element):
+    """The capture test's growth, relative to each face's and path's own size
+    (`capture_pads`), holds every pair whose certified search reports a contact, near misses
+    within the search's tolerance included: float32 flat faces sliding in their plane and
+    nodes sliding parallel to them at heights around the tolerance, faces from 1e-2 to 1e2.
+    Each pair is a scene of its own (its frame: its largest coordinate). Without the relative
+    growth the near misses would be left out: the bound is what keeps them."""
+    from arraycontact import _sweep
+    from arraycontact._detect import capture_boxes
+    from arraycontact._elements import ELEMENTS
+
+    e = ELEMENTS[element]
+    rng = np.random.default_rng(3)
+    n = 4000
+    size = 10.0 ** rng.uniform(-2, 2, n)
+    ref = e.nodes if e.nodes.shape[1] == 3 else np.c_[e.nodes, np.zeros(len(e.nodes))]
+    ref = ref[: e.n_corners] * (0.5 if element == "quad4" else 1.0)  # edges of 1
+    turn = rng.uniform(0, 2 * np.pi, n)
+    c, s = np.cos(turn), np.sin(turn)
+    rot = np.zeros((n, 3, 3))
+    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s, s, c, 1
+    centre = rng.normal(0, 1, (n, 3)) * size[:, None]
+    xe0 = centre[:, None] + size[:, None, None] * (ref @ rot.transpose(0, 2, 1))
+    slide = np.c_[rng.normal(0, 1, (n, 2)), np.zeros(n)] * size[:, None]
+    xe1 = xe0 + slide[:, None]
+    # Nodes crossing above the face, parallel to it, at heights of 0.1 to 10 times the
+    # contact tolerance (SPACE_RTOL of the pair's scale), or below.
+    scale = np.maximum(np.abs(xe0 - xe0[:, :1]).max((1, 2)), 3 * size)
+    h = _sweep.SPACE_RTOL[np.dtype(np.float32)] * scale * 10.0 ** rng.uniform(-1, 1, n)
+    h *= rng.choice([-1, 1], n)
+    mid = xe0.mean(1) + 0.5 * slide + np.c_[np.zeros((n, 2)), h]
+    path = np.c_[rng.normal(0, 1, (n, 2)), np.zeros(n)] * size[:, None]
+    p0, p1 = mid - path, mid + path
+    f32 = [a.astype(np.float32) for a in (xe0, xe1, p0, p1)]
+    toi = _sweep.roots(e, *f32)[0]
+    hit = np.isfinite(toi)
+    xe0, xe1, p0, p1 = (a.astype(np.float64) for a in f32)  # the coordinates it saw
+
+    def candidates(rel, rounding):
+        lo, hi = _sweep.grown_boxes(*capture_boxes(e, xe0, xe1), rel, rounding)
+        grow = rel * np.linalg.norm(p1 - p0, axis=1)[:, None]
+        lo, hi = lo - grow, hi + grow
+        d = p1 - p0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = (lo - p0) / d, (hi - p0) / d
+        inside = (p0 >= lo) & (p0 <= hi)
+        t0 = np.where(d != 0, np.minimum(u, v), np.where(inside, -np.inf, np.inf)).max(1)
+        t1 = np.where(d != 0, np.maximum(u, v), np.where(inside, np.inf, -np.inf)).min(1)
+        return np.maximum(t0, 0) <= np.minimum(t1, 1)
+
+    rel, rounding = _sweep.capture_pads(np.float32)
+    frame = np.abs(np.concatenate([xe0, xe1, p0[:, None], p1[:, None]], 1)).max((1, 2))
+    near_miss = hit & ~candidates(0.0, 0.0)
+    assert near_miss.sum() > n // 20, "too few near misses to test the bound"
+    assert candidates(rel, rounding * frame[:, None])[hit].all()
+    assert not candidates(0.0, rounding * frame[:, None])[near_miss].all()

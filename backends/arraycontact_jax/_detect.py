@@ -910,7 +910,7 @@ class SweptPlan:
     master: Surface = field(repr=False)
     capacity: tuple = ()  # sorted (name, capacity): the tree query's pairs per level
     origin: tuple = (0.0, 0.0, 0.0)
-    pad: float = 0.0
+    pads: tuple = (0.0, 0.0)  # (rel, rounding x scale): arraycontact._sweep.capture_pads
     dtype: str = "float32"
     n_slaves: int = 0
     growth: float = GROWTH
@@ -918,22 +918,26 @@ class SweptPlan:
 
 jax.tree_util.register_pytree_node(
     SweptPlan,
-    lambda p: ((p.order,), (p.master, p.capacity, p.origin, p.pad, p.dtype, p.n_slaves, p.growth)),
+    lambda p: ((p.order,), (p.master, p.capacity, p.origin, p.pads, p.dtype, p.n_slaves, p.growth)),
     lambda aux, ch: SweptPlan(ch[0], *aux),
 )
 
 
-def _swept_pairs(xp, element, order, s0, s1, m0, m1, faces, pad, capacity):
+def _swept_pairs(xp, element, order, s0, s1, m0, m1, faces, pads, capacity):
     """The tree over the faces' capture boxes (in `order`) and the (slave, face) pairs whose
-    boxes meet the ball around the slave's segment."""
+    boxes meet the ball around the slave's segment, both grown by `pads` (rel, rounding times
+    the frame's scale: arraycontact._sweep.capture_pads)."""
     from arraycontact import _grid as tree
     from arraycontact._detect import capture_boxes
+    from arraycontact._sweep import grown_boxes
 
+    rel, rounding = pads
     lo, hi = capture_boxes(element, m0[faces[order]], m1[faces[order]], xp)
-    t = tree.build(xp, order, lo - pad, hi + pad, lo)
+    g_lo, g_hi = grown_boxes(lo, hi, rel, rounding, xp)
+    t = tree.build(xp, order, g_lo, g_hi, lo)
     mid = 0.5 * (s0 + s1)
     d = s1 - s0
-    half = 0.5 * xp.sqrt(xp.sum(d * d, -1))
+    half = (0.5 + rel) * xp.sqrt(xp.sum(d * d, -1))
     slave, entry, valid, counts = tree.query(
         xp, t, mid, half, 0.0, capacity, name="pairs", shrink=False
     )
@@ -959,7 +963,7 @@ def plan_swept(
     if not growth >= 1:
         raise ValueError(f"growth must be >= 1, got {growth}")
     from arraycontact._detect import _swept_inputs, capture_boxes
-    from arraycontact._sweep import ROUND, SPACE_RTOL
+    from arraycontact._sweep import capture_pads
 
     x1 = slave_x0 if slave_x1 is None else slave_x1
     m1 = master.points if master_x1 is None else master_x1
@@ -975,7 +979,8 @@ def plan_swept(
     origin = b_lo if dtype == np.float32 else np.zeros(3)
     extent = float((b_hi - b_lo).max())
     scale = 2 * max(float(np.abs(np.r_[b_lo - origin, b_hi - origin]).max()), 1e-300)
-    pad = 4 * (SPACE_RTOL[dtype] + 4 * ROUND * float(np.finfo(dtype).eps)) * scale
+    rel, rounding = capture_pads(dtype)
+    pads = (rel, rounding * scale)
     order = morton_order(0.5 * (lo + hi), b_lo, extent).astype(np.int32)
     _, _, _, counts = _swept_pairs(
         np,
@@ -986,7 +991,7 @@ def plan_swept(
         master.points - origin,
         m1 - origin,
         master.faces,
-        pad,
+        pads,
         None,
     )
     cap = {k: max(int(np.ceil(int(v) * growth)), len(x0)) for k, v in counts.items()}
@@ -998,7 +1003,7 @@ def plan_swept(
         master,
         tuple(sorted(cap.items())),
         tuple(float(v) for v in origin),
-        float(pad),
+        tuple(float(v) for v in pads),
         dtype.name,
         len(x0),
         growth,
@@ -1032,7 +1037,7 @@ def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1) -> Swep
     sg = jax.lax.stop_gradient
     cap = dict(p.capacity)
     slave, face, valid, counts = _swept_pairs(
-        jnp, e, p.order, sg(s0), sg(s1), sg(m0), sg(m1), faces, p.pad, cap
+        jnp, e, p.order, sg(s0), sg(s1), sg(m0), sg(m1), faces, p.pads, cap
     )
     xe0, xe1 = sg(m0)[faces[face]], sg(m1)[faces[face]]
     toi, where, conv, visits = _sweep.roots(e, xe0, xe1, sg(s0)[slave], sg(s1)[slave], valid)

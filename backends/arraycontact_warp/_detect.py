@@ -33,9 +33,9 @@ import warp as wp
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, SIZE_RTOL, TIE_RTOL
 from arraycontact._surface import Surface, bounds, validate_points
 from arraycontact._sweep import FEATURE_TOL as SWEPT_FEATURE_TOL
-from arraycontact._sweep import ROUND as SWEPT_ROUND
 from arraycontact._sweep import SPACE_RTOL as SWEPT_SPACE_RTOL
 from arraycontact._sweep import T_TOL as SWEPT_T_TOL
+from arraycontact._sweep import capture_pads
 from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
 from . import _grid, _prepare, _sweep
@@ -368,7 +368,8 @@ class Constants(NamedTuple):
 class SweptConstants(NamedTuple):
     """A swept plan's scalars (arraycontact._sweep's tolerances in the plan's precision)."""
 
-    pad: float  # rounding pad of the swept boxes
+    pad_rel: float  # capture boxes and segments grow by pad_rel x their size (capture_pads)
+    pad_abs: float  # and capture boxes by pad_abs (the tests' rounding in the plan's frame)
     t_tol: float  # time resolution, relative to the step
     space_rtol: float  # a box within space_rtol * scale of 0 is a contact
     feature_tol: float  # natural coordinates this close to a constraint: edge or vertex
@@ -1194,10 +1195,10 @@ def plan_swept(
     origin = lo
     extent = float((hi - lo).max())
     dt = np.dtype(NP_REAL)
-    eps = float(np.finfo(dt).eps)
-    scale = 2 * extent  # the pairs' coordinates, from a face node, at plan time
+    rel, rounding = capture_pads(dt)
     consts = SweptConstants(
-        pad=4 * (SWEPT_SPACE_RTOL[dt] + 4 * SWEPT_ROUND * eps) * scale,
+        pad_rel=rel,
+        pad_abs=rounding * 2 * extent,  # (the frame's coordinates, at plan time)
         t_tol=SWEPT_T_TOL[dt],
         space_rtol=SWEPT_SPACE_RTOL[dt],
         feature_tol=SWEPT_FEATURE_TOL[dt],
@@ -1264,14 +1265,15 @@ def _swept_launch(p: SweptPlan, xs):
     _slave_launch(_sweep.capture_keys, nf, [0, *args, g], [], dev, first=0)
     _grid._sort(g, nf, p.world_bits)
     _grid.arrange(g, nf, p.layout, dev)
-    _slave_launch(_sweep.capture_gather, nf, [0, *args, real(c.pad), g], [], dev, first=0)
+    gather = [0, *args, real(c.pad_rel), real(c.pad_abs), g]
+    _slave_launch(_sweep.capture_gather, nf, gather, [], dev, first=0)
     _grid.fill(g, p.layout, dev)
     out = _sweep.Out()
     for k, _ in SWEPT_OUTPUTS:
         setattr(out, k, p.out[k])
     q = p.pairs
     el = p.kernel_element
-    walk = [g, s0, s1, p.slave_world, p.shared, real(c.pad), 0, q]
+    walk = [g, s0, s1, p.slave_world, p.shared, real(c.pad_rel), 0, q]
     if q is not None:
         room = q.slave.shape[0]
         _slave_launch(_sweep.pair_count, n, walk, [], dev, first=6)
@@ -1282,7 +1284,7 @@ def _swept_launch(p: SweptPlan, xs):
         inputs = [el, m0, m1, p.faces, s0, s1, real(c.t_tol), real(c.space_rtol), 0, q]
         wp.launch(_sweep.pair_search, room, inputs=[*inputs, p.out["visits"]], device=dev)
         wp.launch(_sweep.pair_band, room, inputs=[real(c.t_tol), 0, q], device=dev)
-    scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad)]
+    scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
     _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14)
     if q is not None:

@@ -366,10 +366,12 @@ class Own:
 
 @wp.struct
 class Segment:
-    """A swept scan's slave: the segment a + t d, t in [0, 1] (its path over the step)."""
+    """A swept scan's slave: the segment a + t d, t in [0, 1] (its path over the step),
+    grown by pad (arraycontact._sweep.capture_pads)."""
 
     a: vec3
     d: vec3
+    pad: real
 
 
 @wp.func
@@ -382,12 +384,14 @@ def meets(o: Segment, lo: vec3, hi: vec3):
     t1 = real(1.0)
     ok = bool(True)
     for c in range(3):
+        b_lo = lo[c] - o.pad
+        b_hi = hi[c] + o.pad
         if o.d[c] != real(0.0):
-            u = (lo[c] - o.a[c]) / o.d[c]
-            v = (hi[c] - o.a[c]) / o.d[c]
+            u = (b_lo - o.a[c]) / o.d[c]
+            v = (b_hi - o.a[c]) / o.d[c]
             t0 = wp.max(t0, wp.min(u, v))
             t1 = wp.min(t1, wp.max(u, v))
-        elif o.a[c] < lo[c] or o.a[c] > hi[c]:
+        elif o.a[c] < b_lo or o.a[c] > b_hi:
             ok = False
     return ok and t0 <= t1
 

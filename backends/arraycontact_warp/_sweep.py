@@ -902,18 +902,22 @@ def capture_gather(
     faces: wp.array2d(dtype=int),
     lebesgue: real,
     world: wp.array(dtype=int),
-    pad: real,
+    pad_rel: real,
+    pad_abs: real,
     grid: Grid,
 ):
-    """Each face's capture box (its boxes at both ends of the step, grown by pad) in its
-    slot (threads first + t)."""
+    """Each face's capture box (its boxes at both ends of the step, grown by pad_rel times
+    its largest side plus pad_abs: arraycontact._sweep.capture_pads) in its slot (threads
+    first + t)."""
     k = first + wp.tid()
     f = grid.sorted_ids[k]
     c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
     c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
-    write_item(
-        grid, slot(grid, k), wp.min(lo0, lo1) - vec3(pad), f, wp.max(hi0, hi1) + vec3(pad), world[f]
-    )
+    lo = wp.min(lo0, lo1)
+    hi = wp.max(hi0, hi1)
+    side = hi - lo
+    pad = vec3(pad_rel * wp.max(side[0], wp.max(side[1], side[2])) + pad_abs)
+    write_item(grid, slot(grid, k), lo - pad, f, hi + pad, world[f])
 
 
 @wp.func
@@ -1024,7 +1028,7 @@ def swept_scan(
     s1: wp.array(dtype=vec3),
     slave_world: wp.array(dtype=int),
     shared: int,
-    pad: real,
+    pad_rel: real,
     t_tol: real,
     space_rtol: real,
     feature_tol: real,
@@ -1044,10 +1048,11 @@ def swept_scan(
     b = s1[i]
     world = slave_world[i]
     s = real(0.5) * (a + b)
-    reach = real(0.5) * wp.length(b - a) + pad
     seg = Segment()
     seg.a = a
     seg.d = b - a
+    seg.pad = pad_rel * wp.length(b - a)
+    reach = real(0.5) * wp.length(b - a) + seg.pad
     first = real(3.0e38)
     band_f = BandF()
     band_t = BandT()
@@ -1147,7 +1152,7 @@ def _walk(
     b: vec3,
     world: int,
     shared: int,
-    pad: real,
+    pad_rel: real,
     pairs: Pairs,
     i: int,
     at: int,
@@ -1156,10 +1161,11 @@ def _walk(
     """The faces whose capture box meets the segment a -> b (as swept_scan walks): their
     count, and with fill = 1 the pairs (i, face) written from slot `at` on."""
     s = real(0.5) * (a + b)
-    reach = real(0.5) * wp.length(b - a) + pad
     seg = Segment()
     seg.a = a
     seg.d = b - a
+    seg.pad = pad_rel * wp.length(b - a)
+    reach = real(0.5) * wp.length(b - a) + seg.pad
     m = int(0)
     stack = wp.uint64(0)
     top = grid.root[0]
@@ -1200,13 +1206,13 @@ def pair_count(
     s1: wp.array(dtype=vec3),
     slave_world: wp.array(dtype=int),
     shared: int,
-    pad: real,
+    pad_rel: real,
     start: int,
     pairs: Pairs,
 ):
     """Slave i's pair count; its earliest toi and band face reset."""
     i = start + wp.tid()
-    pairs.count[i] = _walk(grid, s0[i], s1[i], slave_world[i], shared, pad, pairs, i, 0, 0)
+    pairs.count[i] = _walk(grid, s0[i], s1[i], slave_world[i], shared, pad_rel, pairs, i, 0, 0)
     pairs.first[i] = real(3.0e38)
     pairs.pick[i] = 2147483647
 
@@ -1218,7 +1224,7 @@ def pair_fill(
     s1: wp.array(dtype=vec3),
     slave_world: wp.array(dtype=int),
     shared: int,
-    pad: real,
+    pad_rel: real,
     start: int,
     pairs: Pairs,
     lost: wp.array(dtype=int),
@@ -1233,7 +1239,7 @@ def pair_fill(
     visits[i] = 0
     if at + n <= room:
         lost[i] = 0
-        _walk(grid, s0[i], s1[i], slave_world[i], shared, pad, pairs, i, at, 1)
+        _walk(grid, s0[i], s1[i], slave_world[i], shared, pad_rel, pairs, i, at, 1)
     else:
         lost[i] = 1
         for q in range(at, wp.min(at + n, room)):
