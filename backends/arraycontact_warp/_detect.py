@@ -1282,7 +1282,9 @@ def _swept_launch(p: SweptPlan, xs):
         # One launch: the pairs of a slave update its entries by atomics, which a CPU part
         # of its own would race.
         inputs = [el, m0, m1, p.faces, s0, s1, real(c.t_tol), real(c.space_rtol), 0, q]
-        wp.launch(_sweep.pair_search, room, inputs=[*inputs, p.out["visits"]], device=dev)
+        tri = p.master.element.name == "tri3"
+        search = _sweep.pair_search_tri if tri else _sweep.pair_search
+        wp.launch(search, room, inputs=[*inputs, p.out["visits"]], device=dev)
         wp.launch(_sweep.pair_band, room, inputs=[real(c.t_tol), 0, q], device=dev)
     scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
