@@ -360,9 +360,19 @@ def test_warp_pair_list_equals_one_thread_a_slave(name, dtype):
             assert not lost.any() and n < p.pairs_needed() <= pairs
     one = runs[0]
     assert one["hit"].sum() > n // 4
+    # The same kernels' arithmetic in another kernel: a GPU compiler may fuse its multiplies
+    # and adds otherwise (a CUDA device: curved faces' toi and points differ in the last bit).
+    eps = np.finfo(dtype).eps
+    hit = one["hit"] == 1
     for pairs in (40 * n, n):
         for k, v in runs[pairs].items():
-            if k != "visits":  # (a pair's search may be bounded by another's find or not)
+            if k == "visits":  # (a pair's search may be bounded by another's find or not)
+                continue
+            if v.dtype.kind == "f":  # (the rows hit; the others' toi is a placeholder)
+                a, b = v[hit], one[k][hit]
+                tol = 8 * eps * max(1.0, float(np.abs(b).max()))
+                np.testing.assert_allclose(a, b, rtol=0, atol=tol, err_msg=f"{pairs} {k}")
+            else:
                 assert np.array_equal(v, one[k]), (pairs, k)
     with pytest.raises(ValueError, match="pairs"):
         acw.plan_swept(st.master, st.slave_x0, pairs=-1)
