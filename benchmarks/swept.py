@@ -76,6 +76,9 @@ def warp_swept(st, device, repeats):
     else:
         rec["steady_s"] = plain
     out = {k: v.numpy() for k, v in p.out.items()}
+    # The (slave, face) pairs the capture test gave (GPU: the pair list's need; 0 on the CPU,
+    # which searches one thread a slave without a list).
+    rec["pairs_per_slave"] = p.pairs_needed() / len(st.slave_x0)
     return out, rec
 
 
