@@ -106,3 +106,41 @@ def test_file_errors_are_one_line_and_status_2(tmp_path, capsys):
     # An output that cannot be written is one line too.
     assert main(["detect", str(good), str(good), "-o", str(tmp_path / "no" / "o.vtu")]) == 2
     assert capsys.readouterr().err.startswith("arraycontact: error:")
+
+
+def test_jax_runs_keep_their_programs_in_a_persistent_cache(tmp_path):
+    """`--backend jax` keeps its compiled programs in JAX's persistent cache, by default in
+    ~/.cache/arraycontact/jax, so that a later run loads them; $ARRAYCONTACT_JAX_CACHE names
+    another folder, and an empty value turns the cache off. In child processes (JAX's
+    settings are the process's), each with a home of its own."""
+    import os
+    import subprocess
+    import sys
+
+    import warp as wp
+
+    def demo(home, **own):
+        home.mkdir()
+        env = dict(os.environ, HOME=str(home), JAX_PLATFORMS="cpu")
+        env["WARP_CACHE_PATH"] = wp.config.kernel_cache_dir  # (not the new home's: no compiling)
+        for k in ("JAX_COMPILATION_CACHE_DIR", "ARRAYCONTACT_JAX_CACHE"):
+            env.pop(k, None)
+        env.update(own)
+        cmd = ["demo", "--backend", "jax", "--nodes", "256", "-o", str(home / "demo")]
+        run = subprocess.run(
+            [sys.executable, "-m", "arraycontact.cli", *cmd],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert "backend: jax" in run.stdout
+        return home / ".cache" / "arraycontact" / "jax"
+
+    default = demo(tmp_path / "a")
+    assert len(list(default.iterdir())) > 0  # the programs, a file each
+    assert not demo(tmp_path / "b", ARRAYCONTACT_JAX_CACHE="").exists()
+    named = tmp_path / "named"
+    assert not demo(tmp_path / "c", ARRAYCONTACT_JAX_CACHE=str(named)).exists()
+    assert len(list(named.iterdir())) > 0
