@@ -122,7 +122,8 @@ def test_jax_runs_keep_their_programs_in_a_persistent_cache(tmp_path):
     def demo(home, **own):
         home.mkdir()
         env = dict(os.environ, HOME=str(home), JAX_PLATFORMS="cpu")
-        env["WARP_CACHE_PATH"] = wp.config.kernel_cache_dir  # (not the new home's: no compiling)
+        wp.init()  # (sets the kernel cache's folder, which the children share: no compiling)
+        env["WARP_CACHE_PATH"] = wp.config.kernel_cache_dir
         for k in ("JAX_COMPILATION_CACHE_DIR", "ARRAYCONTACT_JAX_CACHE"):
             env.pop(k, None)
         env.update(own)
