@@ -70,6 +70,8 @@ STEPS = {
     "closing_quad8": lambda: scenes.closing_rough_surfaces(2**6, element="quad8"),
     "closing_quad9": lambda: scenes.closing_rough_surfaces(2**6, element="quad9"),
     "tyre": lambda: scenes.rolling_tyre(2**9, drop=1.2),
+    # Faces 1/100 of the largest: the capture test grows by each face's size (capture_pads).
+    "graded": lambda: scenes.closing_step(scenes.graded_surfaces(2**8, ratio=100.0)),
 }
 
 
@@ -99,6 +101,34 @@ def test_backends_against_reference(backend, name, dtype):
         # (_sweep.earliest), whose boxes give another toi within the tolerance.
         tol = c.t_tol if backend == "warp" and name != "closing_quad4" else 1e-12
         np.testing.assert_allclose(c.toi[c.hit], n.toi[n.hit], rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_graded_against_reference(backend):
+    """Faces from 1 to 100 long (float64): the capture test grown by each face's own size
+    keeps every pair the reference hits."""
+    st = STEPS["graded"]()
+    c = ac.detect_swept(
+        st.slave_x0, st.slave_x1, st.master, st.master_x1, backend=backend, dtype="float64"
+    )
+    ref = assert_swept_matches(c, st)
+    assert ref.hit.sum() > len(st.slave_x0) // 2
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="float32 reports 3 hits the float64 reference has not: a Krawczyk-proven box "
+    "still across a triangle's diagonal after its contractions is taken as a contact, the "
+    "zero 0.03-0.26 outside faces 100 long (RESULTS.md, swept detection, twenty-second "
+    "session); open",
+)
+def test_graded_float32_hits_are_the_references():
+    st = STEPS["graded"]()
+    c = ac.detect_swept(
+        st.slave_x0, st.slave_x1, st.master, st.master_x1, backend="numpy", dtype="float32"
+    )
+    ref = swept_reference(st)
+    assert np.array_equal(c.hit, ref.hit), np.nonzero(c.hit != ref.hit)[0]
 
 
 def _tumbling_triangles(n_slaves=400, seed=3, grazing=True):
