@@ -117,10 +117,10 @@ def test_graded_against_reference(backend):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="float32 reports 3 hits the float64 reference has not: a Krawczyk-proven box "
-    "still across a triangle's diagonal after its contractions is taken as a contact, the "
-    "zero 0.03-0.26 outside faces 100 long (RESULTS.md, swept detection, twenty-second "
-    "session); open",
+    reason="float32 reports 3 hits the float64 reference has not: on sliver triangles "
+    "Krawczyk's contraction stalls, and a proven box still across the diagonal is taken as "
+    "a contact, its zero 0.03-0.26 outside faces 100 long (RESULTS.md, swept detection, "
+    "twenty-second session); open",
 )
 def test_graded_float32_hits_are_the_references():
     st = STEPS["graded"]()
