@@ -506,7 +506,7 @@ def test_capture_pads_cover_every_contact_the_search_reports(element):
 
     e = ELEMENTS[element]
     rng = np.random.default_rng(3)
-    n = 2000
+    n = 1000
     size = 10.0 ** rng.uniform(-2, 2, n)
     ref = e.nodes if e.nodes.shape[1] == 3 else np.c_[e.nodes, np.zeros(len(e.nodes))]
     ref = ref[: e.n_corners] * (0.5 if element == "quad4" else 1.0)  # edges of 1
