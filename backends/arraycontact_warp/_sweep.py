@@ -1255,8 +1255,8 @@ def _listed(pairs: Pairs, k: int):
     return pairs.slave[k]
 
 
-@wp.func
-def _search_pair(
+@wp.kernel
+def pair_search(
     el: Any,
     x0: wp.array(dtype=vec3),
     x1: wp.array(dtype=vec3),
@@ -1265,12 +1265,13 @@ def _search_pair(
     s1: wp.array(dtype=vec3),
     t_tol: real,
     space_rtol: real,
-    k: int,
+    start: int,
     pairs: Pairs,
     visits: wp.array(dtype=int),
 ):
     """Pair k's earliest contact before its slave's earliest so far plus t_tol (the bound
     only prunes: whatever other pairs of the slave have found when this one reads it)."""
+    k = start + wp.tid()
     i = _listed(pairs, k)
     if i < 0:
         return
@@ -1290,43 +1291,15 @@ def _search_pair(
         pairs.toi[k] = real(3.0e38)
 
 
-@wp.kernel
-def pair_search(
-    el: Element,
-    x0: wp.array(dtype=vec3),
-    x1: wp.array(dtype=vec3),
-    faces: wp.array2d(dtype=int),
-    s0: wp.array(dtype=vec3),
-    s1: wp.array(dtype=vec3),
-    t_tol: real,
-    space_rtol: real,
-    start: int,
-    pairs: Pairs,
-    visits: wp.array(dtype=int),
-):
-    """_search_pair on pair start + t, curved and bilinear faces. Not capped: at the
-    triangles' 96 registers their search spills (rough quad4, 2^20, H100: 25.4 -> 35.3 ms)."""
-    _search_pair(el, x0, x1, faces, s0, s1, t_tol, space_rtol, start + wp.tid(), pairs, visits)
-
-
-@wp.kernel(cuda_max_registers=96)
-def pair_search_tri(
-    el: Triangles,
-    x0: wp.array(dtype=vec3),
-    x1: wp.array(dtype=vec3),
-    faces: wp.array2d(dtype=int),
-    s0: wp.array(dtype=vec3),
-    s1: wp.array(dtype=vec3),
-    t_tol: real,
-    space_rtol: real,
-    start: int,
-    pairs: Pairs,
-    visits: wp.array(dtype=int),
-):
-    """_search_pair on pair start + t, triangles. Capped at 96 registers: more threads
-    resident hide the search's latency better than registers would (2^20, H100: graded
-    30.0 -> 20.2 ms, rough tri3 9.35 -> 6.87 ms; 64 spills: 22.9 and 7.5 ms)."""
-    _search_pair(el, x0, x1, faces, s0, s1, t_tol, space_rtol, start + wp.tid(), pairs, visits)
+# The same kernel for triangles, capped at 96 registers in a module of its own: more threads
+# resident hide the search's latency better than registers would (2^20, H100: graded 30.0 ->
+# 20.2 ms, rough tri3 9.35 -> 6.87 ms; 64 spills: 22.9 and 7.5 ms). Curved and bilinear faces
+# keep pair_search: capped at 96 their search spills (rough quad4 25.4 -> 35.3 ms).
+pair_search_tri = wp.kernel(
+    cuda_max_registers=96,
+    module="unique",
+    module_options={"enable_backward": False, "max_unroll": 1},
+)(pair_search.func)
 
 
 @wp.kernel
