@@ -98,13 +98,6 @@ def outside(element, box):
     return box[:, 0] > 1  # never: quads fill the square
 
 
-def straddles(element, box):
-    """Boxes [P, 6] partly inside and partly outside the element's domain."""
-    if element.kind == "tri":
-        return (box[:, 1] + box[:, 3] > 1) & ~outside(element, box)
-    return box[:, 0] > 1
-
-
 def _bernstein(f, axis, xp):
     """Degree-2 Bernstein coefficients along `axis` (length 3) from values at its ends and
     middle: b1 = 2 f(1/2) - (f(0) + f(1)) / 2."""
@@ -167,8 +160,13 @@ def krawczyk(element, xa, va, p, v, box, cp, margin, xp=np):
 
     Every zero of F in X lies in K (for any Y), so K misses X: no contact in X; K inside X's
     interior: exactly one, in K, and X & K contracts towards it (quadratically). The radius
-    of K is grown by the rounding of F(m) (margin) and of the sums. Returns (empty, inside,
-    the box X & K [P, 6])."""
+    of K is grown by the rounding of F(m) (margin) and of the sums.
+
+    Triangles also bound s + w of the zero, l K with l = (1, 1, 0) (the same identity with
+    the row l Y): on a sliver the box keeps a wide radius in s and in w along the poorly
+    determined direction, while s + w, which says which side of the diagonal the zero lies
+    on, is well determined. Returns (empty: no zero in X inside the domain, inside, the box
+    X & K [P, 6], within: the zero in X, if any, is inside the domain)."""
     g = cp.shape[2]
     lo, hi = box[:, 0::2], box[:, 1::2]
     r = 0.5 * (hi - lo)
@@ -182,24 +180,36 @@ def krawczyk(element, xa, va, p, v, box, cp, margin, xp=np):
     xi = natural(element, mid[:, 0], mid[:, 1], xp)
     n = shape_functions(element, xi[:, None, :], xp)  # [P, 1, nn]
     f = (n @ xa)[:, 0] - p + mid[:, 2:3] * ((n @ va)[:, 0] - v)
-    yf = (y @ f[:, :, None])[:, :, 0]
-    c = mid - yf
-    yp, yn = xp.maximum(y, 0), xp.minimum(y, 0)
-    eye = xp.eye(3, dtype=box.dtype)[None]
-    m_lo = eye - (yp @ j_hi + yn @ j_lo)
-    m_hi = eye - (yp @ j_lo + yn @ j_hi)
+    eps = float(np.finfo(np.dtype(box.dtype)).eps)
+    tri = element.kind == "tri"
+    # Rows l of K: those of the identity, and (1, 1, 0) for triangles (its l Y: y0 + y1).
+    rows, ly, lm = np.eye(3), y, mid
+    if tri:
+        rows = np.concatenate([rows, [[1.0, 1.0, 0.0]]])
+        ly = xp.concatenate([y, y[:, :1] + y[:, 1:2]], 1)
+        lm = xp.concatenate([mid, mid[:, :1] + mid[:, 1:2]], 1)
+    rows = xp.asarray(rows, dtype=box.dtype)[None]
+    lf = (ly @ f[:, :, None])[:, :, 0]
+    c = lm - lf
+    yp, yn = xp.maximum(ly, 0), xp.minimum(ly, 0)
+    m_lo = rows - (yp @ j_hi + yn @ j_lo)
+    m_hi = rows - (yp @ j_lo + yn @ j_hi)
     mag = xp.maximum(xp.abs(m_lo), xp.abs(m_hi))
     rad = (mag @ r[:, :, None])[:, :, 0]
-    ay = xp.abs(y)
-    eps = float(np.finfo(np.dtype(box.dtype)).eps)
-    rad = rad + 4 * xp.sum(ay, -1) * margin[:, None] + 16 * eps * (xp.abs(mid) + xp.abs(yf) + rad)
-    k_lo, k_hi = c - rad, c + rad
-    ok = xp.all(xp.isfinite(k_lo) & xp.isfinite(k_hi), -1) & (xp.abs(det) > 0)
+    rad = rad + 4 * xp.sum(xp.abs(ly), -1) * margin[:, None]
+    rad = rad + 16 * eps * (xp.abs(lm) + xp.abs(lf) + rad)
+    ok = xp.all(xp.isfinite(c - rad) & xp.isfinite(c + rad), -1) & (xp.abs(det) > 0)
+    k_lo, k_hi = (c - rad)[:, :3], (c + rad)[:, :3]
     empty = ok & xp.any((k_hi < lo) | (k_lo > hi), -1)
     inside = ok & xp.all((k_lo > lo) & (k_hi < hi), -1)
     new_lo = xp.where(ok[:, None], xp.maximum(lo, k_lo), lo)
     new_hi = xp.where(ok[:, None], xp.minimum(hi, k_hi), hi)
-    return empty, inside, xp.stack([new_lo, new_hi], -1).reshape(box.shape)
+    within = xp.ones_like(ok)
+    if tri:
+        sw_lo, sw_hi = c[:, 3] - rad[:, 3], c[:, 3] + rad[:, 3]
+        empty = empty | (ok & ((sw_lo > 1) | (new_lo[:, 0] + new_lo[:, 1] > 1)))
+        within = (ok & (sw_hi <= 1)) | (new_hi[:, 0] + new_hi[:, 1] <= 1)
+    return empty, inside, xp.stack([new_lo, new_hi], -1).reshape(box.shape), within
 
 
 def pair_frame(element, xe0, xe1, p0, p1, xp=np):
@@ -244,22 +254,28 @@ def roots(element, xe0, xe1, p0, p1):
         a, box = act[live], box[live]
         cp = control_points(element, xa[a], va[a], p[a], v[a], box)
         out, extent, spread = examine(cp, dirs[a], margin[a])
-        empty, inside, kbox = krawczyk(element, xa[a], va[a], p[a], v[a], box, cp, margin[a])
+        empty, inside, kbox, within = krawczyk(
+            element, xa[a], va[a], p[a], v[a], box, cp, margin[a]
+        )
         out = out | empty | outside(element, box)
         # One zero proven in the box: contract it (Krawczyk) to T_TOL in time, and until it
-        # is inside or outside the domain (a triangle's box may straddle its diagonal).
+        # is known inside or outside the domain (a triangle's zero near its diagonal). One
+        # still undecided after CONTRACTIONS is within K's radius of the diagonal: a contact.
         proven = ~out & inside
         if proven.any():
-            k, kb = a[proven], kbox[proven]
+            k, kb, kin = a[proven], kbox[proven], within[proven]
+            gone = np.zeros(len(k), bool)
             for _ in range(CONTRACTIONS):
-                more = (kb[:, 5] - kb[:, 4] > t_tol) | straddles(element, kb)
+                more = ~gone & ((kb[:, 5] - kb[:, 4] > t_tol) | ~kin)
                 if not more.any():
                     break
                 kc = control_points(element, xa[k], va[k], p[k], v[k], kb)
-                _, _, kb2 = krawczyk(element, xa[k], va[k], p[k], v[k], kb, kc, margin[k])
+                em2, _, kb2, in2 = krawczyk(element, xa[k], va[k], p[k], v[k], kb, kc, margin[k])
                 kb = np.where(more[:, None], kb2, kb)
+                kin = np.where(more, in2, kin)
+                gone |= more & em2
             box[proven] = kb
-            out[proven] = outside(element, kb)
+            out[proven] = gone
             proven &= ~out
         tw = box[:, 5] - box[:, 4]
         small = extent <= delta[a]

@@ -81,11 +81,6 @@ def _outside(q: Any, b: Box6):
 
 
 @wp.func
-def _straddles(q: Any, b: Box6):
-    return _pair_tri(q) and b[1] + b[3] > real(1.0) and b[0] + b[2] <= real(1.0)
-
-
-@wp.func
 def _ab(el: Triangles, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):
     """A(xi) = x(xi) at t = 0 less the node, B(xi) = the face point's motion less the node's."""
     n0 = real(1.0) - xi[0] - xi[1]
@@ -426,20 +421,11 @@ def _mag(y: vec3, lo: vec3, hi: vec3, d: real):
 
 
 @wp.func
-def _k_row(y: vec3, j: Jac, i: int, rr: vec3, mid: real, yf: real, margin: real):
-    """Row i of Krawczyk's K: (lo, hi)."""
-    d0 = real(0.0)
-    d1 = real(0.0)
-    d2 = real(0.0)
-    if i == 0:
-        d0 = real(1.0)
-    if i == 1:
-        d1 = real(1.0)
-    if i == 2:
-        d2 = real(1.0)
-    rad = _mag(y, j.s_lo, j.s_hi, d0) * rr[0]
-    rad += _mag(y, j.w_lo, j.w_hi, d1) * rr[1]
-    rad += _mag(y, j.t_lo, j.t_hi, d2) * rr[2]
+def _k_row(y: vec3, j: Jac, d: vec3, rr: vec3, mid: real, yf: real, margin: real):
+    """Row l of Krawczyk's K, l K (d = l, y = l Y, mid = l m, yf = l Y F(m)): (lo, hi)."""
+    rad = _mag(y, j.s_lo, j.s_hi, d[0]) * rr[0]
+    rad += _mag(y, j.w_lo, j.w_hi, d[1]) * rr[1]
+    rad += _mag(y, j.t_lo, j.t_hi, d[2]) * rr[2]
     ay = wp.abs(y[0]) + wp.abs(y[1]) + wp.abs(y[2])
     rad += real(4.0) * ay * margin + real(16.0) * EPS * (wp.abs(mid) + wp.abs(yf) + rad)
     return mid - yf - rad, mid - yf + rad
@@ -447,7 +433,8 @@ def _k_row(y: vec3, j: Jac, i: int, rr: vec3, mid: real, yf: real, margin: real)
 
 @wp.func
 def _krawczyk(q: Any, box: Box6, j: Jac):
-    """arraycontact._sweep.krawczyk for one box: (empty, inside, the box X & K)."""
+    """arraycontact._sweep.krawczyk for one box: (empty, inside, the box X & K, within)."""
+    tri = _pair_tri(q)
     a = real(0.5) * (j.s_lo + j.s_hi)
     b = real(0.5) * (j.w_lo + j.w_hi)
     c = real(0.5) * (j.t_lo + j.t_hi)
@@ -455,8 +442,9 @@ def _krawczyk(q: Any, box: Box6, j: Jac):
     r1 = wp.cross(c, a)
     r2 = wp.cross(a, b)
     det = wp.dot(a, r0)
+    unknown = not tri or box[1] + box[3] <= real(1.0)  # `within` when K says nothing
     if not (wp.abs(det) > real(0.0)):
-        return False, False, box
+        return False, False, box, unknown
     r0 = r0 / det
     r1 = r1 / det
     r2 = r2 / det
@@ -467,11 +455,20 @@ def _krawczyk(q: Any, box: Box6, j: Jac):
         real(0.5) * (box[1] - box[0]), real(0.5) * (box[3] - box[2]), real(0.5) * (box[5] - box[4])
     )
     f = _f(q, mid[0], mid[1], mid[2])
-    lo0, hi0 = _k_row(r0, j, 0, rr, mid[0], wp.dot(r0, f), q.margin)
-    lo1, hi1 = _k_row(r1, j, 1, rr, mid[1], wp.dot(r1, f), q.margin)
-    lo2, hi2 = _k_row(r2, j, 2, rr, mid[2], wp.dot(r2, f), q.margin)
+    one = real(1.0)
+    zero = real(0.0)
+    lo0, hi0 = _k_row(r0, j, vec3(one, zero, zero), rr, mid[0], wp.dot(r0, f), q.margin)
+    lo1, hi1 = _k_row(r1, j, vec3(zero, one, zero), rr, mid[1], wp.dot(r1, f), q.margin)
+    lo2, hi2 = _k_row(r2, j, vec3(zero, zero, one), rr, mid[2], wp.dot(r2, f), q.margin)
+    lo3 = zero
+    hi3 = zero
+    if tri:  # s + w, well determined on a sliver where s and w are not
+        y3 = r0 + r1
+        lo3, hi3 = _k_row(y3, j, vec3(one, one, zero), rr, mid[0] + mid[1], wp.dot(y3, f), q.margin)
     if not (wp.isfinite(lo0 + hi0) and wp.isfinite(lo1 + hi1) and wp.isfinite(lo2 + hi2)):
-        return False, False, box
+        return False, False, box, unknown
+    if not wp.isfinite(lo3 + hi3):
+        return False, False, box, unknown
     empty = hi0 < box[0] or lo0 > box[1] or hi1 < box[2] or lo1 > box[3]
     empty = empty or hi2 < box[4] or lo2 > box[5]
     inside = lo0 > box[0] and hi0 < box[1] and lo1 > box[2] and hi1 < box[3]
@@ -484,7 +481,11 @@ def _krawczyk(q: Any, box: Box6, j: Jac):
         wp.max(box[4], lo2),
         wp.min(box[5], hi2),
     )
-    return empty, inside, out
+    within = True
+    if tri:
+        empty = empty or lo3 > one or out[0] + out[2] > one
+        within = hi3 <= one or out[1] + out[3] <= one
+    return empty, inside, out, within
 
 
 @wp.func
@@ -546,18 +547,20 @@ def _visit(q: Any, t_tol: real, box: Box6):
     out, extent, axis, jac = _examine(q, box)
     if out or _outside(q, box):
         return 0, box, axis
-    empty, inside, kb = _krawczyk(q, box, jac)
+    empty, inside, kb, kin = _krawczyk(q, box, jac)
     if empty:
         return 0, box, axis
     if inside:
-        # One zero proven: contract it to T_TOL in time and off the diagonal.
+        # One zero proven: contract it to T_TOL in time and until it is known inside or
+        # outside the domain (one still undecided is within K's radius of the diagonal).
         for _it in range(CONTRACTIONS):
-            if kb[5] - kb[4] > t_tol or _straddles(q, kb):
+            if kb[5] - kb[4] > t_tol or not kin:
                 o2, e2, a2, j2 = _examine(q, kb)
-                em2, in2, kb2 = _krawczyk(q, kb, j2)
+                em2, in2, kb2, kin2 = _krawczyk(q, kb, j2)
+                if em2:
+                    return 0, box, axis
                 kb = kb2
-        if _outside(q, kb):
-            return 0, box, axis
+                kin = kin2
         return 1, kb, axis
     small = extent <= q.delta
     if small and box[5] - box[4] <= t_tol:
