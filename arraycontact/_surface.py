@@ -137,36 +137,57 @@ def corner_normal(element, dx, corner, xp=np):
     return _unit(xp.cross(dx[..., 0], dx[..., 1]), xp) * w[..., None]
 
 
-def node_normals(element, faces, points, xp=np, columns=None):
+def _cross(u, v):
+    """u x v of vectors given as their three components."""
+    return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+
+
+def _dot_columns(u, v):
+    """u . v of vectors given as their three components."""
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _unit_columns(v):
+    """`_unit` of vectors given as their three components (NumPy), the same arithmetic."""
+    n2 = _dot_columns(v, v)
+    ok = n2 > 0
+    s = np.sqrt(np.where(ok, n2, 1))
+    return [np.where(ok, c / s, 0 * c) for c in v]
+
+
+def _corner_term(x, i, xp=np):
+    """Corner i's term of a linear face's node pseudo-normal, x[node][axis] the face nodes'
+    coordinates: with straight edges the tangents at a corner are its two edges and the
+    normal there is their cross product (x_xi x x_eta up to a positive factor), here times
+    the interior angle over its length (zero if degenerate)."""
+    nn = len(x)
+    cur, nxt, prv = x[i], x[(i + 1) % nn], x[(i - 1) % nn]
+    t1 = [nxt[a] - cur[a] for a in range(3)]
+    t2 = [prv[a] - cur[a] for a in range(3)]
+    n = _cross(t1, t2)
+    s2 = xp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    w = xp.arctan2(s2, t1[0] * t2[0] + t1[1] * t2[1] + t1[2] * t2[2])
+    w = w / xp.where(s2 > 0, s2, 1)
+    return [c * w for c in n]
+
+
+def node_normals(element, faces, points, xp=np):
     """Angle-weighted pseudo-normal at each node [n_points, 3] (zero for unused nodes).
 
     At a corner, each face contributes its normal there times its interior angle, which gives
     the correct inside/outside sign for points whose closest feature is that vertex
-    (Baerentzen & Aanaes). Mid-edge and centre nodes take the plain sum of face normals.
-    columns: the face nodes' coordinates as Surface._columns has them (linear faces)."""
+    (Baerentzen & Aanaes). Mid-edge and centre nodes take the plain sum of face normals."""
     e = element
     nf, nn = faces.shape
     if e.linear:
-        # Straight edges: the tangents at a corner are its two edges, and the normal there is
-        # their cross product (x_xi x x_eta at the corner, up to a positive factor). Written
-        # per coordinate on 1-D arrays (gathers and arithmetic on [F, 3] slices of [F, nn, 3]
-        # were 3x slower on NumPy).
-        comp = columns or [[points[:, a][faces[:, c]] for a in range(3)] for c in range(nn)]
+        # Written per coordinate on 1-D arrays (gathers and arithmetic on [F, 3] slices of
+        # [F, nn, 3] were 3x slower on NumPy).
+        x = [[points[:, a][faces[:, c]] for a in range(3)] for c in range(nn)]
         out = [0.0, 0.0, 0.0]
         for c in range(nn):
-            x, nxt, prv = comp[c], comp[(c + 1) % nn], comp[(c - 1) % nn]
-            t1 = [nxt[a] - x[a] for a in range(3)]
-            t2 = [prv[a] - x[a] for a in range(3)]
-            n = [
-                t1[1] * t2[2] - t1[2] * t2[1],
-                t1[2] * t2[0] - t1[0] * t2[2],
-                t1[0] * t2[1] - t1[1] * t2[0],
-            ]
-            s2 = xp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-            w = xp.arctan2(s2, t1[0] * t2[0] + t1[1] * t2[1] + t1[2] * t2[2])
-            w = w / xp.where(s2 > 0, s2, 1)  # angle times the unit normal (zero if degenerate)
+            term = _corner_term(x, c, xp)
             for a in range(3):
-                out[a] = out[a] + segment_sum(xp, n[a] * w, faces[:, c], points.shape[0])
+                out[a] = out[a] + segment_sum(xp, term[a], faces[:, c], points.shape[0])
         return _unit(xp.stack(out, -1), xp)
     xn = xp.asarray(e.nodes, points.dtype)
     xi = xp.zeros((nf, nn, 2), points.dtype) + xn[None]
@@ -180,12 +201,22 @@ def node_normals(element, faces, points, xp=np, columns=None):
     return _unit(out, xp)
 
 
+#: Faces a block of `Surface._linear`.
+BLOCK = 16384
+
+
 def _stable_order(keys, end):
-    """np.argsort(keys, kind="stable") of non-negative int keys below `end`, by least
-    significant digit first radix passes of 16 bits: NumPy's stable argsort of uint16 is a
-    counting sort. 2.5-5x a comparison sort's time on 2^16-node meshes' node and edge keys,
-    1.25x at 2^20 (where the passes' gathers dominate)."""
+    """np.argsort(keys, kind="stable") of non-negative int keys below `end`.
+
+    Keys that mostly ascend already (a structured mesh's edges in face order: fewer than a
+    quarter smaller than the key 64 places before) go to NumPy's own stable sort, a timsort
+    that merges their runs (2-2.5 ms for 2^16-node meshes' 390k edge keys, against 5-10 ms
+    by radix passes). Others, by least significant digit first radix passes of 16 bits:
+    NumPy's stable argsort of uint16 is a counting sort (6-28 ms where timsort takes 15-40
+    on gmsh meshes' or shuffled keys)."""
     keys = np.asarray(keys)
+    if len(keys) > 64 and np.count_nonzero(keys[64:] < keys[:-64]) < (len(keys) - 64) / 4:
+        return np.argsort(keys, kind="stable")
     order = None
     for shift in range(0, max(int(end) - 1, 1).bit_length(), 16):
         k = keys if order is None else keys[order]
@@ -322,14 +353,6 @@ class Surface:
         return offsets, ids
 
     @cached_property
-    def _columns(self):
-        """Each face node's coordinates [nodes a face][3] as 1-D arrays [F] (gathered once:
-        the linear faces' geometry below is written per coordinate, 2-3x faster on NumPy
-        than on [F, nn, 3] slices)."""
-        axes = [np.ascontiguousarray(self.points[:, a]) for a in range(3)]
-        return [[x[self.faces[:, i]] for x in axes] for i in range(self.faces.shape[1])]
-
-    @cached_property
     def _edge_table(self):
         k = self.element.n_corners
         en = self.element.edge_nodes
@@ -343,17 +366,16 @@ class Surface:
         keys = lo * n + hi
         order = _stable_order(keys, n * n)
         sk = keys[order]
-        first = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+        first = np.flatnonzero(np.diff(sk, prepend=-1))  # (keys >= 0; none if no faces)
         counts = np.diff(np.r_[first, len(sk)])
         inverse = np.empty(len(sk), np.int64)
         inverse[order] = np.repeat(np.arange(len(first)), counts)
-        edges = np.stack(np.divmod(sk[first], n), -1)
+        at = order[first]
+        edges = np.stack([lo[at], hi[at]], -1)
         face_edges = inverse.reshape(-1, k)
         # Up to two faces per edge; a non-manifold edge (3+ faces) keeps its first two.
-        edge_faces = np.full((len(edges), 2), -1, np.int64)
-        edge_faces[:, 0] = order[first] // k
-        two = counts >= 2
-        edge_faces[two, 1] = order[first[two] + 1] // k
+        second = order[np.minimum(first + 1, len(sk) - 1)] // k
+        edge_faces = np.stack([at // k, np.where(counts >= 2, second, -1)], -1)
         return edges, face_edges, edge_faces, counts
 
     @property
@@ -396,53 +418,90 @@ class Surface:
         return bool(self.n_faces) and bool((self.edge_counts == 2).all())
 
     @cached_property
+    def _linear(self):
+        """Linear faces' (tri3, quad4) geometry in one pass over blocks of BLOCK faces: unit
+        normals [F, 3], ball centres [F, 3] and radii [F], the squared longest edge, and
+        each face corner's pseudo-normal term [nn, 3, F] (`node_normals`). Written per
+        coordinate on 1-D arrays (3x faster on NumPy than [F, nn, 3] slices), a block at a
+        time so that its temporaries stay in the core's cache (the whole face list at once
+        ran 3x slower at 2^16 nodes). Each face's arithmetic is that of the functions above,
+        in the same order."""
+        f, nn, nf = self.faces, self.faces.shape[1], self.n_faces
+        axes = [np.ascontiguousarray(self.points[:, a]) for a in range(3)]
+        normals, centres = np.empty((nf, 3)), np.empty((nf, 3))
+        radii, terms = np.empty(nf), np.empty((nn, 3, nf))
+        longest = 0.0
+        for lo in range(0, nf, BLOCK):
+            hi = min(lo + BLOCK, nf)
+            x = [[ax[f[lo:hi, i]] for ax in axes] for i in range(nn)]
+            d = {
+                (i, j): [x[j][a] - x[i][a] for a in range(3)]
+                for i in range(nn)
+                for j in range(i + 1, nn)
+            }
+            longest = max([longest] + [float(_dot_columns(v, v).max()) for v in d.values()])
+            c = [sum(x[i][a] for i in range(nn)) / nn for a in range(3)]
+            d2 = None
+            for i in range(nn):
+                e = [x[i][a] - c[a] for a in range(3)]
+                e = _dot_columns(e, e)
+                d2 = e if d2 is None else np.maximum(d2, e)
+            centres[lo:hi] = np.stack(c, -1)
+            radii[lo:hi] = self.element.lebesgue * np.sqrt(np.where(d2 > 0, d2, 0 * d2))
+            if nn == 4:  # face_normals' closed form: the diagonals' (x2 - x0) x (x3 - x1)
+                normals[lo:hi] = np.stack(_unit_columns(_cross(d[0, 2], d[1, 3])), -1)
+                for i in range(nn):
+                    term = _corner_term(x, i)
+                    for a in range(3):
+                        terms[i, a, lo:hi] = term[a]
+                continue
+            # A triangle's normal is the same at its three corners, (x1 - x0) x (x2 - x0)
+            # (face_normals'), its length that of each corner's edges' cross product.
+            n = _cross(d[0, 1], d[0, 2])
+            s2 = np.sqrt(_dot_columns(n, n))
+            u = _unit_columns(n)
+            normals[lo:hi] = np.stack(u, -1)
+            m = [[-v for v in d[0, 1]], [-v for v in d[0, 2]], [-v for v in d[1, 2]]]
+            edges = ((d[0, 1], d[0, 2]), (d[1, 2], m[0]), (m[1], m[2]))  # (t1, t2) a corner
+            for i, (t1, t2) in enumerate(edges):
+                w = np.arctan2(s2, _dot_columns(t1, t2))
+                for a in range(3):
+                    terms[i, a, lo:hi] = u[a] * w
+        return normals, centres, radii, longest, terms
+
+    @cached_property
     def longest_edge(self) -> float:
         """The largest distance between two nodes of one face (seed 000, eq. 2)."""
         if self.n_faces == 0:
             return 0.0
-        x = self._columns
-        best = 0.0
-        for i in range(len(x)):
-            for j in range(i + 1, len(x)):
-                d = [x[i][a] - x[j][a] for a in range(3)]
-                best = max(best, float((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).max()))
-        return best**0.5
+        if self.element.linear:
+            return self._linear[3] ** 0.5
+        xe = self.points[self.faces]
+        i, j = np.triu_indices(xe.shape[1], 1)
+        return float(np.sqrt(_dot(xe[:, i] - xe[:, j], xe[:, i] - xe[:, j]).max()))
 
     @cached_property
     def face_normals(self) -> np.ndarray:
         """Unit outward normal at each face's centre (zero for a degenerate face)."""
-        if self.element.name not in ("tri3", "quad4"):
-            return face_normals(self.element, self.points[self.faces])
-        # face_normals' closed forms per coordinate: tri3 (x1 - x0) x (x2 - x0), quad4 the
-        # diagonals' (x2 - x0) x (x3 - x1).
-        x = self._columns
-        p, q = (1, 0), (2, 0)
-        if self.element.name == "quad4":
-            p, q = (2, 0), (3, 1)
-        u = [x[p[0]][a] - x[p[1]][a] for a in range(3)]
-        v = [x[q[0]][a] - x[q[1]][a] for a in range(3)]
-        n = np.stack(
-            [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]], -1
-        )
-        return _unit(n)
+        if self.element.linear:
+            return self._linear[0]
+        return face_normals(self.element, self.points[self.faces])
 
     @cached_property
     def face_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Centre and radius of a ball holding each face (see `face_bounds`; the same sums in
-        the same order, per coordinate)."""
-        x = self._columns
-        nn = len(x)
-        c = [sum(x[i][a] for i in range(nn)) / nn for a in range(3)]
-        d2 = None
-        for i in range(nn):
-            d = [x[i][a] - c[a] for a in range(3)]
-            e = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-            d2 = e if d2 is None else np.maximum(d2, e)
-        r = self.element.lebesgue * np.sqrt(np.where(d2 > 0, d2, 0 * d2))
-        return np.stack(c, -1), r
+        """Centre and radius of a ball holding each face (see `face_bounds`)."""
+        if self.element.linear:
+            return self._linear[1], self._linear[2]
+        return face_bounds(self.element, self.points[self.faces])
 
     @cached_property
     def node_normals(self) -> np.ndarray:
         """Angle-weighted pseudo-normal at each node (see `node_normals`)."""
-        columns = self._columns if self.element.linear else None
-        return node_normals(self.element, self.faces, self.points, columns=columns)
+        if not self.element.linear:
+            return node_normals(self.element, self.faces, self.points)
+        terms, n = self._linear[4], len(self.points)
+        out = [0.0, 0.0, 0.0]
+        for i in range(self.faces.shape[1]):
+            for a in range(3):
+                out[a] = out[a] + np.bincount(self.faces[:, i], terms[i, a], minlength=n)
+        return np.stack(_unit_columns(out), -1)

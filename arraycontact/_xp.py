@@ -6,6 +6,8 @@ Capacities: NumPy runs eagerly and may size arrays from data (`size=None`); JAX 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -89,7 +91,7 @@ def segment_sum(xp, data, ids, n):
     """Sum of `data` rows per segment id (zero for an empty segment)."""
     if is_numpy(xp):
         if data.ndim <= 2 and data.dtype.kind == "f":  # bincount: 10-20x np.add.at's speed
-            cols = data.reshape(len(data), -1).T
+            cols = data.reshape(len(data), math.prod(data.shape[1:])).T  # (no -1: rows may be 0)
             out = np.stack([np.bincount(ids, c, minlength=n) for c in cols], -1)
             return out.astype(data.dtype).reshape((n,) + data.shape[1:])
         out = np.zeros((n,) + data.shape[1:], data.dtype)

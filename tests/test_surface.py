@@ -101,9 +101,15 @@ def test_integral_floats_accepted_and_immutable():
         s.points = np.zeros((3, 3))
 
 
-def test_empty_surface_is_valid():
-    s = ac.Surface(np.zeros((0, 3)), np.zeros((0, 3), int), "tri3")
+@pytest.mark.parametrize("element", ["tri3", "quad4", "tri6"])
+def test_empty_surface_is_valid(element):
+    """No faces: every table empty (the edge table raised IndexError before)."""
+    nn = {"tri3": 3, "quad4": 4, "tri6": 6}[element]
+    s = ac.Surface(np.zeros((2, 3)), np.zeros((0, nn), int), element)
     assert s.n_faces == 0 and not s.closed and s.longest_edge == 0.0
+    assert s.edges.shape == (0, 2) and s.edge_faces.shape == (0, 2) and len(s.boundary_nodes) == 0
+    assert s.face_normals.shape == (0, 3) and s.face_bounds[1].shape == (0,)
+    assert np.array_equal(s.node_normals, np.zeros((2, 3)))
 
 
 @pytest.mark.parametrize("end", [1, 2, 1 << 16, (1 << 16) + 1, 1 << 33, 1 << 40])
