@@ -115,12 +115,14 @@ def test_graded_against_reference(backend):
     assert ref.hit.sum() > len(st.slave_x0) // 2
 
 
-@pytest.mark.parametrize("backend", ALL)
+@pytest.mark.parametrize("backend", ["numpy", "warp"])
 def test_graded_float32_hits_are_the_references(backend):
     """float32 on the graded scene's sliver triangles (Jacobian singular values 143, 108, 1.1):
     Krawczyk's box keeps a radius of 2e-3 in s and in w, so a proven box may stay across the
     diagonal with its zero 0.03-0.26 outside a face 100 long (slaves 111, 246, 251 were hits
-    before s + w was bounded on its own). The hits must be the float64 reference's."""
+    before s + w was bounded on its own). The hits must be the float64 reference's. (JAX runs
+    NumPy's `krawczyk` and passes here too, but its float32 program's compilation, 6 s, is
+    more than the suite's time allows for one scene.)"""
     st = STEPS["graded"]()
     c = ac.detect_swept(
         st.slave_x0, st.slave_x1, st.master, st.master_x1, backend=backend, dtype="float32"
