@@ -367,12 +367,14 @@ def test_warp_worlds(pairs):
 
 
 @pytest.mark.parametrize("name, dtype", [("closing_quad4", "float64"), ("tumbling", "float32")])
-def test_warp_pair_list_equals_one_thread_a_slave(name, dtype):
+def test_warp_pair_list_equals_one_thread_a_slave(monkeypatch, name, dtype):
     """The search one thread a pair (the GPU's default) gives the answers of the search one
     thread a slave (the CPU's, checked against the reference above), with a list that holds
-    every pair and with one too short, whose slaves left out are searched one thread a slave;
-    a negative length is named."""
+    every pair, with one too short, whose slaves left out are searched one thread a slave,
+    and with the long searches deferred to a second launch (a GPU's way: here every search
+    of more than 2 boxes, in whatever order); a negative length is named."""
     import arraycontact_warp as acw
+    from arraycontact_warp._real import precision
 
     st = _tumbling_triangles() if name == "tumbling" else STEPS[name]()
     n = len(st.slave_x0)
@@ -388,13 +390,18 @@ def test_warp_pair_list_equals_one_thread_a_slave(name, dtype):
             assert 0 < lost.sum() < n and p.pairs_needed() > n
         else:
             assert not lost.any() and n < p.pairs_needed() <= pairs
+    two = {"tri3": 2, "other": 2}
+    monkeypatch.setattr(precision(dtype), "SWEPT_BUDGET", {"cpu": two, "cuda": two})
+    p = acw.plan_swept(st.master, st.slave_x0, dtype=dtype, pairs=40 * n)
+    runs["deferred"] = acw.detect_swept(p, *xs)
+    assert 0 < p.pairs.n_later.numpy()[0] < p.pairs_needed()  # some deferred, not all
     one = runs[0]
     assert one["hit"].sum() > n // 4
     # The same kernels' arithmetic in another kernel: a GPU compiler may fuse its multiplies
     # and adds otherwise (a CUDA device: curved faces' toi and points differ in the last bit).
     eps = np.finfo(dtype).eps
     hit = one["hit"] == 1
-    for pairs in (40 * n, n):
+    for pairs in (40 * n, n, "deferred"):
         for k, v in runs[pairs].items():
             if k == "visits":  # (a pair's search may be bounded by another's find or not)
                 continue

@@ -54,6 +54,9 @@ from ._real import EPS, real, vec2, vec3, vec4
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
+#: A budget of boxes no search reaches (VISITS a slab).
+ALL_BOXES = 1 << 30
+
 #: The tie band's faces a slave keeps (faces within t_tol of its earliest contact).
 BAND = 8
 BandF = wp.types.vector(length=BAND, dtype=int)
@@ -769,11 +772,12 @@ def _narrow(q: CurvedPair, bound: real, start: real):  # noqa: F811 (a Warp over
 
 
 @wp.func
-def earliest(q: Any, bound: real, t_tol: real):
+def earliest(q: Any, bound: real, t_tol: real, budget: int):
     """search on the slabs _narrow gives in turn (after SLABS of them, or when _narrow cannot
     certify the gap before the next, on the unit box), with search called from one place (it
     is inlined: each call site is a copy of it, which costs a GPU its instruction cache and
-    registers). Same result and guarantee as search on the unit box."""
+    registers). Same result and guarantee as search on the unit box. A search that would
+    visit more than `budget` boxes stops with converged = -1 (pair_search defers it)."""
     kind, node = _narrow(q, bound, real(0.0))
     best = real(3.0e38)
     where = vec2(real(0.5))
@@ -781,8 +785,10 @@ def earliest(q: Any, bound: real, t_tol: real):
     visits = int(0)
     slabs = int(1)
     while kind != 0:
-        t, at, cv, n = search(q, node, bound, t_tol)
+        t, at, cv, n = search(q, node, bound, t_tol, budget - visits)
         visits += n
+        if cv < 0:
+            return best, where, cv, visits
         best = t
         where = at
         conv = cv
@@ -798,7 +804,7 @@ def earliest(q: Any, bound: real, t_tol: real):
 
 
 @wp.func
-def search(q: Any, node: Box6, bound: real, t_tol: real):
+def search(q: Any, node: Box6, bound: real, t_tol: real, budget: int):
     """The pair's earliest contact (arraycontact._sweep.roots for one pair) in the dyadic box
     `node` (the unit box, or a slab of time) before `bound`: (toi or 3e38, the contact box's
     centre (s, w), converged, boxes visited). q: TriPair or CurvedPair (_pair).
@@ -807,7 +813,8 @@ def search(q: Any, node: Box6, bound: real, t_tol: real):
     or after the earliest contact skipped), without the stack: a pending box is always the
     later sibling of a box on the path from the root, so the path's split axes (registers)
     and the current box are enough to step to the next one (the sibling, or up to the
-    parent). No local memory a thread, which on a GPU was most of the search's time."""
+    parent). No local memory a thread, which on a GPU was most of the search's time. More
+    than `budget` boxes: stops with converged = -1, its answer unknown."""
     best = real(3.0e38)
     limit = bound
     where = vec2(real(0.5))
@@ -874,6 +881,8 @@ def search(q: Any, node: Box6, bound: real, t_tol: real):
                     node = _along(node, a, hi, real(2.0) * hi - lo)  # the later sibling
                     if node[4] < limit:
                         going = int(1)
+        if going == 1 and visits >= budget:
+            return best, where, int(-1), visits
     return best, where, converged, visits
 
 
@@ -1085,7 +1094,7 @@ def swept_scan(
                             bound = real(3.0e38)
                             if first < real(2.0):
                                 bound = first + t_tol
-                            t, where, cv, n_vis = earliest(pr, bound, t_tol)
+                            t, where, cv, n_vis = earliest(pr, bound, t_tol, ALL_BOXES)
                             total += n_vis
                             if t < bound:
                                 if cv == 0:
@@ -1146,6 +1155,8 @@ class Pairs:
     conv: wp.array(dtype=int)
     first: wp.array(dtype=real)
     pick: wp.array(dtype=int)
+    later: wp.array(dtype=int)  # the pairs pair_search deferred, and their count
+    n_later: wp.array(dtype=int)
 
 
 @wp.func
@@ -1271,27 +1282,46 @@ def pair_search(
     start: int,
     pairs: Pairs,
     visits: wp.array(dtype=int),
+    budget: int,
+    deferred: int,
+    stride: int,
 ):
     """Pair k's earliest contact before its slave's earliest so far plus t_tol (the bound
-    only prunes: whatever other pairs of the slave have found when this one reads it)."""
-    k = start + wp.tid()
-    i = _listed(pairs, k)
-    if i < 0:
-        return
-    pr = _pair(el, x0, x1, faces, pairs.face[k], s0[i], s1[i], space_rtol)
-    bound = real(3.0e38)
-    first = pairs.first[i]
-    if first < real(2.0):
-        bound = first + t_tol
-    t, where, cv, n_vis = earliest(pr, bound, t_tol)
-    wp.atomic_add(visits, i, n_vis)
-    if t < bound:
-        pairs.toi[k] = t
-        pairs.where[k] = where
-        pairs.conv[k] = cv
-        wp.atomic_min(pairs.first, i, t)
-    else:
-        pairs.toi[k] = real(3.0e38)
+    only prunes: whatever other pairs of the slave have found when this one reads it).
+    A search of more than `budget` boxes is deferred: the pair goes to pairs.later, which a
+    second launch (deferred = 1) searches again from its root with no budget, thread t
+    taking pairs.later[t], [t + stride], ... (stride: the launch's size, a fraction of the
+    list's: most scenes defer few pairs). On a GPU a warp's threads step together, so one long
+    search (a hit: 10-20 boxes) held 31 short ones (a miss: 1-3); the second launch packs the
+    long ones."""
+    j = start + wp.tid()
+    n = pairs.slave.shape[0]
+    if deferred == 1:
+        n = pairs.n_later[0]
+    while j < n:
+        k = j
+        if deferred == 1:
+            k = pairs.later[j]
+        i = _listed(pairs, k)
+        if i >= 0:
+            pr = _pair(el, x0, x1, faces, pairs.face[k], s0[i], s1[i], space_rtol)
+            bound = real(3.0e38)
+            first = pairs.first[i]
+            if first < real(2.0):
+                bound = first + t_tol
+            t, where, cv, n_vis = earliest(pr, bound, t_tol, budget)
+            if cv < 0:
+                pairs.later[wp.atomic_add(pairs.n_later, 0, 1)] = k
+            else:
+                wp.atomic_add(visits, i, n_vis)
+                if t < bound:
+                    pairs.toi[k] = t
+                    pairs.where[k] = where
+                    pairs.conv[k] = cv
+                    wp.atomic_min(pairs.first, i, t)
+                else:
+                    pairs.toi[k] = real(3.0e38)
+        j += stride
 
 
 # The same kernel for triangles, capped at 96 registers in a module of its own: more threads
