@@ -54,7 +54,7 @@ from ._real import EPS, real, vec2, vec3, vec4
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
-#: A budget of boxes no search reaches (VISITS a slab).
+#: A budget of boxes no search reaches (a search stops at VISITS boxes a slab).
 ALL_BOXES = 1 << 30
 
 #: The tie band's faces a slave keeps (faces within t_tol of its earliest contact).
