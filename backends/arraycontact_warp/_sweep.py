@@ -1289,13 +1289,15 @@ def pair_search(
     """Pair k's earliest contact before its slave's earliest so far plus t_tol (the bound
     only prunes: whatever other pairs of the slave have found when this one reads it).
     A search of more than `budget` boxes is deferred: the pair goes to pairs.later, which a
-    second launch (deferred = 1) searches again from its root with no budget, thread t
-    taking pairs.later[t], [t + stride], ... (stride: the launch's size, a fraction of the
-    list's: most scenes defer few pairs). On a GPU a warp's threads step together, so one long
+    second launch (deferred = 1) searches again from its root with no budget. Thread t
+    takes slots (or pairs.later entries) t, t + stride, ... (stride: the launch's size, a
+    fraction of the list's: the list is sized for the densest scenes, and most scenes defer
+    few pairs). On a GPU a warp's threads step together, so one long
     search (a hit: 10-20 boxes) held 31 short ones (a miss: 1-3); the second launch packs the
     long ones."""
     j = start + wp.tid()
-    n = pairs.slave.shape[0]
+    last = pairs.count.shape[0] - 1
+    n = wp.min(pairs.offset[last] + pairs.count[last], pairs.slave.shape[0])  # filled slots
     if deferred == 1:
         n = pairs.n_later[0]
     while j < n:
