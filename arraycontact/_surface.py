@@ -165,8 +165,8 @@ def _corner_term(x, i, xp=np):
     t1 = [nxt[a] - cur[a] for a in range(3)]
     t2 = [prv[a] - cur[a] for a in range(3)]
     n = _cross(t1, t2)
-    s2 = xp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-    w = xp.arctan2(s2, t1[0] * t2[0] + t1[1] * t2[1] + t1[2] * t2[2])
+    s2 = xp.sqrt(_dot_columns(n, n))
+    w = xp.arctan2(s2, _dot_columns(t1, t2))
     w = w / xp.where(s2 > 0, s2, 1)
     return [c * w for c in n]
 
@@ -450,23 +450,19 @@ class Surface:
             radii[lo:hi] = self.element.lebesgue * np.sqrt(np.where(d2 > 0, d2, 0 * d2))
             if nn == 4:  # face_normals' closed form: the diagonals' (x2 - x0) x (x3 - x1)
                 normals[lo:hi] = np.stack(_unit_columns(_cross(d[0, 2], d[1, 3])), -1)
-                for i in range(nn):
-                    term = _corner_term(x, i)
-                    for a in range(3):
-                        terms[i, a, lo:hi] = term[a]
-                continue
-            # A triangle's normal is the same at its three corners, (x1 - x0) x (x2 - x0)
-            # (face_normals'), its length that of each corner's edges' cross product.
-            n = _cross(d[0, 1], d[0, 2])
-            s2 = np.sqrt(_dot_columns(n, n))
-            u = _unit_columns(n)
-            normals[lo:hi] = np.stack(u, -1)
-            m = [[-v for v in d[0, 1]], [-v for v in d[0, 2]], [-v for v in d[1, 2]]]
-            edges = ((d[0, 1], d[0, 2]), (d[1, 2], m[0]), (m[1], m[2]))  # (t1, t2) a corner
-            for i, (t1, t2) in enumerate(edges):
-                w = np.arctan2(s2, _dot_columns(t1, t2))
-                for a in range(3):
-                    terms[i, a, lo:hi] = u[a] * w
+                terms[:, :, lo:hi] = [_corner_term(x, i) for i in range(nn)]
+            else:
+                # A triangle's normal is the same at its three corners, (x1 - x0) x (x2 - x0)
+                # (face_normals'), its length that of each corner's edges' cross product.
+                n = _cross(d[0, 1], d[0, 2])
+                s2 = np.sqrt(_dot_columns(n, n))
+                u = _unit_columns(n)
+                normals[lo:hi] = np.stack(u, -1)
+                m = [[-v for v in d[0, 1]], [-v for v in d[0, 2]], [-v for v in d[1, 2]]]
+                corners = ((d[0, 1], d[0, 2]), (d[1, 2], m[0]), (m[1], m[2]))  # (t1, t2)
+                for i, (t1, t2) in enumerate(corners):
+                    w = np.arctan2(s2, _dot_columns(t1, t2))
+                    terms[i, :, lo:hi] = [c * w for c in u]
         return normals, centres, radii, longest, terms
 
     @cached_property

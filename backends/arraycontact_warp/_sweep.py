@@ -1304,7 +1304,7 @@ def pair_search(
         k = j
         if deferred == 1:
             k = pairs.later[j]
-        i = _listed(pairs, k)
+        i = pairs.slave[k]  # (-1: a slot left unfilled; j is below the filled ones)
         if i >= 0:
             pr = _pair(el, x0, x1, faces, pairs.face[k], s0[i], s1[i], space_rtol)
             bound = real(3.0e38)
