@@ -5,6 +5,10 @@ made a plan's first, whose refit check the host reads); "launches" counts them.
 
     python benchmarks/gpu_stages.py --log2 20 --only uniform graded_1000
     python benchmarks/gpu_stages.py --log2 17 --self spiral_strip crumpled_sheet
+    python benchmarks/gpu_stages.py --log2 20 --swept rough_tri3 graded_100
+
+With --swept, each step of `swept.py` twice: its swept detection and the static detection of
+the step's end (default d_max), as swept.py times them.
 """
 
 import argparse
@@ -25,6 +29,7 @@ def main():
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--self", nargs="*", help="self-contact scenes (arraycontact.scenes, quad4)")
+    ap.add_argument("--swept", nargs="*", help="swept steps (swept.py's names)")
     a = ap.parse_args()
     import arraycontact_warp as acw
     import warp as wp
@@ -54,6 +59,9 @@ def main():
 
 def _cases(a, acw, wp):
     """(label, a detection on the path a graph replays, counts) per scene asked for."""
+    if a.swept is not None:
+        yield from _swept_cases(a, acw, wp)
+        return
     if a.self is not None:
         import arraycontact as ac
 
@@ -76,6 +84,27 @@ def _cases(a, acw, wp):
         p.origin = np.zeros(3)
         counts = f"{scene.master.n_faces} faces, {len(scene.slave)} slaves"
         yield label, _first(p, lambda p=p, xs=xs, xm=xm: acw.detect(p, xs, xm)), counts
+
+
+def _swept_cases(a, acw, wp):
+    from swept import steps
+
+    for name in a.swept:
+        st = steps(2**a.log2)[name]()
+        p = acw.plan_swept(st.master, st.slave_x0, device="cuda")
+
+        def arr(x, p=p):
+            return wp.array((x - p.origin).astype(np.float32), dtype=wp.vec3)
+
+        xs = [arr(st.slave_x0), arr(st.slave_x1), arr(st.master.points), arr(st.master_x1)]
+        p.origin = np.zeros(3)
+        counts = f"{st.master.n_faces} faces, {len(st.slave_x0)} slaves"
+        yield f"{name} swept", lambda p=p, xs=xs: acw.detect_swept(p, *xs), counts
+        m1 = st.master.with_points(st.master_x1)
+        q = acw.plan(m1, st.slave_x1, device="cuda", graphs=False)
+        ys = arr(st.slave_x1, q), arr(st.master_x1, q)
+        q.origin = np.zeros(3)
+        yield f"{name} static", _first(q, lambda q=q, ys=ys: acw.detect(q, *ys)), counts
 
 
 def _first(p, call):

@@ -415,6 +415,66 @@ def test_warp_pair_list_equals_one_thread_a_slave(monkeypatch, name, dtype):
         acw.plan_swept(st.master, st.slave_x0, pairs=-1)
 
 
+def _capture_centres(m0, m1, faces):
+    """The centre of each triangle's box over both ends of the step (its capture key's)."""
+    a, b = m0[faces], m1[faces]
+    return 0.5 * (np.minimum(a.min(1), b.min(1)) + np.maximum(a.max(1), b.max(1)))
+
+
+def test_warp_swept_refit_and_rebuild():
+    """Where the device chooses (a CUDA graph with conditional nodes; the CPU), a detect after
+    the first keeps the capture tree's order while every capture box's centre stays within the
+    plan's margin of where it was sorted, and sorts again otherwise: the path taken is the one
+    the centres call for, and the answers are those of a plan that sorts every call."""
+    import arraycontact_warp as acw
+    import warp as wp
+
+    st = STEPS["closing_tri3"]()
+    L = st.master.longest_edge
+    faces = st.master.faces
+    p = acw.plan_swept(st.master, st.slave_x0, dtype="float64")
+    q = acw.plan_swept(st.master, st.slave_x0, dtype="float64", refit=False)
+    assert p.refit and not q.refit
+    margin = float(p.grid.margin)
+    assert margin > 0
+    xs = [st.slave_x0, st.slave_x1, st.master.points, st.master_x1]
+    arrays = [wp.array(a - p.origin, dtype=wp.vec3d, device=p.device) for a in xs]
+    origin, p.origin = p.origin, np.zeros(3)  # (arrays in the plan's frame)
+    acw.detect_swept(p, *arrays)  # the first call builds
+    run = lambda: acw.detect_swept(p, *arrays)  # noqa: E731
+    if p.device.is_cuda:
+        if not wp.is_conditional_graph_supported():
+            pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+        with wp.ScopedCapture(device=p.device) as cap:
+            acw.detect_swept(p, *arrays)
+        run = lambda: wp.capture_launch(cap.graph)  # noqa: E731
+    sorted_at = _capture_centres(st.master.points, st.master_x1, faces)
+    rng = np.random.default_rng(5)
+    small, large = np.array([0.013, -0.007, 0.02]) * L, np.array([1.7, 0.4, -0.05]) * L
+    for step, shift in enumerate([small, large, large + small]):
+        moved = [a + shift + rng.normal(0, 0.002 * L, a.shape) for a in xs]
+        c = _capture_centres(moved[2], moved[3], faces)
+        stale = bool((np.linalg.norm(c - sorted_at, axis=1) > margin).any())
+        assert stale == (step == 1)  # small motions stay within the margin, the large not
+        for a, m in zip(arrays, moved):
+            a.assign(m - origin)
+        run()
+        assert int(p.rebuild.numpy()[0]) == int(stale)
+        got = {k: v.numpy() for k, v in p.out.items()}
+        built = acw.detect_swept(q, *[m - origin for m in moved])
+        hit = built["hit"] == 1
+        assert hit.sum() > len(hit) // 4
+        for k in got:
+            if k == "visits":  # (the pairs' order differs: a search may be bounded sooner)
+                continue
+            if got[k].dtype.kind == "f":  # (the rows hit; the others' toi is a placeholder)
+                np.testing.assert_allclose(got[k][hit], built[k][hit], rtol=0, atol=1e-12 * L)
+            else:
+                assert np.array_equal(got[k], built[k]), (step, k)
+        if stale:
+            sorted_at = c
+
+
 def test_jax_gradients_and_overflow():
     """toi and the impact point differentiated with respect to all four coordinate arrays
     against central finite differences of the reference's toi (float64), and a plan sized for

@@ -1145,6 +1145,9 @@ class SweptPlan:
     pairs: object  # _sweep.Pairs, or None: every slave searched by swept_scan
     lost: wp.array  # per slave, 1: searched by swept_scan (its pairs did not fit)
     scratch: wp.array  # the pair counts' prefix sum's
+    refit: bool
+    rebuild: wp.array  # int32 [1]: the last refit found the capture tree's order stale
+    built: bool = False  # the capture tree holds an order (a detect has run)
 
     def pairs_needed(self) -> int:
         """The pair list's length the last detect_swept needed (a host copy: synchronises).
@@ -1165,6 +1168,8 @@ def plan_swept(
     device=None,
     dtype="float32",
     pairs=None,
+    growth=GROWTH,
+    refit=True,
 ) -> SweptPlan:
     """Allocate a swept detection (arraycontact.detect_swept's contract) of n slaves
     (slave_points [n, 3]: their positions at plan time, which place the local frame) against
@@ -1175,7 +1180,14 @@ def plan_swept(
     pair (a GPU's threads then wait less on one another than one thread a slave would);
     slaves whose pairs do not fit are searched one thread a slave (the same answers;
     `plan.pairs_needed()` says how many the last call needed). None: PAIRS_PER_SLAVE x n on
-    a GPU, 0 on the CPU (no list: each CPU thread takes its slaves one after the other)."""
+    a GPU, 0 on the CPU (no list: each CPU thread takes its slaves one after the other).
+
+    refit, growth: as `plan`'s, for the faces' capture boxes. A detect after the first, where
+    the device can choose without the host (in a CUDA graph with conditional nodes, and on
+    the CPU), keeps the capture tree's order and recomputes its boxes (exact for any motion)
+    while every capture box's centre stays within (growth - 1) times a small face's radius of
+    where it was sorted, and sorts again when one does not (`rebuild[0]` says which). False:
+    one sort every call."""
     here = precision(dtype)
     if here.real is not real:
         return here.plan_swept(
@@ -1186,11 +1198,15 @@ def plan_swept(
             device=device,
             dtype=dtype,
             pairs=pairs,
+            growth=growth,
+            refit=refit,
         )
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
     if master.n_faces == 0:
         raise ValueError("master has no faces")
+    if not growth >= 1:
+        raise ValueError(f"growth must be >= 1, got {growth}")
     x = validate_points(slave_points, "slave_points")
     if len(x) == 0:
         raise ValueError("slave_points is empty: there is nothing to plan for")
@@ -1222,8 +1238,10 @@ def plan_swept(
         lebesgue=float(e.lebesgue),
     )
     n_worlds = 1 if shared else int(nw.max()) + 1
+    # (plan's margin: a tenth of the faces are smaller)
+    margin = (growth - 1) * float(np.quantile(master.face_bounds[1], 0.1))
     grid, world_bits = _grid.new_grid(
-        master.n_faces, np.zeros(3), max(extent, 1e-30), device, 0.0, n_worlds
+        master.n_faces, np.zeros(3), max(extent, 1e-30), device, margin, n_worlds
     )
     layout = _grid.allot(grid, master.n_faces, device)
 
@@ -1251,6 +1269,8 @@ def plan_swept(
         pairs=_pair_list(n, int(pairs), device) if pairs > 0 else None,
         lost=wp.full(n, 0 if pairs > 0 else 1, dtype=int, device=device),
         scratch=wp.empty(_grid.scan_scratch(n), dtype=int, device=device),
+        refit=bool(refit),
+        rebuild=wp.zeros(1, dtype=wp.int32, device=device),
     )
 
 
@@ -1281,12 +1301,25 @@ def _swept_launch(p: SweptPlan, xs):
     s0, s1, m0, m1 = xs
     g = p.grid
     args = [m0, m1, p.faces, real(c.lebesgue), p.face_world]
-    _slave_launch(_sweep.capture_keys, nf, [0, *args, g], [], dev, first=0)
-    _grid._sort(g, nf, p.world_bits)
-    _grid.arrange(g, nf, p.layout, dev)
-    gather = [0, *args, real(c.pad_rel), real(c.pad_abs), g]
-    _slave_launch(_sweep.capture_gather, nf, gather, [], dev, first=0)
-    _grid.fill(g, p.layout, dev)
+    gather = [0, *args, real(c.pad_rel), real(c.pad_abs), g, p.rebuild]
+
+    def build():
+        _slave_launch(_sweep.capture_keys, nf, [0, *args, g], [], dev, first=0)
+        _grid._sort(g, nf, p.world_bits)
+        _grid.arrange(g, nf, p.layout, dev)
+        _slave_launch(_sweep.capture_gather, nf, [*gather, 0], [], dev, first=0)
+        _grid.fill(g, p.layout, dev)
+
+    # As `detect`'s trees: a refit where the device decides without the host.
+    decides = dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())
+    if p.refit and p.built and decides:
+        p.rebuild.zero_()
+        _slave_launch(_sweep.capture_gather, nf, [*gather, 1], [], dev, first=0)
+        _grid.refit_up(g, p.layout, dev)
+        wp.capture_if(p.rebuild, on_true=build)
+    else:
+        build()
+    p.built = True
     out = _sweep.Out()
     for k, _ in SWEPT_OUTPUTS:
         setattr(out, k, p.out[k])

@@ -1122,6 +1122,11 @@ def refit_faces(
 
 def _refit_boxes(grid: Grid, lay: Layout, normals, device):
     _normals(grid, grid.n, normals, device)
+    refit_up(grid, lay, device)
+
+
+def refit_up(grid: Grid, lay: Layout, device):
+    """Every level's boxes from the item slots, in the order of the last build."""
     # (One thread on the CPU, whose Warp atomics are plain additions: not in parts.)
     wp.launch(_refit_up, lay.entries[1], inputs=[grid], device=device)
 

@@ -917,16 +917,25 @@ def capture_gather(
     pad_rel: real,
     pad_abs: real,
     grid: Grid,
+    rebuild: wp.array(dtype=wp.int32),
+    refit: int,
 ):
     """Each face's capture box (its boxes at both ends of the step, grown by pad_rel times
     its largest side plus pad_abs: arraycontact._sweep.capture_pads) in its slot (threads
-    first + t)."""
+    first + t). refit = 1: the order is the previous build's; rebuild[0] is raised when a
+    box's centre (capture_keys') moved farther than grid.margin from where it was sorted."""
     k = first + wp.tid()
     f = grid.sorted_ids[k]
     c0, r0, lo0, hi0 = face_bounds(x0, faces, f, lebesgue)
     c1, r1, lo1, hi1 = face_bounds(x1, faces, f, lebesgue)
     lo = wp.min(lo0, lo1)
     hi = wp.max(hi0, hi1)
+    c = real(0.5) * (lo + hi)
+    if refit == 1:
+        if wp.length(c - grid.centres[k]) > grid.margin:
+            rebuild[0] = 1
+    else:
+        grid.centres[k] = c
     side = hi - lo
     pad = vec3(pad_rel * wp.max(side[0], wp.max(side[1], side[2])) + pad_abs)
     write_item(grid, slot(grid, k), lo - pad, f, hi + pad, world[f])
