@@ -366,15 +366,19 @@ def test_warp_worlds(pairs):
     assert not np.array_equal(one.face, still.face)
 
 
-@pytest.mark.parametrize("name, dtype", [("closing_quad4", "float64"), ("tumbling", "float32")])
+@pytest.mark.parametrize(
+    "name, dtype", [("closing_quad4", "float64"), ("tumbling", "float32"), ("graded", "float64")]
+)
 def test_warp_pair_list_equals_one_thread_a_slave(monkeypatch, name, dtype):
     """The search one thread a pair (the GPU's default) gives the answers of the search one
     thread a slave (the CPU's, checked against the reference above), with a list that holds
-    every pair, with one too short, whose slaves left out are searched one thread a slave,
-    and with the long searches deferred to a second launch (a GPU's way: here every search
-    of more than 2 boxes, in whatever order); a negative length is named."""
+    every pair (on the graded step some slaves meet more faces than a walk's window keeps,
+    and walk again), with one too short, whose slaves left out are searched one thread a
+    slave, and with the long searches deferred to a second launch (a GPU's way: here every
+    search of more than 2 boxes, in whatever order); a negative length is named."""
     import arraycontact_warp as acw
     from arraycontact_warp._real import precision
+    from arraycontact_warp._sweep import WINDOW
 
     st = _tumbling_triangles() if name == "tumbling" else STEPS[name]()
     n = len(st.slave_x0)
@@ -390,6 +394,8 @@ def test_warp_pair_list_equals_one_thread_a_slave(monkeypatch, name, dtype):
             assert 0 < lost.sum() < n and p.pairs_needed() > n
         else:
             assert not lost.any() and n < p.pairs_needed() <= pairs
+            more = (p.pairs.count.numpy() > WINDOW).sum()
+            assert p.pairs.n_more.numpy()[0] == more and (more > 0) == (name == "graded")
     two = {"tri3": 2, "other": 2}
     monkeypatch.setattr(precision(dtype), "SWEPT_BUDGET", {"cpu": two, "cuda": two})
     p = acw.plan_swept(st.master, st.slave_x0, dtype=dtype, pairs=40 * n)

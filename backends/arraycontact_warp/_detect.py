@@ -1088,7 +1088,8 @@ def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
 # --- swept detection -----------------------------------------------------------------------
 
 #: The pair list's default length on a GPU, a slave: 24 B a pair in float32 (0.6 GB at 2^20
-#: slaves); the graded scene at 2^18 needs 21, rough surfaces 7.
+#: slaves, and 64 B a slave for the walk's window); the graded scene at 2^16 needs 8 a slave,
+#: rough surfaces 1.3-7.2.
 PAIRS_PER_SLAVE = 24
 
 #: Boxes a pair's swept search may visit in the first pair_search launch, by device kind and
@@ -1288,6 +1289,9 @@ def _pair_list(n: int, room: int, device) -> _sweep.Pairs:
         ("pick", n, int),
         ("later", room, int),
         ("n_later", 1, int),
+        ("window", _sweep.WINDOW * n, int),
+        ("more", n, int),
+        ("n_more", 1, int),
     ):
         setattr(q, name, wp.empty(size, dtype=t, device=device))
     return q
@@ -1325,12 +1329,19 @@ def _swept_launch(p: SweptPlan, xs):
         setattr(out, k, p.out[k])
     q = p.pairs
     el = p.kernel_element
-    walk = [g, s0, s1, p.slave_world, p.shared, real(c.pad_rel), 0, q]
+    walk = [g, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     if q is not None:
         room = q.slave.shape[0]
-        _slave_launch(_sweep.pair_count, n, walk, [], dev, first=6)
+        # One walk a slave writes its count and a window of faces; the few slaves that meet
+        # more walk again once their offset is known (a second walk of every slave was 0.8-1.4
+        # ms at 2^20 on an H100).
+        _slave_launch(_sweep.pair_walk, n, [*walk, 0, q], [], dev, first=6)
         _grid.exclusive_scan(q.count, q.offset, n, p.scratch, dev)
-        _slave_launch(_sweep.pair_fill, n, [*walk, p.lost, p.out["visits"]], [], dev, first=6)
+        q.n_more.zero_()
+        # (one launch: its atomics, on the CPU plain read-modify-writes, would race in parts)
+        wp.launch(_sweep.pair_fill, n, inputs=[q, p.lost, p.out["visits"]], device=dev)
+        more = [*walk, q, max(n // LATER_SHARE, 1)]
+        wp.launch(_sweep.pair_more, more[-1], inputs=more, device=dev)
         # One launch: the pairs of a slave update its entries by atomics, which a CPU part
         # of its own would race.
         inputs = [el, m0, m1, p.faces, s0, s1, real(c.t_tol), real(c.space_rtol), 0, q]
