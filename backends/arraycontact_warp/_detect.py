@@ -1096,9 +1096,10 @@ PAIRS_PER_SLAVE = 24
 #: element (the longer searches in a second; a CPU's threads do not step together: all in
 #: one). H100, 2^20, against one launch: triangles at 4 graded 19.7 -> 18.7 ms, rough 6.75
 #: -> 6.21, steep 5.91 -> 5.37, fast 11.7 -> 9.7 (at 8 and 16 less); rough quad4 at 16 26.8
-#: -> 23.1 ms (at 4 none).
+#: -> 23.1 ms (at 4 none). Since the one walk and the refit, triangles at 2 against 4: graded
+#: 17.1 -> 16.4 ms, rough 4.31 -> 4.03, fast 7.78 -> 7.46 (at 3: 17.1, 4.11, 7.40).
 SWEPT_BUDGET = {
-    "cuda": {"tri3": 4, "other": 16},
+    "cuda": {"tri3": 2, "other": 16},
     "cpu": {"tri3": _sweep.ALL_BOXES, "other": _sweep.ALL_BOXES},
 }
 #: pair_search's threads: the list's length over these (each takes every so many slots).
