@@ -31,7 +31,7 @@ import numpy as np
 import warp as wp
 
 from arraycontact._detect import ITERATIONS, KKT_TOL, MODES, SIZE_RTOL, TIE_RTOL
-from arraycontact._surface import Surface, bounds, validate_points
+from arraycontact._surface import Surface, bounds, face_bounds, validate_points
 from arraycontact._sweep import FEATURE_TOL as SWEPT_FEATURE_TOL
 from arraycontact._sweep import SPACE_RTOL as SWEPT_SPACE_RTOL
 from arraycontact._sweep import T_TOL as SWEPT_T_TOL
@@ -1240,8 +1240,11 @@ def plan_swept(
         lebesgue=float(e.lebesgue),
     )
     n_worlds = 1 if shared else int(nw.max()) + 1
-    # (plan's margin: a tenth of the faces are smaller)
-    margin = (growth - 1) * float(np.quantile(master.face_bounds[1], 0.1))
+    # plan's margin (a tenth of the faces are smaller), from every k-th face: a margin needs
+    # no more, and all of the master's geometry took 0.4 s at 2^21 faces
+    few = master.faces[:: max(master.n_faces // 4096, 1)]
+    radii = face_bounds(e, master.points[few])[1]
+    margin = (growth - 1) * float(np.quantile(radii, 0.1))
     grid, world_bits = _grid.new_grid(
         master.n_faces, np.zeros(3), max(extent, 1e-30), device, margin, n_worlds
     )
