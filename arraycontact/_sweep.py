@@ -7,7 +7,8 @@ dropped),
 
     F(s, w, t) = sum_a N_a(xi(s, w)) (X_a + t V_a) - (p + t v)
 
-is zero exactly when the node lies on the face at time t. F is linear in t and of degree <= 1
+is zero exactly when the node lies on the face at time t. (A triangle's nodes are taken from
+its corner whose edges are nearest orthogonal, `corner_shift`, and its (s, w) mapped back.) F is linear in t and of degree <= 1
 (tri3, quad4) or <= 2 (tri6, quad8, quad9) in s and in w, so on a box of (s, w, t) its
 Bernstein coefficients (the corner values for the linear faces; a three-point rule an axis for
 the curved ones) are control points whose convex hull holds F's range there, and their
@@ -212,6 +213,46 @@ def krawczyk(element, xa, va, p, v, box, cp, margin, xp=np):
     return empty, inside, xp.stack([new_lo, new_hi], -1).reshape(box.shape), within
 
 
+#: A triangle's node order shifted by one and by two corners (tri3; tri6 with its midsides).
+SHIFTS = {
+    3: np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1]]),
+    6: np.array([[0, 1, 2, 3, 4, 5], [1, 2, 0, 4, 5, 3], [2, 0, 1, 5, 3, 4]]),
+}
+
+
+def corner_shift(xe, xp=np):
+    """Per triangle [P, nn, 3], the shift r (0, 1, 2) that makes corner r the origin of the
+    search's (s, w): the corner whose two edges are nearest orthogonal (the least |cos|; the
+    first of equals). On a sliver the near-zero set of F is a strip along the short edge;
+    with the origin at the sharp corner it lies across s and w (the edges there nearly
+    parallel) and boxes aligned with s and w tile it by the thousand in float32 (graded
+    meshes: 700-2800 boxes a pair where the origin at a right corner needs 60-90)."""
+    cos2 = []
+    for i in range(3):
+        a = xe[:, (i + 1) % 3] - xe[:, i]
+        b = xe[:, (i + 2) % 3] - xe[:, i]
+        den = _dot(a, a) * _dot(b, b)
+        cos2.append(xp.where(den > 0, _dot(a, b) ** 2 / xp.where(den > 0, den, 1), 1))
+    return xp.argmin(xp.stack(cos2, -1), -1)
+
+
+def shifted(xe, r, xp=np):
+    """The triangles' nodes [P, nn, 3] in the order that starts at corner r [P]."""
+    order = xp.asarray(SHIFTS[xe.shape[1]])[r]
+    return xp.take_along_axis(xe, order[:, :, None], 1)
+
+
+def unshifted(where, r, xp=np):
+    """(s, w) [P, 2] of the order that starts at corner r back in the face's own: the
+    barycentric weights of corners r + 1 and r + 2 are s and w there."""
+    s, w = where[:, 0], where[:, 1]
+    u = 1 - s - w
+    return xp.stack(
+        [xp.where(r == 1, u, xp.where(r == 2, w, s)), xp.where(r == 1, s, xp.where(r == 2, u, w))],
+        -1,
+    )
+
+
 def pair_frame(element, xe0, xe1, p0, p1, xp=np):
     """The pair's data in its own frame (face node 0 at t = 0 as origin): xa, va, p, v, the
     exclusion directions (the face normal at its centre at t = 0 and t = 1) [P, 2, 3], the
@@ -236,6 +277,10 @@ def roots(element, xe0, xe1, p0, p1):
     box's centre (s, w) [P, 2], converged [P] and the boxes visited [P]."""
     dt = np.dtype(xe0.dtype)
     n = len(p0)
+    tri = element.kind == "tri"
+    if tri:  # (s, w) from the corner with the most nearly orthogonal edges
+        r = corner_shift(xe0)
+        xe0, xe1 = shifted(xe0, r), shifted(xe1, r)
     xa, va, p, v, dirs, margin, delta = pair_frame(element, xe0, xe1, p0, p1)
     t_tol = T_TOL[dt]
     stack = np.zeros((n, DEPTH, 6), dt)
@@ -309,6 +354,8 @@ def roots(element, xe0, xe1, p0, p1):
             converged[over] = False
             sp[over] = 0
         act = np.nonzero(sp > 0)[0]
+    if tri:
+        where = unshifted(where, r)
     return best, where, converged, visits
 
 

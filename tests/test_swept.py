@@ -75,6 +75,31 @@ STEPS = {
 }
 
 
+@pytest.mark.parametrize("element", ["tri3", "tri6"])
+def test_search_from_the_most_orthogonal_corner(element):
+    """The certified search's (s, w) start at the triangle's corner whose edges are nearest
+    orthogonal (a sliver's right corner, whichever its label), and its (s, w) in that order
+    name the same point of the face in the face's own order."""
+    from arraycontact._sweep import corner_shift, shifted, unshifted
+
+    e = ac._elements.ELEMENTS[element]
+    rng = np.random.default_rng(2)
+    # Slivers 80 long and 1 wide with the right angle at corner 0, 1 or 2.
+    right = np.array([[0.0, 0.0, 0.0], [80.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    corners = np.stack([np.roll(right, k, 0) for k in range(3)])
+    assert corner_shift(corners).tolist() == [0, 1, 2]
+    xe = rng.normal(size=(200, 3, 3))
+    if element == "tri6":  # curved: midsides off the chords
+        mid = 0.5 * (xe + np.roll(xe, -1, 1)) + 0.1 * rng.normal(size=(200, 3, 3))
+        xe = np.concatenate([xe, mid], 1)
+    r = corner_shift(xe)
+    assert set(r.tolist()) == {0, 1, 2}
+    sw = rng.uniform(0, 0.5, (200, 2))
+    x_shifted, _ = ac._elements.interpolate(e, shifted(xe, r), sw)
+    x_own, _ = ac._elements.interpolate(e, xe, unshifted(sw, r))
+    np.testing.assert_allclose(x_shifted, x_own, atol=1e-12)
+
+
 @pytest.mark.parametrize("name", sorted(STEPS))
 def test_numpy_against_reference(name):
     st = STEPS[name]()

@@ -22,11 +22,14 @@ from arraycontact._sweep import (
     T_TOL,
     VISITS,
     control_points,
+    corner_shift,
     examine,
     krawczyk,
     natural,
     outside,
     pair_frame,
+    shifted,
+    unshifted,
 )
 from arraycontact._sweep import impact as swept_impact
 
@@ -44,6 +47,10 @@ def roots(element, xe0, xe1, p0, p1, valid):
     [P] (inf: none), the contact box's centre (s, w) [P, 2], converged [P], visits [P]."""
     dt = np.dtype(xe0.dtype)
     P = p0.shape[0]
+    tri = element.kind == "tri"
+    if tri:  # (s, w) from the corner with the most nearly orthogonal edges (corner_shift)
+        r = corner_shift(xe0, jnp)
+        xe0, xe1 = shifted(xe0, r, jnp), shifted(xe1, r, jnp)
     inputs = pair_frame(element, xe0, xe1, p0, p1, jnp)
     root = jnp.asarray([0, 1, 0, 1, 0, 1], dt)
     stack = jnp.zeros((P, DEPTH, 6), dt).at[:, 0].set(root)
@@ -57,6 +64,8 @@ def roots(element, xe0, xe1, p0, p1, valid):
         jnp.ones(P, bool),
     )
     stack, sp, best, where, visits, conv = _run(element, state, inputs, T_TOL[dt])
+    if tri:
+        where = unshifted(where, r, jnp)
     return best, where, conv, visits
 
 

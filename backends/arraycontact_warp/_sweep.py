@@ -147,6 +147,7 @@ class TriPair:
     delta: real
     g: vec4  # the coplanarity cubic on [0, 1] (_coplanarity) and its rounding bound
     g_margin: real
+    r: int  # the face's corner at the origin (_corner_shift)
 
 
 @wp.struct
@@ -163,6 +164,48 @@ class CurvedPair:
     n1: vec3
     margin: real
     delta: real
+    r: int  # a triangle's corner at the origin (_corner_shift); 0 for quads
+
+
+@wp.func
+def _cos2(a: vec3, b: vec3):
+    den = wp.dot(a, a) * wp.dot(b, b)
+    if den > real(0.0):
+        return wp.dot(a, b) * wp.dot(a, b) / den
+    return real(1.0)
+
+
+@wp.func
+def _corner_shift(a: vec3, b: vec3, c: vec3):
+    """arraycontact._sweep.corner_shift: the corner of (a, b, c) whose edges are nearest
+    orthogonal, the first of equals (the search's (s, w) start there)."""
+    ca = _cos2(b - a, c - a)
+    cb = _cos2(c - b, a - b)
+    cc = _cos2(a - c, b - c)
+    if ca <= cb and ca <= cc:
+        return 0
+    if cb <= cc:
+        return 1
+    return 2
+
+
+@wp.func
+def _node(f: int, i: int, r: int, faces: wp.array2d(dtype=int)):
+    """Node i of face f's order from corner r (arraycontact._sweep.SHIFTS)."""
+    if i < 3:
+        return faces[f, (i + r) % 3]
+    return faces[f, 3 + (i - 3 + r) % 3]
+
+
+@wp.func
+def _unshift(xi: vec2, r: int):
+    """(s, w) of the order from corner r in the face's own (arraycontact._sweep.unshifted)."""
+    u = real(1.0) - xi[0] - xi[1]
+    if r == 1:
+        return vec2(u, xi[0])
+    if r == 2:
+        return vec2(xi[1], u)
+    return xi
 
 
 @wp.func
@@ -181,15 +224,18 @@ def _pair(
     s1: vec3,
     space_rtol: real,
 ):
-    """Face f and the node moving from s0 to s1 as a pair, face node 0 at t = 0 the origin."""
-    o = x0[faces[f, 0]]
-    p1 = x1[faces[f, 0]]
-    x1f1 = x1[faces[f, 1]]
-    x1f2 = x1[faces[f, 2]]
+    """Face f and the node moving from s0 to s1 as a pair, the face's corner r at t = 0 the
+    origin (_corner_shift)."""
+    r = _corner_shift(x0[faces[f, 0]], x0[faces[f, 1]], x0[faces[f, 2]])
+    o = x0[_node(f, 0, r, faces)]
+    p1 = x1[_node(f, 0, r, faces)]
+    x1f1 = x1[_node(f, 1, r, faces)]
+    x1f2 = x1[_node(f, 2, r, faces)]
     q = TriPair()
+    q.r = r
     q.a = o - s0
-    q.e1 = x0[faces[f, 1]] - o
-    q.e2 = x0[faces[f, 2]] - o
+    q.e1 = x0[_node(f, 1, r, faces)] - o
+    q.e2 = x0[_node(f, 2, r, faces)] - o
     v0 = p1 - o
     q.b = v0 - (s1 - s0)
     q.u1 = x1f1 - o - q.e1 - v0
@@ -218,14 +264,18 @@ def _pair(  # noqa: F811 (a Warp overload)
     s1: vec3,
     space_rtol: real,
 ):
-    o = x0[faces[f, 0]]
+    r = int(0)
+    if el.n_corners == 3:
+        r = _corner_shift(x0[faces[f, 0]], x0[faces[f, 1]], x0[faces[f, 2]])
+    o = x0[_node(f, 0, r, faces)]
     q = CurvedPair()
     q.el = el
+    q.r = r
     xb = FaceNodes()
     sc = real(0.0)
     for i in range(el.nn):
-        a = x0[faces[f, i]] - o
-        b = x1[faces[f, i]] - o
+        a = x0[_node(f, i, r, faces)] - o
+        b = x1[_node(f, i, r, faces)] - o
         q.xa = set_node(q.xa, i, a)
         q.va = set_node(q.va, i, b - a)
         xb = set_node(xb, i, b)
@@ -800,7 +850,7 @@ def earliest(q: Any, bound: real, t_tol: real, budget: int):
         else:
             kind, node = _narrow(q, bound, node[5])
             slabs += 1
-    return best, where, conv, visits
+    return best, _unshift(where, q.r), conv, visits
 
 
 @wp.func
