@@ -1290,7 +1290,6 @@ def _pair_list(n: int, room: int, device) -> _sweep.Pairs:
         ("where", room, vec2),
         ("conv", room, int),
         ("first", n, real),
-        ("pick", n, int),
         ("later", room, int),
         ("n_later", 1, int),
         ("window", _sweep.WINDOW * n, int),
@@ -1361,13 +1360,13 @@ def _swept_launch(p: SweptPlan, xs):
             threads = max(room // LATER_SHARE, 1)
             later = [*inputs, p.out["visits"], _sweep.ALL_BOXES, 1, threads]
             wp.launch(search, threads, inputs=later, device=dev)
-        wp.launch(_sweep.pair_band, room, inputs=[real(c.t_tol), 0, q], device=dev)
     scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
     _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14)
     if q is not None:
-        finish = [el, m0, m1, p.faces, s0, s1, real(c.feature_tol), p.lost, 0, q, out]
-        _slave_launch(_sweep.pair_finish, n, finish, [], dev, first=8)
+        finish = [el, m0, m1, p.faces, s0, s1, real(c.feature_tol), real(c.t_tol), p.lost, 0]
+        finish += [q, out]
+        _slave_launch(_sweep.pair_finish, n, finish, [], dev, first=9)
 
 
 def detect_swept(p: SweptPlan, slave_x0, slave_x1, master_x0, master_x1):

@@ -1203,7 +1203,7 @@ class Pairs:
     """A swept detection's (slave, face) pairs, searched one thread a pair (swept_pairs): the
     list (slave -1: a slot not filled), each slave's count and first slot, and per pair the
     search's result (toi: 3e38 when none before the bound it had; (s, w); converged);
-    per slave the earliest toi and the tie band's smallest face."""
+    per slave the earliest toi."""
 
     slave: wp.array(dtype=int)
     face: wp.array(dtype=int)
@@ -1213,7 +1213,6 @@ class Pairs:
     where: wp.array(dtype=vec2)
     conv: wp.array(dtype=int)
     first: wp.array(dtype=real)
-    pick: wp.array(dtype=int)
     later: wp.array(dtype=int)  # the pairs pair_search deferred, and their count
     n_later: wp.array(dtype=int)
     window: wp.array(dtype=int)  # per slave, the first WINDOW faces pair_walk met
@@ -1297,7 +1296,6 @@ def pair_walk(
     a, b, w = s0[i], s1[i], slave_world[i]
     pairs.count[i] = _walk(grid, a, b, w, shared, pad_rel, pairs.window, WINDOW * i, 0, WINDOW)
     pairs.first[i] = real(3.0e38)
-    pairs.pick[i] = 2147483647
 
 
 @wp.kernel
@@ -1344,15 +1342,6 @@ def pair_more(
         n = pairs.count[i]
         _walk(grid, s0[i], s1[i], slave_world[i], shared, pad_rel, pairs.face, at, WINDOW, n)
         j += stride
-
-
-@wp.func
-def _listed(pairs: Pairs, k: int):
-    """Pair k's slave, or -1 past the list's end or in a slot left unfilled."""
-    n = pairs.count.shape[0]
-    if k >= wp.min(pairs.offset[n - 1] + pairs.count[n - 1], pairs.slave.shape[0]):
-        return -1
-    return pairs.slave[k]
 
 
 @wp.kernel
@@ -1424,18 +1413,6 @@ pair_search_tri = wp.kernel(
 
 
 @wp.kernel
-def pair_band(t_tol: real, start: int, pairs: Pairs):
-    """The tie band of pair k's slave: the smallest face within t_tol of its earliest."""
-    k = start + wp.tid()
-    i = _listed(pairs, k)
-    if i < 0:
-        return
-    t = pairs.toi[k]
-    if t < real(2.0) and t <= pairs.first[i] + t_tol:
-        wp.atomic_min(pairs.pick, i, pairs.face[k])
-
-
-@wp.kernel
 def pair_finish(
     el: Any,
     x0: wp.array(dtype=vec3),
@@ -1444,25 +1421,33 @@ def pair_finish(
     s0: wp.array(dtype=vec3),
     s1: wp.array(dtype=vec3),
     feature_tol: real,
+    t_tol: real,
     lost: wp.array(dtype=int),
     start: int,
     pairs: Pairs,
     out: Out,
 ):
-    """Slave i's outputs from its pairs' search (the slaves swept_scan searched: its own)."""
+    """Slave i's outputs from its pairs' search (the slaves swept_scan searched: its own):
+    the tie band's smallest face (its pairs within t_tol of the earliest), where and whether
+    its search converged."""
     i = start + wp.tid()
     if lost[i] == 1:
         return
-    f = pairs.pick[i]
+    at = pairs.offset[i]
+    n = pairs.count[i]
+    first = pairs.first[i]
+    f = int(2147483647)
+    pick = int(-1)
+    for q in range(at, at + n):
+        t = pairs.toi[q]
+        if t < real(2.0) and t <= first + t_tol and pairs.face[q] < f:
+            f = pairs.face[q]
+            pick = q
     out.converged[i] = 1
-    if f == 2147483647:
+    if pick < 0:
         out.hit[i] = 0
         out.face[i] = -1
         return
-    at = pairs.offset[i]
-    where = vec2(real(0.0))
-    for q in range(at, at + pairs.count[i]):
-        if pairs.face[q] == f:
-            where = pairs.where[q]
-            out.converged[i] = pairs.conv[q]
+    where = pairs.where[pick]
+    out.converged[i] = pairs.conv[pick]
     _write(i, el, x0, x1, faces, f, pairs.first[i], where, s0[i], s1[i], feature_tol, out)
