@@ -11,7 +11,8 @@ rolling onto a road. For each:
   - swept: arraycontact_warp.plan_swept / detect_swept steady state (device arrays in place;
     on a GPU its launches replayed as one CUDA graph, like detect's own), first call;
   - static: arraycontact_warp.plan / detect of the step's end (default d_max), steady state;
-  - swept / static (target: at most 2);
+  - swept / static (target: at most 2), the two steady states timed in turn, medians (a
+    shared machine's load moves over a run: in turn both see the same);
   - ipctk (--ipctk, CPU): its CCD broad phase (Candidates.build, the fastest of its HashGrid,
     LBVH and SweepAndPrune in the run) and narrow phase: compute_collision_free_stepsize (C++,
     one global step, not per node) and, for per-node times of impact, each slave-face
@@ -27,6 +28,7 @@ prints them as the markdown table of RESULTS.md.
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -69,20 +71,19 @@ def warp_swept(st, device, repeats):
     p.origin = np.zeros(3)  # the arrays are in the plan's frame already
     first, plain = timed(lambda: acw.detect_swept(p, *xs), repeats, device)
     rec = dict(plan_s=plan_s, first_call_s=first, steady_no_graph_s=plain)
+    steady = lambda: acw.detect_swept(p, *xs)  # noqa: E731
     if wp.get_device(device).is_cuda:
         with wp.ScopedCapture(device=device) as cap:
             acw.detect_swept(p, *xs)
-        rec["steady_s"] = timed(lambda: wp.capture_launch(cap.graph), repeats, device)[1]
-    else:
-        rec["steady_s"] = plain
+        steady = lambda: wp.capture_launch(cap.graph)  # noqa: E731
     out = {k: v.numpy() for k, v in p.out.items()}
     # The (slave, face) pairs the capture test gave (GPU: the pair list's need; 0 on the CPU,
     # which searches one thread a slave without a list).
     rec["pairs_per_slave"] = p.pairs_needed() / len(st.slave_x0)
-    return out, rec
+    return out, rec, steady
 
 
-def warp_static(st, device, repeats):
+def warp_static(st, device):
     import arraycontact_warp as acw
     import warp as wp
 
@@ -91,7 +92,24 @@ def warp_static(st, device, repeats):
     xs = wp.array((st.slave_x1 - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
     xm = wp.array((st.master_x1 - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
     p.origin = np.zeros(3)
-    return timed(lambda: acw.detect(p, xs, xm), repeats, device)[1]
+    for _ in range(2):  # (the second call captures the graph the next ones replay)
+        acw.detect(p, xs, xm)
+    return lambda: acw.detect(p, xs, xm)
+
+
+def alternating(calls, repeats, device):
+    """The median time of each call, timed in turn (a shared machine's load changes over a
+    run: in turn, both calls see the same)."""
+    import warp as wp
+
+    times = [[] for _ in calls]
+    for _ in range(repeats):
+        for c, t in zip(calls, times):
+            t0 = time.perf_counter()
+            c()
+            wp.synchronize_device(device)
+            t.append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times]
 
 
 def ipctk_peer(st, ours, n_check_rows):
@@ -175,8 +193,10 @@ def check(out, st, n_check, seed=0):
 
 def run(name, n, device, repeats, n_check, with_ipctk):
     st = steps(n)[name]()
-    out, rec = warp_swept(st, device, repeats)
-    rec["static_steady_s"] = warp_static(st, device, repeats)
+    out, rec, swept = warp_swept(st, device, repeats)
+    rec["steady_s"], rec["static_steady_s"] = alternating(
+        [swept, warp_static(st, device)], repeats, device
+    )
     rec["swept_over_static"] = rec["steady_s"] / rec["static_steady_s"]
     rec["hits"] = int(out["hit"].sum())
     rec["visits_per_hit"] = float(out["visits"].sum() / max(rec["hits"], 1))
