@@ -12,8 +12,8 @@ corner whose edges are nearest orthogonal, `corner_shift`, its (s, w) mapped bac
 is linear in t and of degree <= 1 (tri3, quad4) or <= 2 (tri6, quad8, quad9) in s and in w,
 so on a box of (s, w, t) its Bernstein coefficients (the corner values for the linear faces;
 a three-point rule an axis for the curved ones) are control points whose convex hull holds
-F's range there, and their differences bound its Jacobian. The search is depth first over boxes, the earlier half in time
-first, and for each box:
+F's range there, and their differences bound its Jacobian. The search is depth first over
+boxes, the earlier half in time first, and for each box:
 
 1. exclusion: the hull misses 0 along an axis or along the face normal at either end of the
    step (by more than a rounding margin): no contact in the box;
