@@ -1290,8 +1290,7 @@ def pair_walk(
     start: int,
     pairs: Pairs,
 ):
-    """Slave i's pair count and its first WINDOW faces; its earliest toi and band face
-    reset."""
+    """Slave i's pair count and its first WINDOW faces; its earliest toi reset."""
     i = start + wp.tid()
     a, b, w = s0[i], s1[i], slave_world[i]
     pairs.count[i] = _walk(grid, a, b, w, shared, pad_rel, pairs.window, WINDOW * i, 0, WINDOW)
