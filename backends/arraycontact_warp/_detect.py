@@ -1087,20 +1087,23 @@ def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
 
 # --- swept detection -----------------------------------------------------------------------
 
-#: The pair list's default length on a GPU, a slave: 24 B a pair in float32 (0.6 GB at 2^20
-#: slaves, and 64 B a slave for the walk's window); the graded scene at 2^16 needs 8 a slave,
-#: rough surfaces 1.3-7.2.
+#: The pair list's default length on a GPU, a slave: 32 B a pair in float32 with the deferred
+#: lists (0.8 GB at 2^20 slaves, and 64 B a slave for the walk's window); the graded scene at
+#: 2^16 needs 8 a slave, rough surfaces 1.3-7.2.
 PAIRS_PER_SLAVE = 24
 
-#: Boxes a pair's swept search may visit in the first pair_search launch, by device kind and
-#: element (the longer searches in a second; a CPU's threads do not step together: all in
-#: one). H100, 2^20, against one launch: triangles at 4 graded 19.7 -> 18.7 ms, rough 6.75
-#: -> 6.21, steep 5.91 -> 5.37, fast 11.7 -> 9.7 (at 8 and 16 less); rough quad4 at 16 26.8
-#: -> 23.1 ms (at 4 none). Since the one walk and the refit, triangles at 2 against 4: graded
-#: 17.1 -> 16.4 ms, rough 4.31 -> 4.03, fast 7.78 -> 7.46 (at 3: 17.1, 4.11, 7.40).
+#: Boxes a pair's swept search may visit in each pair_search launch but the last, by device
+#: kind and element: a longer search goes on to the next launch, the last has no budget (a
+#: CPU's threads do not step together: one launch). H100, 2^20, two launches against one:
+#: triangles at 4 graded 19.7 -> 18.7 ms, rough 6.75 -> 6.21, steep 5.91 -> 5.37, fast 11.7
+#: -> 9.7 (at 8 and 16 less); rough quad4 at 16 26.8 -> 23.1 ms (at 4 none). Since the one
+#: walk and the refit, triangles at 2 against 4: graded 17.1 -> 16.4 ms, rough 4.31 -> 4.03,
+#: fast 7.78 -> 7.46 (at 3: 17.1, 4.11, 7.40); since the corner shift, a third launch past 16
+#: (against two): graded 8.22 -> 8.05, fast 6.41 -> 5.85, rough tri3 3.68 either way (past 32:
+#: 8.01, 5.97, 3.93).
 SWEPT_BUDGET = {
-    "cuda": {"tri3": 2, "other": 16},
-    "cpu": {"tri3": _sweep.ALL_BOXES, "other": _sweep.ALL_BOXES},
+    "cuda": {"tri3": (2, 16), "other": (16,)},
+    "cpu": {"tri3": (), "other": ()},
 }
 #: pair_search's threads: the list's length over these (each takes every so many slots).
 #: The list is sized for the densest scenes (PAIRS_PER_SLAVE): a half of it still gives a
@@ -1290,8 +1293,8 @@ def _pair_list(n: int, room: int, device) -> _sweep.Pairs:
         ("where", room, vec2),
         ("conv", room, int),
         ("first", n, real),
-        ("later", room, int),
-        ("n_later", 1, int),
+        ("later", (2, room), int),
+        ("n_later", 2, int),
         ("window", _sweep.WINDOW * n, int),
         ("more", n, int),
         ("n_more", 1, int),
@@ -1350,16 +1353,12 @@ def _swept_launch(p: SweptPlan, xs):
         inputs = [el, m0, m1, p.faces, s0, s1, real(c.t_tol), real(c.space_rtol), 0, q]
         tri = p.master.element.name == "tri3"
         search = _sweep.pair_search_tri if tri else _sweep.pair_search
-        # On a GPU the long searches go to a second launch (pair_search, SWEPT_BUDGET).
-        budget = SWEPT_BUDGET["cuda" if dev.is_cuda else "cpu"]["tri3" if tri else "other"]
+        # On a GPU the long searches go on to later launches (pair_search, SWEPT_BUDGET).
+        budgets = SWEPT_BUDGET["cuda" if dev.is_cuda else "cpu"]["tri3" if tri else "other"]
         q.n_later.zero_()
-        threads = max(room // FIRST_SHARE, 1)
-        first = [*inputs, p.out["visits"], budget, 0, threads]
-        wp.launch(search, threads, inputs=first, device=dev)
-        if budget < _sweep.ALL_BOXES:
-            threads = max(room // LATER_SHARE, 1)
-            later = [*inputs, p.out["visits"], _sweep.ALL_BOXES, 1, threads]
-            wp.launch(search, threads, inputs=later, device=dev)
+        for d, b in enumerate((*budgets, _sweep.ALL_BOXES)):
+            threads = max(room // (LATER_SHARE if d else FIRST_SHARE), 1)
+            wp.launch(search, threads, inputs=[*inputs, p.out["visits"], b, d, threads], device=dev)
     scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
     _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14)

@@ -1213,7 +1213,7 @@ class Pairs:
     where: wp.array(dtype=vec2)
     conv: wp.array(dtype=int)
     first: wp.array(dtype=real)
-    later: wp.array(dtype=int)  # the pairs pair_search deferred, and their count
+    later: wp.array2d(dtype=int)  # the pairs pair_search deferred, a row a tier, and counts
     n_later: wp.array(dtype=int)
     window: wp.array(dtype=int)  # per slave, the first WINDOW faces pair_walk met
     more: wp.array(dtype=int)  # the slaves that met more, walked again, and their count
@@ -1362,22 +1362,22 @@ def pair_search(
 ):
     """Pair k's earliest contact before its slave's earliest so far plus t_tol (the bound
     only prunes: whatever other pairs of the slave have found when this one reads it).
-    A search of more than `budget` boxes is deferred: the pair goes to pairs.later, which a
-    second launch (deferred = 1) searches again from its root with no budget. Thread t
-    takes slots (or pairs.later entries) t, t + stride, ... (stride: the launch's size, a
-    fraction of the list's: the list is sized for the densest scenes, and most scenes defer
-    few pairs). On a GPU a warp's threads step together, so one long
-    search (a hit: 10-20 boxes) held 31 short ones (a miss: 1-3); the second launch packs the
-    long ones."""
+    Launch d (deferred) takes the filled slots (d = 0) or the pairs launch d - 1 deferred
+    (pairs.later row d - 1); a search of more than `budget` boxes is deferred: the pair goes
+    to row d, which the next launch searches again from its root. Thread t takes entries t,
+    t + stride, ... (stride: the launch's size, a fraction of the list's: the list is sized
+    for the densest scenes, and most scenes defer few pairs). On a GPU a warp's threads step
+    together, so one long search (a hit: 10-20 boxes) held 31 short ones (a miss: 1-3); the
+    later launches pack the long ones."""
     j = start + wp.tid()
     last = pairs.count.shape[0] - 1
     n = wp.min(pairs.offset[last] + pairs.count[last], pairs.slave.shape[0])  # filled slots
-    if deferred == 1:
-        n = pairs.n_later[0]
+    if deferred >= 1:
+        n = pairs.n_later[deferred - 1]
     while j < n:
         k = j
-        if deferred == 1:
-            k = pairs.later[j]
+        if deferred >= 1:
+            k = pairs.later[deferred - 1, j]
         i = pairs.slave[k]  # (-1: a slot left unfilled; j is below the filled ones)
         if i >= 0:
             pr = _pair(el, x0, x1, faces, pairs.face[k], s0[i], s1[i], space_rtol)
@@ -1387,7 +1387,7 @@ def pair_search(
                 bound = first + t_tol
             t, where, cv, n_vis = earliest(pr, bound, t_tol, budget)
             if cv < 0:
-                pairs.later[wp.atomic_add(pairs.n_later, 0, 1)] = k
+                pairs.later[deferred, wp.atomic_add(pairs.n_later, deferred, 1)] = k
             else:
                 wp.atomic_add(visits, i, n_vis)
                 if t < bound:
