@@ -75,6 +75,9 @@ def warp_swept(st, device, repeats):
     if wp.get_device(device).is_cuda:
         with wp.ScopedCapture(device=device) as cap:
             acw.detect_swept(p, *xs)
+        # (launched once here: instantiated after the static plan's own capture, this graph
+        # failed to (Warp 1.19, CUDA 13: "invalid argument" from cudaGraphInstantiate))
+        wp.capture_launch(cap.graph)
         steady = lambda: wp.capture_launch(cap.graph)  # noqa: E731
     out = {k: v.numpy() for k, v in p.out.items()}
     # The (slave, face) pairs the capture test gave (GPU: the pair list's need; 0 on the CPU,
