@@ -508,6 +508,41 @@ def test_warp_swept_refit_and_rebuild():
             sorted_at = c
 
 
+def test_warp_swept_graph_replays_after_other_plans():
+    """A swept detection captured as a CUDA graph replays with the same answers after a
+    static and a self-contact plan of other shapes were made and run (their kernels loaded,
+    their trees sorted, their own graphs captured). On the CPU, without graphs, the same
+    sequence. (On an H100 a swept graph captured before a static plan was made failed after
+    it: benchmarks/RESULTS.md, "A third launch, and a graph that broke".)"""
+    import arraycontact_warp as acw
+    import warp as wp
+
+    st = STEPS["closing_tri3"]()
+    p = acw.plan_swept(st.master, st.slave_x0)
+    xs = [st.slave_x0, st.slave_x1, st.master.points, st.master_x1]
+    arrays = [wp.array(a - p.origin, dtype=wp.vec3, device=p.device) for a in xs]
+    p.origin = np.zeros(3)
+    acw.detect_swept(p, *arrays)
+    run = lambda: acw.detect_swept(p, *arrays)  # noqa: E731
+    if p.device.is_cuda:
+        with wp.ScopedCapture(device=p.device) as cap:
+            acw.detect_swept(p, *arrays)
+        run = lambda: wp.capture_launch(cap.graph)  # noqa: E731
+    run()
+    before = {k: v.numpy().copy() for k, v in p.out.items()}
+    big = scenes.closing_rough_surfaces(2**10, element="quad4")
+    r = acw.plan(big.master, big.slave_x1)
+    for _ in range(3):  # (the second call captures the static plan's graph)
+        acw.detect(r, big.slave_x1, big.master.points)
+    s = scenes.spiral_strip(2**9, element="quad4")
+    q = acw.plan_self(s.master, d_max=s.params["d_max"])
+    for _ in range(3):
+        acw.detect_self(q, s.master.points)
+    run()
+    for k, v in p.out.items():
+        assert np.array_equal(v.numpy(), before[k]), k
+
+
 def test_jax_gradients_and_overflow():
     """toi and the impact point differentiated with respect to all four coordinate arrays
     against central finite differences of the reference's toi (float64), and a plan sized for
