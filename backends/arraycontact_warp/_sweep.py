@@ -165,6 +165,10 @@ class CurvedPair:
     margin: real
     delta: real
     r: int  # a triangle's corner at the origin (_corner_shift); 0 for quads
+    band: int  # 1: a bilinear quad, h1 and h2 set (_band)
+    h1: vec4
+    h2: vec4
+    h_margin: real
 
 
 @wp.func
@@ -287,6 +291,35 @@ def _pair(  # noqa: F811 (a Warp overload)
     q.n1 = _normal(el, xb, el.centre)
     q.margin = real(ROUND) * EPS * sc
     q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    q.band = 0
+    if el.nn == 4:
+        q = _band(q, xb)
+    return q
+
+
+@wp.func
+def _band(q: CurvedPair, xb: FaceNodes):
+    """A bilinear quad's twist band. With c its centroid, n = d1 x d2 (its diagonals) and w =
+    (x0 - x1 + x2 - x3) / 4, corners 0 and 2 lie at height w . n above the plane through c
+    normal to n and corners 1 and 3 as far below, so every point of the face has
+    |(x - c) . n| <= |w . n|, and a node on it |g| <= |tau| with g = (p - c) . n, tau = w . n:
+    h1 = g + tau and h2 = g - tau, cubics in t (det(d1, d2, p - c +- w), _coplanarity), of
+    opposite signs or zero. Their margin holds the factors' rounding (two more operations than
+    _coplanarity's, doubled) and the search's contact tolerance delta (a node within delta of
+    the face: |g| <= |tau| + 1.8 delta |n|, |n| <= 3 ne^2)."""
+    a0, a1, a2, a3 = q.xa.x0, q.xa.x1, q.xa.x2, q.xa.x3
+    b0, b1, b2, b3 = xb.x0, xb.x1, xb.x2, xb.x3
+    e0 = q.p - real(0.25) * (a0 + a1 + a2 + a3)
+    e1 = q.p + q.v - real(0.25) * (b0 + b1 + b2 + b3)
+    w0 = real(0.25) * (a0 - a1 + a2 - a3)
+    w1 = real(0.25) * (b0 - b1 + b2 - b3)
+    h1, m1 = _coplanarity(a2 - a0, b2 - b0, a3 - a1, b3 - b1, e0 + w0, e1 + w1)
+    h2, m2 = _coplanarity(a2 - a0, b2 - b0, a3 - a1, b3 - b1, e0 - w0, e1 - w1)
+    ne = wp.max(wp.max(_inf(a2 - a0), _inf(b2 - b0)), wp.max(_inf(a3 - a1), _inf(b3 - b1)))
+    q.band = 1
+    q.h1 = h1
+    q.h2 = h2
+    q.h_margin = real(2.0) * wp.max(m1, m2) + real(6.0) * q.delta * ne * ne
     return q
 
 
@@ -725,14 +758,6 @@ def _split(g: vec4, c: real):
     return vec4(g[0], p01, p012, mid), vec4(mid, p123, p23, g[3])
 
 
-@wp.func
-def _apart(g: vec4, m: real):
-    """Whether the cubic of Bernstein coefficients g has no root (all beyond m, one sign)."""
-    lo = wp.min(wp.min(g[0], g[1]), wp.min(g[2], g[3]))
-    hi = wp.max(wp.max(g[0], g[1]), wp.max(g[2], g[3]))
-    return lo > m or hi < -m
-
-
 #: The time slab of a coplanar crossing that the box search gets: 2^-SLAB of the step.
 SLAB = 6
 #: Slabs a pair may search before its search takes the whole step (the cubic has 3 roots).
@@ -740,55 +765,70 @@ SLABS = 3
 
 
 @wp.func
-def _narrow(q: TriPair, bound: real, start: real):
-    """Where a triangle's box search goes next, after [0, start] was searched, narrowed in
-    time by the coplanarity cubic (_coplanarity), which a contact needs to be zero: (0, -) no
-    contact in [start, bound), (1, a slab of time) or (2, the unit box). Nothing is left when
-    the cubic has no root over [start, 1] (certified by its Bernstein coefficients there);
-    otherwise its first root there, found numerically, picks a dyadic slab [lo, hi] around it
-    and [start, lo] is certified free of roots. On the slab the face's motion is nearly affine
-    and Krawczyk's test decides almost every pair in one box (rough tri3 pairs at 2^12: 6.9
-    boxes a pair on the whole step, 1.4 on the slab). A node that crosses the plane again
-    after a slab (a turning face) gets the next slab. A grazing, coplanar motion or a root
-    left uncertified: the unit box."""
-    unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
-    m = q.g_margin
-    g = q.g
-    if start > real(0.0):
-        _done, g = _split(g, start)  # g on [start, 1] (start is dyadic: an exact split point)
-    if start >= wp.min(bound, real(1.0)) or _apart(g, m):
-        return 0, unit
-    # The first sign change of g among 17 samples of [start, 1], then 6 bisections: the root
-    # within 2^-10 of the rest of the step (u: its parameter).
+def _same_side(g1: vec4, g2: vec4, m: real):
+    """Whether the cubics of Bernstein coefficients g1 and g2 are both beyond m, one sign."""
+    lo = wp.min(wp.min(g1[0], g1[1]), wp.min(g1[2], g1[3]))
+    lo = wp.min(lo, wp.min(wp.min(g2[0], g2[1]), wp.min(g2[2], g2[3])))
+    hi = wp.max(wp.max(g1[0], g1[1]), wp.max(g1[2], g1[3]))
+    hi = wp.max(hi, wp.max(wp.max(g2[0], g2[1]), wp.max(g2[2], g2[3])))
+    return lo > m or hi < -m
+
+
+@wp.func
+def _cubic(g: vec4, u: real):
+    """The cubic of Bernstein coefficients g at u (power form)."""
     c1 = real(3.0) * (g[1] - g[0])
     c2 = real(3.0) * (g[2] - real(2.0) * g[1] + g[0])
     c3 = g[3] - real(3.0) * g[2] + real(3.0) * g[1] - g[0]
+    return g[0] + u * (c1 + u * (c2 + u * c3))
+
+
+@wp.func
+def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real):
+    """Where a pair's box search goes next, after [0, start] was searched, when a contact
+    needs g1 and g2, cubics in t, to be of opposite signs or zero (a triangle: g1 = g2, its
+    coplanarity cubic; a bilinear quad: its band, _band): (0, -) no contact in [start,
+    bound), (1, a slab of time) or (2, the unit box). Nothing is left when both are beyond m
+    with one sign over [start, 1] (certified by their Bernstein coefficients there);
+    otherwise the first time either changes sign or comes within m, found numerically,
+    picks a dyadic slab [lo, hi] around it and [start, lo] is certified free of it. On the
+    slab the face's motion is nearly affine and Krawczyk's test decides almost every pair in
+    one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the whole step, 1.4 on the slab).
+    A node that crosses again after a slab (a turning face) gets the next slab. A grazing,
+    coplanar motion or a crossing left uncertified: the unit box."""
+    unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
+    if start > real(0.0):  # (start is dyadic: an exact split point)
+        _done, g1 = _split(g1, start)
+        _done2, g2 = _split(g2, start)
+    if start >= wp.min(bound, real(1.0)) or _same_side(g1, g2, m):
+        return 0, unit
+    # The first sign change of either among 17 samples of [start, 1], then 6 bisections: the
+    # crossing within 2^-10 of the rest of the step (u: its parameter).
+    n1 = g1[0] < real(0.0)
+    n2 = g2[0] < real(0.0)
     u0 = real(0.0)
-    f0 = g[0]
     found = int(0)
-    if wp.abs(f0) <= m:
+    if wp.abs(g1[0]) <= m or wp.abs(g2[0]) <= m or n1 != n2:
         found = 1
     j = int(1)
     while found == 0 and j <= 16:
         u1 = real(j) / real(16.0)
-        f1 = g[0] + u1 * (c1 + u1 * (c2 + u1 * c3))
-        if (f0 < real(0.0)) != (f1 < real(0.0)) or wp.abs(f1) <= m:
+        f1 = _cubic(g1, u1)
+        f2 = _cubic(g2, u1)
+        if (f1 < real(0.0)) != n1 or (f2 < real(0.0)) != n2 or wp.min(wp.abs(f1), wp.abs(f2)) <= m:
             for _b in range(6):
                 um = real(0.5) * (u0 + u1)
-                fm = g[0] + um * (c1 + um * (c2 + um * c3))
-                if (f0 < real(0.0)) != (fm < real(0.0)):
+                if (_cubic(g1, um) < real(0.0)) != n1 or (_cubic(g2, um) < real(0.0)) != n2:
                     u1 = um
                 else:
                     u0 = um
-                    f0 = fm
             found = 1
         else:
             u0 = u1
-            f0 = f1
         j += 1
     if found == 0:
         return 2, unit
-    # The slab: the deepest dyadic interval of at most 2^-SLAB that holds the root estimate
+    # The slab: the deepest dyadic interval of at most 2^-SLAB that holds the estimate
     # [u0, u0 + 2^-10] with an eighth of its width to spare on each side (none at the step's
     # ends, nor at start, searched already: a root at rest contact, t = 0, is common).
     rest = real(1.0) - start
@@ -805,11 +845,12 @@ def _narrow(q: TriPair, bound: real, start: real):
     if k == 0:
         return 2, unit
     if lo > start:
-        # [start, lo] free of roots: g split at u a little past lo's (rounded up, so the
-        # part certified covers [start, lo] whatever the division's rounding).
+        # [start, lo] free of it: the cubics split at u a little past lo's (rounded up, so
+        # the part certified covers [start, lo] whatever the division's rounding).
         c = wp.min((lo - start) / rest * (real(1.0) + real(4.0) * EPS), real(1.0))
-        gap, _after = _split(g, c)
-        if not _apart(gap, m):
+        gap1, _after1 = _split(g1, c)
+        gap2, _after2 = _split(g2, c)
+        if not _same_side(gap1, gap2, m):
             return 2, unit
     if lo >= bound:
         return 0, unit
@@ -817,7 +858,17 @@ def _narrow(q: TriPair, bound: real, start: real):
 
 
 @wp.func
+def _narrow(q: TriPair, bound: real, start: real):
+    """_narrowed by the triangle's coplanarity cubic (_coplanarity), which a contact needs
+    to be zero."""
+    return _narrowed(q.g, q.g, q.g_margin, bound, start)
+
+
+@wp.func
 def _narrow(q: CurvedPair, bound: real, start: real):  # noqa: F811 (a Warp overload)
+    """_narrowed by a bilinear quad's band (_band); other faces: the unit box."""
+    if q.band == 1:
+        return _narrowed(q.h1, q.h2, q.h_margin, bound, start)
     return 2, Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
 
 
