@@ -499,5 +499,5 @@ class Surface:
         out = [0.0, 0.0, 0.0]
         for i in range(self.faces.shape[1]):
             for a in range(3):
-                out[a] = out[a] + np.bincount(self.faces[:, i], terms[i, a], minlength=n)
+                out[a] = out[a] + segment_sum(np, terms[i, a], self.faces[:, i], n)
         return np.stack(_unit_columns(out), -1)

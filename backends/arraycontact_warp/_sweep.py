@@ -194,6 +194,16 @@ def _corner_shift(a: vec3, b: vec3, c: vec3):
 
 
 @wp.func
+def _from_corner(a: vec3, b: vec3, c: vec3, r: int):
+    """A triangle's corners (a, b, c) in the order that starts at corner r."""
+    if r == 1:
+        return b, c, a
+    if r == 2:
+        return c, a, b
+    return a, b, c
+
+
+@wp.func
 def _node(f: int, i: int, r: int, faces: wp.array2d(dtype=int)):
     """Node i of face f's order from corner r (arraycontact._sweep.SHIFTS)."""
     if i < 3:
@@ -230,16 +240,16 @@ def _pair(
 ):
     """Face f and the node moving from s0 to s1 as a pair, the face's corner r at t = 0 the
     origin (_corner_shift)."""
-    r = _corner_shift(x0[faces[f, 0]], x0[faces[f, 1]], x0[faces[f, 2]])
-    o = x0[_node(f, 0, r, faces)]
-    p1 = x1[_node(f, 0, r, faces)]
-    x1f1 = x1[_node(f, 1, r, faces)]
-    x1f2 = x1[_node(f, 2, r, faces)]
+    # (each corner read once: this runs for every pair the GPU searches)
+    c0, c1, c2 = x0[faces[f, 0]], x0[faces[f, 1]], x0[faces[f, 2]]
+    r = _corner_shift(c0, c1, c2)
+    o, y1, y2 = _from_corner(c0, c1, c2, r)
+    p1, x1f1, x1f2 = _from_corner(x1[faces[f, 0]], x1[faces[f, 1]], x1[faces[f, 2]], r)
     q = TriPair()
     q.r = r
     q.a = o - s0
-    q.e1 = x0[_node(f, 1, r, faces)] - o
-    q.e2 = x0[_node(f, 2, r, faces)] - o
+    q.e1 = y1 - o
+    q.e2 = y2 - o
     v0 = p1 - o
     q.b = v0 - (s1 - s0)
     q.u1 = x1f1 - o - q.e1 - v0
