@@ -514,6 +514,8 @@ def test_warp_swept_refit_and_rebuild():
     st = STEPS["closing_tri3"]()
     L = st.master.longest_edge
     faces = st.master.faces
+    with pytest.raises(ValueError, match="growth"):
+        acw.plan_swept(st.master, st.slave_x0, growth=0.5)
     p = acw.plan_swept(st.master, st.slave_x0, dtype="float64")
     q = acw.plan_swept(st.master, st.slave_x0, dtype="float64", refit=False)
     assert p.refit and not q.refit
