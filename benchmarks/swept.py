@@ -79,7 +79,10 @@ def warp_swept(st, device, repeats):
 
 
 def replayed(call, device):
-    """call's launches as a CUDA graph on a GPU (launched once: instantiated), else call."""
+    """call's launches as a CUDA graph on a GPU (launched once: instantiated), else call.
+    The graph holds call (its plan and arrays): a graph keeps no array alive, and one whose
+    plan was collected replays on freed memory (an illegal access once another plan
+    reuses it)."""
     import warp as wp
 
     if not wp.get_device(device).is_cuda:
@@ -87,7 +90,11 @@ def replayed(call, device):
     with wp.ScopedCapture(device=device) as cap:
         call()
     wp.capture_launch(cap.graph)
-    return lambda: wp.capture_launch(cap.graph)
+
+    def launch(graph=cap.graph, keep=call):
+        wp.capture_launch(graph)
+
+    return launch
 
 
 def warp_static(st, device):
@@ -202,9 +209,6 @@ def run(name, n, device, repeats, n_check, with_ipctk):
     st = steps(n)[name]()
     out, rec, swept = warp_swept(st, device, repeats)
     static = warp_static(st, device)
-    # Both plans made and run before the swept graph is captured: a swept graph captured
-    # before the static plan was made failed to instantiate or launch after it (H100, Warp
-    # 1.19, CUDA 13; "invalid argument", then "illegal memory access"; not diagnosed).
     swept = replayed(swept, device)
     rec["steady_s"], rec["static_steady_s"] = alternating([swept, static], repeats, device)
     rec["swept_over_static"] = rec["steady_s"] / rec["static_steady_s"]
