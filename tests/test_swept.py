@@ -563,8 +563,8 @@ def test_warp_swept_graph_replays_after_other_plans():
     """A swept detection captured as a CUDA graph replays with the same answers after a
     static and a self-contact plan of other shapes were made and run (their kernels loaded,
     their trees sorted, their own graphs captured). On the CPU, without graphs, the same
-    sequence. (On an H100 a swept graph captured before a static plan was made failed after
-    it: benchmarks/RESULTS.md, "A third launch, and a graph that broke".)"""
+    sequence. (The orders a benchmark uses; its one failure on an H100 was a graph whose plan
+    had been collected: benchmarks/RESULTS.md, "The graph that broke, diagnosed".)"""
     import arraycontact_warp as acw
     import warp as wp
 
