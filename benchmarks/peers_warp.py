@@ -71,6 +71,19 @@ def timed(fn, repeats, device):
     return first, statistics.median(times)
 
 
+def alternating(calls, repeats, device):
+    """The median time of each call, timed in turn (a shared machine's load changes over a
+    run: in turn, both calls see the same)."""
+    times = [[] for _ in calls]
+    for _ in range(repeats):
+        for c, t in zip(calls, times):
+            t0 = time.perf_counter()
+            c()
+            wp.synchronize_device(device)
+            t.append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times]
+
+
 def _triangles(surface):
     f = surface.faces
     if surface.element.name == "quad4":

@@ -11,8 +11,10 @@ For each self-contact scene of arraycontact.scenes (quad4, about 2^k nodes) and 
     plan / detect as a simulator calls it;
   - two-body, same geometry: the surface's nodes as slaves of the surface itself by the
     two-body rule (every node on its own faces at distance 0: the cheapest possible answer);
-  - the ratio self / two-body (target: at most 1.5), and the check of a random subset of rows
-    against reference.closest_points_self (misses, wrong faces, gap error / longest edge).
+  - the ratio self / two-body (target: at most 1.5; the three steady states timed in turn,
+    medians, so that a shared machine's load moves them alike), and the check of a random
+    subset of rows against reference.closest_points_self (misses, wrong faces, gap error /
+    longest edge).
 --jax: also arraycontact_jax.plan_self / detect_self (search "jax", float32) steady.
 --snail: the spiral strip at 130,000 nodes (seed 000 Fig. 12: 30 s in 2012).
 One JSON record per scene and size to DIR/self_contact_<machine>.jsonl (default DIR: results/).
@@ -37,12 +39,13 @@ from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _records  # noqa: E402
-from peers_warp import timed  # noqa: E402
+from peers_warp import alternating, timed  # noqa: E402
 
 SCENES = ("spiral_strip", "folded_sheet", "coil_spring", "crumpled_sheet", "two_bodies")
 
 
-def warp_self(surface, d_max, device, repeats):
+def warp_self(surface, d_max, device):
+    """(outputs, plan and first-call times, the steady call)."""
     import arraycontact_warp as acw
     import warp as wp
 
@@ -51,12 +54,13 @@ def warp_self(surface, d_max, device, repeats):
     plan_s = time.perf_counter() - t0
     x = wp.array((surface.points - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
     p.origin = np.zeros(3)  # x is already in the plan's frame
-    first, steady = timed(lambda: acw.detect_self(p, x), repeats, device)
+    first, _ = timed(lambda: acw.detect_self(p, x), 1, device)
     out = {k: v.numpy() for k, v in p.out.items()}
-    return out, dict(plan_s=plan_s, first_call_s=first, steady_s=steady)
+    return out, dict(plan_s=plan_s, first_call_s=first), lambda: acw.detect_self(p, x)
 
 
-def warp_two_body(master, slaves, d_max, device, repeats):
+def warp_two_body(master, slaves, d_max, device):
+    """The two-body detection's steady call (its graph captured on a GPU)."""
     import arraycontact_warp as acw
     import warp as wp
 
@@ -64,7 +68,9 @@ def warp_two_body(master, slaves, d_max, device, repeats):
     xs = wp.array((slaves - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
     xm = wp.array((master.points - p.origin).astype(np.float32), dtype=wp.vec3, device=device)
     p.origin = np.zeros(3)
-    return timed(lambda: acw.detect(p, xs, xm), repeats, device)[1]
+    for _ in range(2):  # (the second call captures the graph the next ones replay)
+        acw.detect(p, xs, xm)
+    return lambda: acw.detect(p, xs, xm)
 
 
 def jax_self(surface, d_max, repeats):
@@ -134,13 +140,16 @@ def check(out, surface, d_max, n_check, seed=0):
 def run(name, n, device, repeats, n_check, with_jax):
     sc = getattr(ac.scenes, name)(n, element="quad4")
     s, d = sc.master, sc.params["d_max"]
-    out, rec = warp_self(s, d, device, repeats)
+    out, rec, self_call = warp_self(s, d, device)
     counts = dict(nodes=len(s.nodes), faces=s.n_faces)
     # Two rough quad4 surfaces with as many master faces and slaves.
     rough = ac.scenes.rough_surfaces(len(s.nodes), element="quad4")
-    rec["two_body_steady_s"] = warp_two_body(rough.master, rough.slave, None, device, repeats)
+    two_body = warp_two_body(rough.master, rough.slave, None, device)
     rec["two_body_counts"] = dict(nodes=len(rough.slave), faces=rough.master.n_faces)
-    rec["same_geometry_steady_s"] = warp_two_body(s, s.points[s.nodes], d, device, repeats)
+    same = warp_two_body(s, s.points[s.nodes], d, device)
+    # The three steady states timed in turn (medians): a shared machine's load moves all alike.
+    times = alternating([self_call, two_body, same], repeats, device)
+    rec["steady_s"], rec["two_body_steady_s"], rec["same_geometry_steady_s"] = times
     rec["self_over_two_body"] = rec["steady_s"] / rec["two_body_steady_s"]
     rec["self_over_same_geometry"] = rec["steady_s"] / rec["same_geometry_steady_s"]
     rec["active"] = int(out["active"].sum())

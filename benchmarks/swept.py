@@ -28,7 +28,6 @@ prints them as the markdown table of RESULTS.md.
 
 import argparse
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -41,7 +40,7 @@ from arraycontact._backends import quiet_warp
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _records  # noqa: E402
-from peers_warp import timed  # noqa: E402
+from peers_warp import alternating, timed  # noqa: E402
 
 
 def steps(n):
@@ -109,21 +108,6 @@ def warp_static(st, device):
     for _ in range(2):  # (the second call captures the graph the next ones replay)
         acw.detect(p, xs, xm)
     return lambda: acw.detect(p, xs, xm)
-
-
-def alternating(calls, repeats, device):
-    """The median time of each call, timed in turn (a shared machine's load changes over a
-    run: in turn, both calls see the same)."""
-    import warp as wp
-
-    times = [[] for _ in calls]
-    for _ in range(repeats):
-        for c, t in zip(calls, times):
-            t0 = time.perf_counter()
-            c()
-            wp.synchronize_device(device)
-            t.append(time.perf_counter() - t0)
-    return [statistics.median(t) for t in times]
 
 
 def ipctk_peer(st, ours, n_check_rows):
