@@ -354,25 +354,36 @@ def test_a_master_that_does_not_move_keeps_its_grid():
     )
 
 
-def test_grid_refit_and_rebuild():
-    """Where the device chooses (a CUDA graph with conditional nodes; the CPU), the master's
-    trees keep their order while every face centre and node stays within the plan's margin
-    of where it was sorted, and are sorted again otherwise: contacts equal NumPy's on either
-    path, and the path taken is the one the nodes and the faces' centres call for."""
+@pytest.mark.parametrize("way", ["graph", "new buffers"])
+def test_grid_refit_and_rebuild(way):
+    """Where the device chooses (a CUDA graph with conditional nodes, the caller's; on a GPU
+    outside a graph, through the plan's graph of the rebuild alone: a call on buffers new to
+    the plan; the CPU), the master's trees keep their order while every face centre and node
+    stays within the plan's margin of where it was sorted, and are sorted again otherwise:
+    contacts equal NumPy's on either path, and the path taken is the one the nodes and the
+    faces' centres call for."""
     s = scenes.rough_surfaces(2**9, seed=9)
     L = s.master.longest_edge
     p = acw.plan(s.master, s.slave, device=DEVICE)
     q = acw.plan(s.master, s.slave, device=DEVICE, refit=False)
     xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE)
     xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device=DEVICE)
-    acw.detect(p, xs, xm)  # a build (on CUDA outside a capture, always)
+    acw.detect(p, xs, xm)  # the first call: a refit, the check read on the host
     run = lambda: acw.detect(p, xs, xm)  # noqa: E731
-    if DEVICE == "cuda":
-        if not wp.is_conditional_graph_supported():
-            pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+    if DEVICE == "cuda" and not wp.is_conditional_graph_supported():
+        pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+    if way == "graph" and DEVICE == "cuda":
         with wp.ScopedCapture(device=DEVICE) as cap:
             acw.detect(p, xs, xm)
         run = lambda: wp.capture_launch(cap.graph)  # noqa: E731
+    kept = []  # (new buffers: every one kept alive, so that no address comes back)
+
+    def fresh():
+        kept.append([wp.clone(xs), wp.clone(xm)])
+        acw.detect(p, *kept[-1])
+
+    if way == "new buffers":
+        run = fresh
     c0, _ = s.master.face_bounds
     x0 = s.master.points[s.master.nodes]
     margin = float(p.node_grid.margin)
@@ -398,6 +409,8 @@ def test_grid_refit_and_rebuild():
         xm.assign(moved.astype(np.float32))
         run()
         assert int(p.rebuild.numpy()[0]) == int(stale)
+        if way == "new buffers" and DEVICE == "cuda":
+            assert p.build_graph is not None and not p.graph_of  # no call's graph
         got = {k: v.numpy() for k, v in p.out.items()}
         r = ac.detect(slave, master, d_max=p.constants.d_max, dtype=np.float32, backend="numpy")
         _same_as_numpy(got, r, L)
@@ -407,6 +420,31 @@ def test_grid_refit_and_rebuild():
         assert int(q.rebuild.numpy()[0]) == 0
         if stale:
             c0, x0 = c, x
+
+
+def test_double_buffered_inputs_replay_a_graph_each():
+    """Inputs that alternate between two sets of buffers (a simulator's previous and next
+    state): each call's contacts are NumPy's, and on CUDA each set of buffers replays a graph
+    of its own once seen twice."""
+    s = scenes.rough_surfaces(2**9, seed=12)
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    bufs = [
+        [
+            wp.array(x.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+            for x in (s.slave, s.master.points)
+        ]
+        for _ in range(2)
+    ]
+    rng = np.random.default_rng(4)
+    for step in range(6):
+        xs, xm = bufs[step % 2]
+        moved = s.slave + rng.normal(0, 0.05, 3) + [0, 0, -0.1 * step]
+        xs.assign(moved.astype(np.float32))
+        got = {k: v.numpy() for k, v in acw.detect(p, xs, xm).items()}
+        r = ac.detect(moved, s.master, d_max=p.constants.d_max, dtype=np.float32, backend="numpy")
+        _same_as_numpy(got, r, s.master.longest_edge)
+    if DEVICE == "cuda":
+        assert len(p.graph_of) == 2
 
 
 def _tree_state(g):
