@@ -503,8 +503,10 @@ def _capture_centres(m0, m1, faces):
     return 0.5 * (np.minimum(a.min(1), b.min(1)) + np.maximum(a.max(1), b.max(1)))
 
 
-def test_warp_swept_refit_and_rebuild():
-    """Where the device chooses (a CUDA graph with conditional nodes; the CPU), a detect after
+@pytest.mark.parametrize("way", ["graph", "launches"])
+def test_warp_swept_refit_and_rebuild(way):
+    """Where the device chooses (a CUDA graph with conditional nodes, the caller's; on a GPU
+    outside a graph, through the plan's graph of the rebuild alone; the CPU), a detect after
     the first keeps the capture tree's order while every capture box's centre stays within the
     plan's margin of where it was sorted, and sorts again otherwise: the path taken is the one
     the centres call for, and the answers are those of a plan that sorts every call."""
@@ -526,9 +528,9 @@ def test_warp_swept_refit_and_rebuild():
     origin, p.origin = p.origin, np.zeros(3)  # (arrays in the plan's frame)
     acw.detect_swept(p, *arrays)  # the first call builds
     run = lambda: acw.detect_swept(p, *arrays)  # noqa: E731
-    if p.device.is_cuda:
-        if not wp.is_conditional_graph_supported():
-            pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+    if p.device.is_cuda and not wp.is_conditional_graph_supported():
+        pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+    if p.device.is_cuda and way == "graph":
         with wp.ScopedCapture(device=p.device) as cap:
             acw.detect_swept(p, *arrays)
         run = lambda: wp.capture_launch(cap.graph)  # noqa: E731
@@ -544,6 +546,7 @@ def test_warp_swept_refit_and_rebuild():
             a.assign(m - origin)
         run()
         assert int(p.rebuild.numpy()[0]) == int(stale)
+        assert (p.build_graph is not None) == (p.device.is_cuda and way == "launches")
         got = {k: v.numpy() for k, v in p.out.items()}
         built = acw.detect_swept(q, *[m - origin for m in moved])
         hit = built["hit"] == 1

@@ -1179,6 +1179,7 @@ class SweptPlan:
     refit: bool
     rebuild: wp.array  # int32 [1]: the last refit found the capture tree's order stale
     built: bool = False  # the capture tree holds an order (a detect has run)
+    build_graph: object = None  # CUDA: the conditional rebuild alone (calls outside a graph)
 
     def pairs_needed(self) -> int:
         """The pair list's length the last detect_swept needed (a host copy: synchronises).
@@ -1346,13 +1347,21 @@ def _swept_launch(p: SweptPlan, xs):
         _slave_launch(_sweep.capture_gather, nf, [*gather, 0], [], dev, first=0)
         _grid.fill(g, p.layout, dev)
 
-    # As `detect`'s trees: a refit where the device decides without the host.
-    decides = dev.is_cpu or (dev.is_capturing and wp.is_conditional_graph_supported())
-    if p.refit and p.built and decides:
+    # As `detect`'s trees: a refit where the device decides without the host (on a GPU
+    # outside a graph, through the plan's graph of the conditional rebuild: `build` reads only
+    # the plan's staging buffers).
+    if p.refit and p.built and (dev.is_cpu or wp.is_conditional_graph_supported()):
         p.rebuild.zero_()
         _slave_launch(_sweep.capture_gather, nf, [*gather, 1], [], dev, first=0)
         _grid.refit_up(g, p.layout, dev)
-        wp.capture_if(p.rebuild, on_true=build)
+        if dev.is_cuda and not dev.is_capturing:
+            if p.build_graph is None:
+                with wp.ScopedCapture(device=dev) as cap:
+                    wp.capture_if(p.rebuild, on_true=build)
+                p.build_graph = cap.graph
+            wp.capture_launch(p.build_graph)
+        else:
+            wp.capture_if(p.rebuild, on_true=build)
     else:
         build()
     p.built = True
