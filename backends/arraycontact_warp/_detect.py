@@ -1215,8 +1215,9 @@ def plan_swept(
     a GPU, 0 on the CPU (no list: each CPU thread takes its slaves one after the other).
 
     refit, growth: as `plan`'s, for the faces' capture boxes. A detect after the first, where
-    the device can choose without the host (in a CUDA graph with conditional nodes, and on
-    the CPU), keeps the capture tree's order and recomputes its boxes (exact for any motion)
+    the device can choose without the host (on a GPU with conditional graph nodes, in a CUDA
+    graph or outside one through the plan's graph of the rebuild alone; on the CPU), keeps
+    the capture tree's order and recomputes its boxes (exact for any motion)
     while every capture box's centre stays within (growth - 1) times a small face's radius of
     where it was sorted, and sorts again when one does not (`rebuild[0]` says which). False:
     one sort every call."""
