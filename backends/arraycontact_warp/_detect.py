@@ -484,8 +484,9 @@ def plan(
     without Python's launch overhead. A call on buffers new to it launches one by one, the
     trees' rebuild decided on the device by a graph of its own. False: launches one by one,
     and a GPU sorts the trees in every call after the first.
-    refit: where the device can choose without the host (in a CUDA graph, detect's own or the
-    caller's, with conditional nodes: CUDA 12.4+; on the CPU), the master's trees keep their
+    refit: where the device can choose without the host (with conditional graph nodes, CUDA
+    12.4+: in a CUDA graph, detect's own or the caller's, or outside one through the plan's
+    graph of the rebuild alone; on the CPU), the master's trees keep their
     order (their boxes recomputed: exact for any motion) while every face centre and node
     stays within that margin of where it was sorted, and are sorted again when one does not;
     `rebuild[0]` says which the last call did. The results are the same either way; a refit
