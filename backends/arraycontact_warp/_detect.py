@@ -41,6 +41,7 @@ from arraycontact_warp import _surface  # one set of its (precision-free) kernel
 from . import _grid, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, Triangles, element_data, triangle_data
+from ._parts import _concrete
 from ._parts import launch as _slave_launch
 from ._projection import Master, holds, project, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
@@ -1395,7 +1396,8 @@ def _swept_launch(p: SweptPlan, xs):
         q.n_later.zero_()
         for d, b in enumerate((*budgets, _sweep.ALL_BOXES)):
             threads = max(room // (LATER_SHARE if d else FIRST_SHARE), 1)
-            wp.launch(search, threads, inputs=[*inputs, p.out["visits"], b, d, threads], device=dev)
+            args = [*inputs, p.out["visits"], b, d, threads]
+            wp.launch(_concrete(search, args), threads, inputs=args, device=dev)
     scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
     _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14)
