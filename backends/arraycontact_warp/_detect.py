@@ -428,6 +428,7 @@ class Plan:
     graph_of: dict = field(default_factory=dict)
     seen: dict = field(default_factory=dict)  # (an ordered set)
     build_graph: object = None
+    cmds: dict = field(default_factory=dict)  # the per-slave kernels' recorded launches
 
 
 #: Graphs a plan keeps, one per set of input buffers (double-buffered inputs alternate).
@@ -698,6 +699,7 @@ def plan(
             n,
             device,
         )
+    _slave_stages(p, p.slave_in, vec3(0.0, 0.0, 0.0), record_only=True)
     return p
 
 
@@ -887,8 +889,17 @@ def _launch(p: Plan, xs, s_origin, master):
             wp.launch(_gather_rows, p.n_slaves, inputs=[master[0], p.own_nodes, xs], device=dev)
     if p.order_keys is not None:
         _grid.spatial_order(xs, s_origin, real(c.quantum), p.order_keys, p.order, p.n_slaves, dev)
+    _slave_stages(p, xs, s_origin)
+
+
+def _slave_stages(p: Plan, xs, s_origin, record_only=False):
+    """The three per-slave kernels, each through the plan's recorded command (record_only:
+    the plan records them, so that its first detect packs only the arguments that differ)."""
+    c = p.constants
+    dev = p.device
     o = p.out
     n = p.n_slaves
+    rec = dict(cmds=p.cmds, record_only=record_only)
     _slave_launch(
         _node_kernel,
         n,
@@ -908,6 +919,7 @@ def _launch(p: Plan, xs, s_origin, master):
         [o["master_node"], p.dist],
         dev,
         order=2,
+        **rec,
     )
     if p.mode == 0:
         _slave_launch(
@@ -937,6 +949,7 @@ def _launch(p: Plan, xs, s_origin, master):
             [p.dist, o["face"], p.item],
             dev,
             order=4,
+            **rec,
         )
     _slave_launch(
         _finish_kernel,
@@ -964,6 +977,7 @@ def _launch(p: Plan, xs, s_origin, master):
         [p.finer] + [o[k] for k, _ in OUTPUTS],
         dev,
         first=17,
+        **rec,
     )
 
 

@@ -66,17 +66,59 @@ def _concrete(kernel, args):
     return k
 
 
-def launch(kernel, n, inputs, outputs, dev, order=None, first=None):
+def _same(a, b) -> bool:
+    """Would argument b pack as a does (the same array, struct or value)?"""
+    if a is b:
+        return True
+    if isinstance(a, wp.array) and isinstance(b, wp.array):
+        return (a.ptr, a.shape, a.strides, a.dtype) == (b.ptr, b.shape, b.strides, b.dtype)
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, (bool, int, float)) or wp.types.is_value(a) or wp.types.is_vector(a):
+        return bool(a == b)
+    return False  # a struct: the same object only
+
+
+def _replay(cmds, kernel, n, args, dev, record_only):
+    """kernel's launch through the command recorded in `cmds` (a plan's), its arguments
+    packed again only where they changed: Warp packs every argument of every launch, 50-100
+    us a launch of the detection's kernels on an H100's host, which a first call or a call
+    without a graph pays; a recorded command's launch takes about 5."""
+    hit = cmds.get(kernel)
+    if hit is None:
+        cmd = wp.launch(kernel, n, inputs=args, device=dev, record_cmd=True)
+        cmds[kernel] = (cmd, list(args), [n])
+    else:
+        cmd, old, dim = hit
+        for i, (a, b) in enumerate(zip(args, old)):
+            if not _same(a, b):
+                cmd.set_param_at_index(i, a)
+                old[i] = a
+        if dim[0] != n:
+            cmd.set_dim(n)
+            dim[0] = n
+    if not record_only:
+        cmd.launch()
+
+
+def launch(kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, record_only=False):
     """Launch a kernel over n independent threads (the slaves, a tree's items). inputs[order]:
     the order the threads take (a part takes its slice), or inputs[first]: the first of the
-    part (its threads take first + t)."""
+    part (its threads take first + t). cmds: a plan's recorded commands, which a launch in one
+    part replays (record_only: record, do not launch)."""
     dev = wp.get_device(dev)
     kernel = _concrete(kernel, [*inputs, *outputs])
+    one = dev.is_cuda or CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS
+    if cmds is not None and one:
+        _replay(cmds, kernel, n, [*inputs, *outputs], dev, record_only)
+        return
+    if record_only:
+        return
     if dev.is_cuda:
         wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
         return
     key = (kernel, tuple(type(v) for v in inputs))
-    if CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS or key not in _loaded:
+    if one or key not in _loaded:
         wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
         _loaded.add(key)
         return
