@@ -447,6 +447,38 @@ def test_double_buffered_inputs_replay_a_graph_each():
         assert len(p.graph_of) == 2
 
 
+def test_graph_bookkeeping_keeps_the_latest_buffers():
+    """What a CUDA detect does with its input buffers (host logic, run here on any device):
+    buffers seen again are captured, then replayed; double buffers keep a graph each; buffers
+    rotating over more sets than GRAPHS are captured at most once each and then only replay
+    or launch (never a capture every call)."""
+    from arraycontact_warp import _detect as wd
+
+    s = scenes.rough_surfaces(2**6, seed=1)
+
+    def run(keys):
+        p = acw.plan(s.master, s.slave, device=DEVICE)
+        out = []
+        for k in keys:
+            a = wd._graph_action(p, k)
+            if a == "capture":
+                wd._keep_graph(p, k, f"graph of {k}")
+            assert a != "replay" or p.graph_of[k] == f"graph of {k}"
+            out.append(a)
+        return out, p
+
+    got, _ = run(["a"] * 4)
+    assert got == ["launch", "capture", "replay", "replay"]
+    got, p = run(["a", "b"] * 3)
+    assert got == ["launch", "launch", "capture", "capture", "replay", "replay"]
+    assert sorted(p.graph_of) == ["a", "b"]
+    n = wd.GRAPHS + 2
+    got, p = run([f"r{i}" for i in range(n)] * 5)
+    assert got.count("capture") == n  # each once, in the second round
+    assert "capture" not in got[2 * n :]
+    assert got[-n:].count("replay") == wd.GRAPHS and len(p.graph_of) == wd.GRAPHS
+
+
 def _tree_state(g):
     """A tree's records as bytes: the levels up to the root, the item slots, corners and
     normal boxes, and the refit's arrival counts."""

@@ -426,7 +426,8 @@ class Plan:
     # CUDA: the captured graphs by the inputs they were captured for (the latest GRAPHS), the
     # inputs of the latest calls, and the trees' conditional rebuild as a graph of its own.
     graph_of: dict = field(default_factory=dict)
-    seen: dict = field(default_factory=dict)  # (an ordered set)
+    seen: dict = field(default_factory=dict)  # (ordered sets)
+    dropped: dict = field(default_factory=dict)
     build_graph: object = None
     cmds: dict = field(default_factory=dict)  # the per-slave kernels' recorded launches
 
@@ -1019,23 +1020,49 @@ def detect(p: Plan, slave_points, master_points=None):
             tuple(float(v) for v in s_origin),
             None if master is None else (master[0].ptr, tuple(float(v) for v in master[1])),
         )
-        if key not in p.graph_of and key in p.seen:
+        action = _graph_action(p, key)
+        if action == "capture":
             with wp.ScopedCapture(device=dev) as cap:
                 _launch(p, xs, s_origin, master)
-            p.graph_of[key] = cap.graph
-            if len(p.graph_of) > GRAPHS:  # the oldest goes
-                del p.graph_of[next(iter(p.graph_of))]
-        if key in p.graph_of:
-            wp.capture_launch(p.graph_of[key])
-        else:
+            _keep_graph(p, key, cap.graph)
+        if action == "launch":
             _launch(p, xs, s_origin, master)
-        p.seen.pop(key, None)
-        p.seen[key] = True
-        if len(p.seen) > 2 * GRAPHS:
-            del p.seen[next(iter(p.seen))]
+        else:
+            wp.capture_launch(p.graph_of[key])
     else:
         _launch(p, xs, s_origin, master)
     return _outputs(p.out, slave_points, p.origin)
+
+
+def _graph_action(p: Plan, key) -> str:
+    """What a CUDA detect does with the input buffers `key`: "replay" their graph, "capture"
+    one (buffers seen in one of the latest calls), or "launch" one by one. At most GRAPHS
+    graphs, the oldest dropped; buffers whose graph was dropped are not captured again (inputs
+    rotating over more sets than that would capture on every call)."""
+    if key in p.graph_of:
+        action = "replay"
+    elif key in p.seen and key not in p.dropped:
+        action = "capture"
+    else:
+        action = "launch"
+    _book(p.seen, key, 2 * GRAPHS)
+    return action
+
+
+def _keep_graph(p: Plan, key, graph):
+    p.graph_of[key] = graph
+    if len(p.graph_of) > GRAPHS:
+        old = next(iter(p.graph_of))
+        del p.graph_of[old]
+        _book(p.dropped, old, 16 * GRAPHS)
+
+
+def _book(keys: dict, key, most: int):
+    """key into the ordered set `keys` as its latest, the oldest dropped past `most`."""
+    keys.pop(key, None)
+    keys[key] = True
+    if len(keys) > most:
+        del keys[next(iter(keys))]
 
 
 def _outputs(o: dict, like, origin):
