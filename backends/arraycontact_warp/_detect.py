@@ -855,14 +855,7 @@ def _master_stages(p: Plan, xm, m_origin):
             tri3 = p.master.element.name == "tri3"
             args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
             _grid.refit_faces(p.face_grid, p.face_layout, *args)
-        if outside:
-            if p.build_graph is None:  # (it reads only the plan's own buffers)
-                with wp.ScopedCapture(device=dev) as cap:
-                    wp.capture_if(p.rebuild, on_true=lambda: _build(p))
-                p.build_graph = cap.graph
-            wp.capture_launch(p.build_graph)
-        else:
-            wp.capture_if(p.rebuild, on_true=lambda: _build(p))
+        _rebuild_if(p, lambda: _build(p), outside)
     else:
         _build(p)
     p.master_ready = p.built = True
@@ -877,6 +870,20 @@ def _gather_rows(x: wp.array(dtype=vec3), rows: wp.array(dtype=int), out: wp.arr
 def _self_kind(p: Plan):
     """The scans' self-contact type (see _grid.Plain)."""
     return _grid.Own() if p.self_contact else _grid.Plain()
+
+
+def _rebuild_if(p, build, by_graph: bool):
+    """`build` (the plan's trees sorted again) where p.rebuild[0] says: a conditional node
+    (in a capture; outside one, Warp reads the flag on the host), or by_graph, the plan's
+    graph of that node alone, captured once (`build` reads only the plan's own buffers)."""
+    if not by_graph:
+        wp.capture_if(p.rebuild, on_true=build)
+        return
+    if p.build_graph is None:
+        with wp.ScopedCapture(device=p.device) as cap:
+            wp.capture_if(p.rebuild, on_true=build)
+        p.build_graph = cap.graph
+    wp.capture_launch(p.build_graph)
 
 
 def _launch(p: Plan, xs, s_origin, master):
@@ -1398,14 +1405,7 @@ def _swept_launch(p: SweptPlan, xs):
         p.rebuild.zero_()
         _slave_launch(_sweep.capture_gather, nf, [*gather, 1], [], dev, first=0)
         _grid.refit_up(g, p.layout, dev)
-        if dev.is_cuda and not dev.is_capturing:
-            if p.build_graph is None:
-                with wp.ScopedCapture(device=dev) as cap:
-                    wp.capture_if(p.rebuild, on_true=build)
-                p.build_graph = cap.graph
-            wp.capture_launch(p.build_graph)
-        else:
-            wp.capture_if(p.rebuild, on_true=build)
+        _rebuild_if(p, build, dev.is_cuda and not dev.is_capturing)
     else:
         build()
     p.built = True
