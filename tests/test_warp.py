@@ -13,6 +13,7 @@ from radix import grid_points, radix_groups
 import arraycontact as ac
 from arraycontact import scenes
 from arraycontact._backends import quiet_warp
+from arraycontact._detect import TIE_RTOL
 
 quiet_warp()
 DEVICE = "cuda" if wp.is_cuda_available() else "cpu"
@@ -149,7 +150,6 @@ def test_tie_rule_when_the_chosen_face_leaves_the_band():
     so the first scan cannot apply the tie rule alone; the answer is the second (id 1), as
     NumPy's global selection says."""
     tri = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [-0.5, 0.5, 0.0]]) + [0.2, 0.2, 0]
-    from arraycontact._detect import TIE_RTOL
 
     x, tie = 0.5, TIE_RTOL[np.dtype(np.float32)] * np.sqrt(2)  # float32 tie, longest edge
     pts = np.concatenate([tri + [0, 0, -z] for z in (x + 0.9 * tie, x, x - 0.2 * tie)])
@@ -158,6 +158,36 @@ def test_tie_rule_when_the_chosen_face_leaves_the_band():
     o = acw.detect(acw.plan(master, slave, device=DEVICE, d_max=2.0), slave, master.points)
     r = ac.detect(slave, master, dtype=np.float32, d_max=2.0, backend="numpy")
     assert r.face[0] == 1 and o["face"][0] == 1
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_projection_kept_by_the_face_scan_is_the_chosen_faces(dtype):
+    """The finish kernel takes a quad's projection from the face scan where the scan stored
+    the chosen face's (Kept). Near-ties make the scan go back to an earlier face of the tie
+    band, whose projection it did not store: a flat quad4 grid whose nodes lie within 2 ties
+    of the plane, slaves above its vertices with offsets of the tie band's scale. Answers
+    equal NumPy's (taking the stored projection whatever face it was for moves points by a
+    face width)."""
+    rng = np.random.default_rng(0)
+    n = 12
+    g = np.linspace(0, 1, n + 1)
+    tie = TIE_RTOL[np.dtype(dtype)] * np.sqrt(2) / n
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    pts = np.c_[X.ravel(), Y.ravel(), rng.uniform(-2 * tie, 2 * tie, X.size)]
+    idx = np.arange(X.size).reshape(X.shape)
+    faces = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1)
+    master = ac.Surface(pts, faces.reshape(-1, 4)[rng.permutation(n * n)], "quad4")
+    h = 0.3 / n
+    v = rng.integers(1, n, size=(4000, 2)) / n + rng.normal(size=(4000, 2)) * np.sqrt(2 * h * tie)
+    slaves = np.c_[v, np.full(4000, h)]
+    p = acw.plan(master, slaves, device=DEVICE, d_max=2 / n, dtype=dtype)
+    o = acw.detect(p, slaves, master.points)
+    r = ac.detect(slaves, master, dtype=dtype, d_max=2 / n, backend="numpy")
+    assert np.array_equal(o["face"], r.face)
+    assert np.array_equal(o["feature"], r.feature)
+    eps = np.finfo(dtype).eps
+    assert np.abs(o["point"] - r.point).max() < 100 * eps
+    assert np.abs(o["xi"] - r.xi).max() < 1e4 * eps
 
 
 @pytest.mark.parametrize("name", ["rough_tri3", "patch_quad8"])

@@ -43,7 +43,7 @@ from ._closest_node import closest_node
 from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import _concrete
 from ._parts import launch as _slave_launch
-from ._projection import Master, holds, project, scan_attached, scan_faces
+from ._projection import Kept, Master, holds, projected, scan_attached, scan_faces
 from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal, self_face_geometry, self_node_geometry
 
@@ -165,6 +165,7 @@ def _face_kernel(
     nodes: wp.array(dtype=int),
     nlo: wp.array(dtype=vec3),
     nhi: wp.array(dtype=vec3),
+    kp: Kept,
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
@@ -191,7 +192,7 @@ def _face_kernel(
     for scan in range(2):
         if scan == 0 or (dmin <= d_max and unsure == 1):
             d, f, k, unsure = scan_faces(
-                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o
+                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o, kp, i
             )
             if scan == 0:
                 dmin = d
@@ -231,6 +232,7 @@ def _finish_kernel(
     h_face: wp.array(dtype=real),
     dist: wp.array(dtype=real),
     item: wp.array(dtype=int),
+    kp: Kept,
     first: int,
     finer_out: wp.array(dtype=wp.int32),
     active_out: wp.array(dtype=wp.int32),
@@ -267,8 +269,8 @@ def _finish_kernel(
     if mode == 0:
         f = face_out[i]
         if dist[i] <= d_max:
-            xi, feature, local, conv, diff = project(
-                el, m, face_grid, item[i], s, f, iterations, tol
+            xi, feature, local, conv, diff = projected(
+                el, m, face_grid, kp, i, item[i], s, f, iterations, tol
             )
             active = 1
             status = 0
@@ -419,6 +421,7 @@ class Plan:
     face_nhi: wp.array = None
     h_face: wp.array = None
     finer: wp.array = None  # [n] int32: the `finer` output (self-contact)
+    kept: Kept = None  # [n] between kernels: the chosen face's projection by the face scan
     master_ready: bool = False  # the master stages have run at least once
     built: bool = False  # the trees hold a master (the plan's or a detect's): a refit may do
     graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
@@ -686,6 +689,11 @@ def plan(
     p.face_nhi = wp.zeros(n_faces, dtype=vec3, device=device)
     p.h_face = wp.zeros(n_faces, dtype=real, device=device)
     p.finer = wp.zeros(n_self, dtype=wp.int32, device=device)
+    p.kept = Kept()
+    n_kept = 1 if tri3 else n  # (`keep`: a triangle's projection is not kept)
+    p.kept.item = wp.full(n_kept, -1, dtype=int, device=device)
+    p.kept.xi = wp.zeros(n_kept, dtype=vec2, device=device)
+    p.kept.tag = wp.zeros(n_kept, dtype=int, device=device)
     if self_contact:
         out["finer"] = p.finer
     _declare(p, tri3)
@@ -953,6 +961,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
                 o["master_node"],
                 p.face_nlo,
                 p.face_nhi,
+                p.kept,
             ],
             [p.dist, o["face"], p.item],
             dev,
@@ -980,11 +989,12 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
             p.h_face,
             p.dist,
             p.item,
+            p.kept,
             0,
         ],
         [p.finer] + [o[k] for k, _ in OUTPUTS],
         dev,
-        first=17,
+        first=18,
         **rec,
     )
 

@@ -205,6 +205,60 @@ def project(  # noqa: F811 (a Warp overload)
     return xi, feature, local, conv, r - face_point(el, xe, xi)
 
 
+@wp.struct
+class Kept:
+    """Each slave's chosen face as its face scan projected it, so that the finish kernel need
+    not project it again (a bilinear or curved face's projection, Newton from one or more
+    starts, is most of the finish kernel's time; stored as the scan finds it, it costs the
+    scan no registers). item: the face-grid item whose projection xi and tag (feature, local,
+    converged, packed by `keep`) hold, -1 when none. A scan that returns to an earlier face
+    of the tie band (scan_faces) leaves another face's item here: that face is projected
+    again."""
+
+    item: wp.array(dtype=int)
+    xi: wp.array(dtype=vec2)
+    tag: wp.array(dtype=int)
+
+
+@wp.func
+def keep(el: Triangles, kp: Kept, i: int, k: int, xi: vec2, feature: int, local: int, conv: int):
+    """A triangle's closest point (closed form) costs less than its store: not kept."""
+    return 0
+
+
+@wp.func
+def keep(  # noqa: F811 (a Warp overload)
+    el: Element, kp: Kept, i: int, k: int, xi: vec2, feature: int, local: int, conv: int
+):
+    kp.item[i] = k
+    kp.xi[i] = xi
+    kp.tag[i] = feature + 4 * (local + 1) + 64 * conv  # feature < 4, -1 <= local < 15
+    return 0
+
+
+@wp.func
+def projected(
+    el: Triangles, m: Master, grid: Grid, kp: Kept, i: int, k: int, s: vec3, f: int,
+    iterations: int, tol: real,
+):  # fmt: skip
+    """`project` of slave i on face f (item k), from `keep`'s store where it holds item k."""
+    return project(el, m, grid, k, s, f, iterations, tol)
+
+
+@wp.func
+def projected(  # noqa: F811 (a Warp overload)
+    el: Element, m: Master, grid: Grid, kp: Kept, i: int, k: int, s: vec3, f: int,
+    iterations: int, tol: real,
+):  # fmt: skip
+    if kp.item[i] != k:
+        return project(el, m, grid, k, s, f, iterations, tol)
+    tag = kp.tag[i]
+    xi = kp.xi[i]
+    x0 = m.points[m.faces[f, 0]]
+    xe = face_nodes(m.points, m.faces, f, x0)
+    return xi, tag % 4, (tag // 4) % 16 - 1, tag // 64, (s - x0) - face_point(el, xe, xi)
+
+
 _candidates = wp.types.vector(length=W, dtype=int)
 
 #: arraycontact._grid.FACING_TOL: self-contact counts faces with n_i . n_f < -FACING_TOL.
@@ -285,10 +339,12 @@ def scan_faces(
     iterations: int,
     tol: real,
     o: Any,
+    kp: Kept,
+    i: int,
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
-    tie rule (smallest id within `tie` of it) with its tree item (its projection is computed
-    again by the caller: keeping it through the scan costs registers that all threads pay).
+    tie rule (smallest id within `tie` of it) with its tree item. Its projection goes to kp
+    (slave i, `keep`) when it is made, not kept through the scan: registers all threads pay.
     shared = 1: every item is of this world.
 
     The face tree depth first (_grid: a visit tests an entry's W children, goes on with the
@@ -393,6 +449,7 @@ def scan_faces(
                     best = f
                     b_d = d
                     b_k = kt
+                    keep(el, kp, i, kt, xi, feature, local, conv)
                 reach = wp.min(reach, wp.max(dmin, limit) + slack)
         if visit == 0:
             stack, lv, j, visit = next_pending(grid, root, stack, lv, j)
@@ -445,4 +502,4 @@ def scan_attached(
     return d_face, d_any, best, b_xi, b_feature, b_local, b_conv, b_diff
 
 
-__all__ = ["Master", "holds", "project", "scan_attached", "scan_faces"]
+__all__ = ["Kept", "Master", "holds", "project", "projected", "scan_attached", "scan_faces"]
