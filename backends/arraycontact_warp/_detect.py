@@ -43,7 +43,16 @@ from ._closest_node import closest_node
 from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import _concrete
 from ._parts import launch as _slave_launch
-from ._projection import Kept, Master, holds, projected, scan_attached, scan_faces
+from ._projection import (
+    Kept,
+    Master,
+    Unkept,
+    holds,
+    kept_type,
+    projected,
+    scan_attached,
+    scan_faces,
+)
 from ._real import NP_REAL, precision, real, vec2, vec3
 from ._select import classify, proximal, self_face_geometry, self_node_geometry
 
@@ -165,7 +174,7 @@ def _face_kernel(
     nodes: wp.array(dtype=int),
     nlo: wp.array(dtype=vec3),
     nhi: wp.array(dtype=vec3),
-    kp: Kept,
+    kp: Any,
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
@@ -232,7 +241,7 @@ def _finish_kernel(
     h_face: wp.array(dtype=real),
     dist: wp.array(dtype=real),
     item: wp.array(dtype=int),
-    kp: Kept,
+    kp: Any,
     first: int,
     finer_out: wp.array(dtype=wp.int32),
     active_out: wp.array(dtype=wp.int32),
@@ -422,6 +431,7 @@ class Plan:
     h_face: wp.array = None
     finer: wp.array = None  # [n] int32: the `finer` output (self-contact)
     kept: Kept = None  # [n] between kernels: the chosen face's projection by the face scan
+    # (or an Unkept: none)
     master_ready: bool = False  # the master stages have run at least once
     built: bool = False  # the trees hold a master (the plan's or a detect's): a refit may do
     graphs: bool = True  # CUDA: replay repeated calls on the same buffers as a graph
@@ -689,11 +699,12 @@ def plan(
     p.face_nhi = wp.zeros(n_faces, dtype=vec3, device=device)
     p.h_face = wp.zeros(n_faces, dtype=real, device=device)
     p.finer = wp.zeros(n_self, dtype=wp.int32, device=device)
-    p.kept = Kept()
-    n_kept = 1 if tri3 else n  # (`keep`: a triangle's projection is not kept)
-    p.kept.item = wp.full(n_kept, -1, dtype=int, device=device)
-    p.kept.xi = wp.zeros(n_kept, dtype=vec2, device=device)
-    p.kept.tag = wp.zeros(n_kept, dtype=int, device=device)
+    kept = kept_type(Triangles if tri3 else Element, wp.get_device(device).is_cuda) is Kept
+    p.kept = Kept() if kept else Unkept()
+    p.kept.item = wp.full(n if kept else 1, -1, dtype=int, device=device)
+    if kept:
+        p.kept.xi = wp.zeros(n, dtype=vec2, device=device)
+        p.kept.tag = wp.zeros(n, dtype=int, device=device)
     if self_contact:
         out["finer"] = p.finer
     _declare(p, tri3)
@@ -717,31 +728,34 @@ def _declare(p: Plan, tri3: bool):
     first launch. Warp rebuilds a module whenever a launch adds an overload, so a first detect
     compiled this module three times, the scans again each time (cold kernel cache, quad4,
     CPU: first call 10.5 -> 7.9 s; tri3 8.6 -> 6.9 s). Now it compiles once."""
-    _declare_kernels(Triangles if tri3 else Element, bool(p.self_contact), p.mode == 0)
+    cuda = wp.get_device(p.device).is_cuda
+    _declare_kernels(Triangles if tri3 else Element, bool(p.self_contact), p.mode == 0, cuda)
 
 
-def _declare_kernels(el, self_contact: bool, exact: bool):
+def _declare_kernels(el, self_contact: bool, exact: bool, cuda: bool):
     kind = _grid.Own if self_contact else _grid.Plain
+    kp = kept_type(el, cuda)
     wp.overload(_node_kernel, {"kind": kind})
     if exact:
-        wp.overload(_self_face_kernel if self_contact else _face_kernel, {"el": el, "kind": kind})
-    wp.overload(_finish_kernel, {"el": el})
+        face_kernel = _self_face_kernel if self_contact else _face_kernel
+        wp.overload(face_kernel, {"el": el, "kind": kind, "kp": kp})
+    wp.overload(_finish_kernel, {"el": el, "kp": kp})
     if self_contact:
         wp.overload(self_face_geometry, {"el": el})
         wp.overload(self_node_geometry, {"el": el})
 
 
-def declare_all():
+def declare_all(cuda: bool = False):
     """Every overload of the generic kernels (both element structs, both scan kinds, swept),
     before any launch, so that each module compiles once whatever the process detects next.
     For the test suite: its Warp warm-up and its workers call it, so the workers load what the
     warm-up compiled instead of compiling each new mix of overloads again. (A plan declares
     only what its detections launch: on a GPU the scans of an unused element type would add
-    their compile time.)"""
+    their compile time.) cuda: a GPU's overloads (its scans keep no projection: kept_type)."""
     for el in (Triangles, Element):
         wp.overload(_sweep.swept_scan, {"el": el})
         for self_contact in (False, True):
-            _declare_kernels(el, self_contact, True)
+            _declare_kernels(el, self_contact, True, cuda)
 
 
 def _kind(a):

@@ -209,8 +209,8 @@ def project(  # noqa: F811 (a Warp overload)
 class Kept:
     """Each slave's chosen face as its face scan projected it, so that the finish kernel need
     not project it again (a bilinear or curved face's projection, Newton from one or more
-    starts, is most of the finish kernel's time; stored as the scan finds it, it costs the
-    scan no registers). item: the face-grid item whose projection xi and tag (feature, local,
+    starts, is most of the finish kernel's time: quad4 at 2^16 on the CPU 22.9 -> 10.9 ms
+    thread time). item: the face-grid item whose projection xi and tag (feature, local,
     converged, packed by `keep`) hold, -1 when none. A scan that returns to an earlier face
     of the tie band (scan_faces) leaves another face's item here: that face is projected
     again."""
@@ -220,16 +220,22 @@ class Kept:
     tag: wp.array(dtype=int)
 
 
-@wp.func
-def keep(el: Triangles, kp: Kept, i: int, k: int, xi: vec2, feature: int, local: int, conv: int):
-    """A triangle's closest point (closed form) costs less than its store: not kept."""
-    return 0
+@wp.struct
+class Unkept:
+    """No store (`kept_type`): triangles, whose closest point costs less than its store, and
+    GPUs, where the stored values live on through the scan and cost it registers (H100, 2^17:
+    self-contact's quad4 scans 6-8 % slower, the two-body quad4 detection 2 % faster)."""
+
+    item: wp.array(dtype=int)  # (unused: a Warp struct needs a field)
+
+
+def kept_type(el, cuda: bool):
+    """The `kp` struct of a detection's scans: Kept for bilinear and curved faces off a GPU."""
+    return Kept if el is Element and not cuda else Unkept
 
 
 @wp.func
-def keep(  # noqa: F811 (a Warp overload)
-    el: Element, kp: Kept, i: int, k: int, xi: vec2, feature: int, local: int, conv: int
-):
+def keep(kp: Kept, i: int, k: int, xi: vec2, feature: int, local: int, conv: int):
     kp.item[i] = k
     kp.xi[i] = xi
     kp.tag[i] = feature + 4 * (local + 1) + 64 * conv  # feature < 4, -1 <= local < 15
@@ -237,8 +243,13 @@ def keep(  # noqa: F811 (a Warp overload)
 
 
 @wp.func
+def keep(kp: Unkept, i: int, k: int, xi: vec2, feature: int, local: int, conv: int):  # noqa: F811
+    return 0
+
+
+@wp.func
 def projected(
-    el: Triangles, m: Master, grid: Grid, kp: Kept, i: int, k: int, s: vec3, f: int,
+    el: Any, m: Master, grid: Grid, kp: Unkept, i: int, k: int, s: vec3, f: int,
     iterations: int, tol: real,
 ):  # fmt: skip
     """`project` of slave i on face f (item k), from `keep`'s store where it holds item k."""
@@ -247,7 +258,7 @@ def projected(
 
 @wp.func
 def projected(  # noqa: F811 (a Warp overload)
-    el: Element, m: Master, grid: Grid, kp: Kept, i: int, k: int, s: vec3, f: int,
+    el: Any, m: Master, grid: Grid, kp: Kept, i: int, k: int, s: vec3, f: int,
     iterations: int, tol: real,
 ):  # fmt: skip
     if kp.item[i] != k:
@@ -339,7 +350,7 @@ def scan_faces(
     iterations: int,
     tol: real,
     o: Any,
-    kp: Kept,
+    kp: Any,
     i: int,
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
@@ -449,7 +460,7 @@ def scan_faces(
                     best = f
                     b_d = d
                     b_k = kt
-                    keep(el, kp, i, kt, xi, feature, local, conv)
+                    keep(kp, i, kt, xi, feature, local, conv)
                 reach = wp.min(reach, wp.max(dmin, limit) + slack)
         if visit == 0:
             stack, lv, j, visit = next_pending(grid, root, stack, lv, j)
@@ -502,4 +513,14 @@ def scan_attached(
     return d_face, d_any, best, b_xi, b_feature, b_local, b_conv, b_diff
 
 
-__all__ = ["Kept", "Master", "holds", "project", "projected", "scan_attached", "scan_faces"]
+__all__ = [
+    "Kept",
+    "Unkept",
+    "kept_type",
+    "Master",
+    "holds",
+    "project",
+    "projected",
+    "scan_attached",
+    "scan_faces",
+]
