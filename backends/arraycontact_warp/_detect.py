@@ -38,7 +38,7 @@ from arraycontact._sweep import T_TOL as SWEPT_T_TOL
 from arraycontact._sweep import capture_pads
 from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
-from . import _grid, _prepare, _sweep
+from . import _grid, _parts, _prepare, _sweep
 from ._closest_node import closest_node
 from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import _concrete
@@ -795,38 +795,36 @@ def _normal_boxes(p: Plan):
     return (p.normals, p.normals), (p.face_nlo, p.face_nhi)
 
 
+#: The kinds of build whose kernels a build in this process has loaded (see `_build`).
+_BUILT = set()
+
+
 def _build(p: Plan):
-    """The master's trees from its localised points."""
+    """The master's trees from its localised points. On the CPU the two trees at once, each
+    a chain of launches and a sort on a core of its own, once a build of this kind has loaded
+    their kernels (two threads must not compile a module)."""
     c = p.constants
     dev = p.device
     m = p.m
     node_n, face_n = _normal_boxes(p)
-    _grid.build(
-        p.node_grid,
-        p.node_layout,
-        m.points,
-        p.node_ids,
-        m.node_world,
-        p.n_nodes,
-        dev,
-        p.rebuild,
-        p.world_bits,
-        node_n,
-    )
-    if p.mode == 0:  # node mode reads no face grid
-        _grid.build_faces(
-            p.face_grid,
-            p.face_layout,
-            m.points,
-            m.faces,
-            c.lebesgue,
-            m.face_world,
-            dev,
-            p.master.element.name == "tri3",
-            p.rebuild,
-            p.world_bits,
-            face_n,
-        )
+
+    def nodes():
+        args = (m.points, p.node_ids, m.node_world, p.n_nodes, dev, p.rebuild, p.world_bits)
+        _grid.build(p.node_grid, p.node_layout, *args, node_n)
+
+    def faces():
+        tri3 = p.master.element.name == "tri3"
+        args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild)
+        _grid.build_faces(p.face_grid, p.face_layout, *args, p.world_bits, face_n)
+
+    chains = (faces, nodes) if p.mode == 0 else (nodes,)  # (node mode reads no face grid)
+    kind = (str(dev), NP_REAL, p.self_contact, p.mode)
+    if kind in _BUILT:
+        _parts.concurrently(dev, *chains)
+        return
+    for chain in chains:
+        chain()
+    _BUILT.add(kind)
 
 
 def _master_stages(p: Plan, xm, m_origin):

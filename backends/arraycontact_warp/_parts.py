@@ -6,6 +6,7 @@ atomics are plain read-modify-writes: a kernel that uses them is never split."""
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -31,18 +32,31 @@ def _get_pool():
 
 
 def concurrently(dev, *chains):
-    """Call the functions `chains` (each launching kernels of one module on dev, with
-    `wp.launch` only, on arrays no other chain writes): on the CPU at once, the first in the
-    calling thread; on a GPU one after the other (their launches queue on one stream)."""
+    """Call the functions `chains` (each launching kernels whose modules are loaded, on
+    arrays no other chain writes): on the CPU at once, the first in the calling thread; on a
+    GPU one after the other (their launches queue on one stream). The `launch`es of a chain
+    in the pool run whole (waiting on its parts, it could wait for ever); the first chain's
+    are split as anywhere, their parts taken by the pool's threads as the others finish."""
     dev = wp.get_device(dev)
     if dev.is_cuda or CPU_PARTS < 2 or len(chains) < 2:
         for c in chains:
             c()
         return
-    jobs = [_get_pool().submit(c) for c in chains[1:]]
+    jobs = [_get_pool().submit(_in_chain, c) for c in chains[1:]]
     chains[0]()
     for j in jobs:
         j.result()
+
+
+_chain = threading.local()  # .on: this thread runs a chain of `concurrently`
+
+
+def _in_chain(c):
+    _chain.on = True
+    try:
+        c()
+    finally:
+        _chain.on = False
 
 
 #: A generic kernel's overload by its arguments' kinds (see `_concrete`).
@@ -108,7 +122,7 @@ def launch(kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, r
     part replays (record_only: record, do not launch)."""
     dev = wp.get_device(dev)
     kernel = _concrete(kernel, [*inputs, *outputs])
-    one = dev.is_cuda or CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS
+    one = dev.is_cuda or CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS or getattr(_chain, "on", 0)
     if cmds is not None and one:
         _replay(cmds, kernel, n, [*inputs, *outputs], dev, record_only)
         return
