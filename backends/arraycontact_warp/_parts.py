@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -138,17 +139,22 @@ def launch(kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, r
         return
     kernel.module.load(dev)  # another kernel's new overload may have made the module stale
     cuts = np.linspace(0, n, CPU_PARTS + 1).astype(int)
-    jobs = []
+    parts = []
     for a, b in zip(cuts[:-1], cuts[1:]):
         part = list(inputs)
         if order is not None:
             part[order] = inputs[order][a:b]
         else:
             part[first] = int(a)
-        jobs.append(
-            _get_pool().submit(
-                wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev
-            )
+        parts.append(
+            partial(wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev)
         )
-    for j in jobs:
-        j.result()
+    # The first part in this thread, which would wait idle; the others on the pool's threads,
+    # or here too where none has taken them yet (busy with another chain of `concurrently`).
+    jobs = [_get_pool().submit(part) for part in parts[1:]]
+    parts[0]()
+    for job, part in zip(jobs, parts[1:]):
+        if job.cancel():
+            part()
+        else:
+            job.result()
