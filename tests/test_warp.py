@@ -163,9 +163,10 @@ def test_tie_rule_when_the_chosen_face_leaves_the_band():
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_a_projection_kept_by_the_face_scan_is_the_chosen_faces(dtype):
     """Off a GPU the finish kernel takes a quad's projection from the face scan where the scan
-    stored the chosen face's (Kept; on a GPU this checks the scans without it). Near-ties make the scan go back to an earlier face of the tie
-    band, whose projection it did not store: a flat quad4 grid whose nodes lie within 2 ties
-    of the plane, slaves above its vertices with offsets of the tie band's scale. Faces and
+    stored the chosen face's (Kept; on a GPU this checks the scans without it). Near-ties make
+    the scan go back to an earlier face of the tie band, whose projection it did not store: a
+    flat quad4 grid whose nodes lie within 2 ties of the plane, slaves above its vertices
+    with offsets of the tie band's scale. Faces and
     points equal NumPy's (taking the stored projection whatever face it was for moves points
     by a face width; features are not compared: on a GPU a slave within the projections'
     tolerance of an edge may fall on either side of it, as before the store)."""

@@ -820,6 +820,8 @@ def _build(p: Plan):
     chains = (faces, nodes) if p.mode == 0 else (nodes,)  # (node mode reads no face grid)
     kind = (str(dev), NP_REAL, p.self_contact, p.mode)
     if kind in _BUILT:
+        # (loaded here: another plan's overloads, a swept plan's, may have made it stale)
+        _grid._keys.module.load(dev)
         _parts.concurrently(dev, *chains)
         return
     for chain in chains:
