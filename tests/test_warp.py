@@ -907,16 +907,23 @@ def test_device_topology_equals_the_surfaces(name):
 @pytest.mark.parametrize("mode", ["exact", "node"])
 def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
     """On the CPU the per-slave kernels run in parts, one thread each: every output equals the
-    one-launch answer bit for bit (3 uneven parts: two bodies, self-contact, swept)."""
+    one-launch answer bit for bit (3 uneven parts: two bodies, self-contact, swept), also in
+    a second call, whose parts are cut where the first call's times said (Plan.cuts)."""
     import arraycontact_warp._parts as wd
 
     s = scenes.graded_surfaces(2**10, ratio=20)
     spiral = scenes.spiral_strip(2**10)
 
+    monkeypatch.setattr(wd, "MIN_PART", 64)  # (these scenes' 512-1024 slaves in parts)
+
     def outputs(parts):
         monkeypatch.setattr(wd, "CPU_PARTS", parts)
         p = acw.plan(s.master, s.slave, device="cpu", mode=mode)
-        a = {k: v.copy() for k, v in acw.detect(p, s.slave, s.master.points).items()}
+        acw.detect(p, s.slave, s.master.points)
+        moved_slaves = s.slave + np.array([0.13, -0.07, 0.11]) * s.master.longest_edge
+        a = {k: v.copy() for k, v in acw.detect(p, moved_slaves, s.master.points).items()}
+        even = np.linspace(0, p.n_slaves, parts + 1).astype(int)
+        moved.extend(not np.array_equal(c, even) for c in p.cuts.values())
         q = acw.plan_self(spiral.master, device="cpu", mode=mode)
         b = {k: v.copy() for k, v in acw.detect_self(q, spiral.master.points).items()}
 
@@ -926,13 +933,25 @@ def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
         c = {k: v.copy() for k, v in acw.detect_swept(r, *args).items()}
         return a, b, c
 
+    moved = []
     outputs(1)  # the kernels' overloads loaded, so the next calls run in threads
     whole = outputs(1)
     parts = outputs(3)
+    assert any(moved)  # the second call's cuts were not the even ones
     assert len(wd._loaded) > 0 and wd._pool is not None  # the threads ran
     for one, three in zip(whole, parts):
         for k in one:
             np.testing.assert_array_equal(one[k], three[k], err_msg=k)
+
+
+def test_balanced_cuts_move_halfway_to_equal_times():
+    """Parts of 50 slaves that took 1 and 3 s: at even work density within each part, equal
+    times need the cut at 66.7; the next launch cuts halfway there. Times of zero keep the
+    cuts."""
+    from arraycontact_warp._parts import _balanced
+
+    assert list(_balanced(np.array([0, 50, 100]), np.array([1.0, 3.0]))) == [0, 58, 100]
+    assert list(_balanced(np.array([0, 30, 100]), np.zeros(2))) == [0, 30, 100]
 
 
 @wp.kernel

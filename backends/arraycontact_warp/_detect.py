@@ -443,6 +443,7 @@ class Plan:
     dropped: dict = field(default_factory=dict)
     build_graph: object = None
     cmds: dict = field(default_factory=dict)  # the per-slave kernels' recorded launches
+    cuts: dict = field(default_factory=dict)  # CPU: their parts' balanced cuts (_parts.launch)
 
 
 #: Graphs a plan keeps, one per set of input buffers (double-buffered inputs alternate).
@@ -929,7 +930,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
     dev = p.device
     o = p.out
     n = p.n_slaves
-    rec = dict(cmds=p.cmds, record_only=record_only)
+    rec = dict(cmds=p.cmds, record_only=record_only, cuts=p.cuts)
     _slave_launch(
         _node_kernel,
         n,
@@ -1254,6 +1255,7 @@ class SweptPlan:
     rebuild: wp.array  # int32 [1]: the last refit found the capture tree's order stale
     built: bool = False  # the capture tree holds an order (a detect has run)
     build_graph: object = None  # CUDA: the conditional rebuild alone (calls outside a graph)
+    cuts: dict = field(default_factory=dict)  # CPU: the swept scan's balanced cuts
 
     def pairs_needed(self) -> int:
         """The pair list's length the last detect_swept needed (a host copy: synchronises).
@@ -1465,7 +1467,7 @@ def _swept_launch(p: SweptPlan, xs):
             wp.launch(_concrete(search, args), threads, inputs=args, device=dev)
     scan = [g, el, m0, m1, p.faces, s0, s1, p.slave_world, p.shared, real(c.pad_rel)]
     scan += [real(c.t_tol), real(c.space_rtol), real(c.feature_tol), p.lost, 0, out]
-    _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14)
+    _slave_launch(_sweep.swept_scan, n, scan, [], dev, first=14, cuts=p.cuts)
     if q is not None:
         finish = [el, m0, m1, p.faces, s0, s1, real(c.feature_tol), real(c.t_tol), p.lost, 0]
         finish += [q, out]

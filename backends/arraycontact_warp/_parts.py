@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
@@ -116,11 +117,15 @@ def _replay(cmds, kernel, n, args, dev, record_only):
         cmd.launch()
 
 
-def launch(kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, record_only=False):
+def launch(
+    kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, record_only=False, cuts=None
+):
     """Launch a kernel over n independent threads (the slaves, a tree's items). inputs[order]:
     the order the threads take (a part takes its slice), or inputs[first]: the first of the
     part (its threads take first + t). cmds: a plan's recorded commands, which a launch in one
-    part replays (record_only: record, do not launch)."""
+    part replays (record_only: record, do not launch). cuts: a plan's dict where a launch in
+    parts keeps the cuts that would have balanced its parts' times (`_balanced`), for its next
+    launch of this kernel and size."""
     dev = wp.get_device(dev)
     kernel = _concrete(kernel, [*inputs, *outputs])
     one = dev.is_cuda or CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS or getattr(_chain, "on", 0)
@@ -138,17 +143,18 @@ def launch(kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, r
         _loaded.add(key)
         return
     kernel.module.load(dev)  # another kernel's new overload may have made the module stale
-    cuts = np.linspace(0, n, CPU_PARTS + 1).astype(int)
+    at = None if cuts is None else cuts.get((kernel, n))
+    if at is None or len(at) != CPU_PARTS + 1:
+        at = np.linspace(0, n, CPU_PARTS + 1).astype(int)
+    times = np.zeros(CPU_PARTS)
     parts = []
-    for a, b in zip(cuts[:-1], cuts[1:]):
+    for i, (a, b) in enumerate(zip(at[:-1], at[1:])):
         part = list(inputs)
         if order is not None:
             part[order] = inputs[order][a:b]
         else:
             part[first] = int(a)
-        parts.append(
-            partial(wp.launch, kernel, int(b - a), inputs=part, outputs=outputs, device=dev)
-        )
+        parts.append(partial(_timed, times, i, kernel, int(b - a), part, outputs, dev))
     # The first part in this thread, which would wait idle; the others on the pool's threads,
     # or here too where none has taken them yet (busy with another chain of `concurrently`).
     jobs = [_get_pool().submit(part) for part in parts[1:]]
@@ -158,3 +164,27 @@ def launch(kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, r
             part()
         else:
             job.result()
+    if cuts is not None:
+        cuts[(kernel, n)] = _balanced(at, times)
+
+
+def _timed(times, i, kernel, n, inputs, outputs, dev):
+    t = time.perf_counter()
+    wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
+    times[i] = time.perf_counter() - t
+
+
+def _balanced(at, times):
+    """Cuts that would have given the parts equal times, the work spread evenly within each
+    part: the slaves' work varies along their order (the quad4 face scan's halves, 2^16: 25
+    and 35 ms), and from one step to the next little. Halfway there, so that a change of the
+    work's spread does not swing them; each part keeps a quarter of an even share."""
+    work = np.concatenate([[0.0], np.cumsum(times)])
+    if not work[-1] > 0:
+        return at
+    even = np.interp(np.linspace(0.0, work[-1], len(at)), work, at)
+    new = np.round((even + at) / 2).astype(int)
+    least = max(at[-1] // (4 * (len(at) - 1)), 1)
+    for i in range(1, len(new) - 1):  # (at[0] = 0 and at[-1] = n stay)
+        new[i] = min(max(new[i], new[i - 1] + least), at[-1] - least * (len(new) - 1 - i))
+    return new
