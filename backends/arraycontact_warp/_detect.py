@@ -820,7 +820,7 @@ def _build(p: Plan):
 
     chains = (faces, nodes) if p.mode == 0 else (nodes,)  # (node mode reads no face grid)
     kind = (str(dev), NP_REAL, p.self_contact, p.mode)
-    if kind in _BUILT:
+    if dev.is_cpu and kind in _BUILT:  # (a GPU's launches queue on one stream anyway)
         # (loaded here: another plan's overloads, a swept plan's, may have made it stale)
         _grid._keys.module.load(dev)
         _parts.concurrently(dev, *chains)
