@@ -908,7 +908,8 @@ def test_device_topology_equals_the_surfaces(name):
 def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
     """On the CPU the per-slave kernels run in parts, one thread each: every output equals the
     one-launch answer bit for bit (3 uneven parts: two bodies, self-contact, swept), also in
-    a second call, whose parts are cut where the first call's times said (Plan.cuts)."""
+    a later call, whose parts are cut where the calls before said (Plan.cuts) and whose two
+    trees are refitted at once."""
     import arraycontact_warp._parts as wd
 
     s = scenes.graded_surfaces(2**10, ratio=20)
@@ -919,7 +920,8 @@ def test_cpu_parts_in_threads_equal_one_launch(monkeypatch, mode):
     def outputs(parts):
         monkeypatch.setattr(wd, "CPU_PARTS", parts)
         p = acw.plan(s.master, s.slave, device="cpu", mode=mode)
-        acw.detect(p, s.slave, s.master.points)
+        for _ in range(2):  # a build, a refit; the third call refits both trees at once
+            acw.detect(p, s.slave, s.master.points)
         moved_slaves = s.slave + np.array([0.13, -0.07, 0.11]) * s.master.longest_edge
         a = {k: v.copy() for k, v in acw.detect(p, moved_slaves, s.master.points).items()}
         even = np.linspace(0, p.n_slaves, parts + 1).astype(int)
