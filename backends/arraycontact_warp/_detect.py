@@ -826,7 +826,7 @@ def _build(p: Plan):
         _grid._keys.module.load(dev)
         _parts.concurrently(dev, *chains)
         return
-    for chain in chains:
+    for chain in reversed(chains):  # (the nodes' first, as before the chains)
         chain()
     _BUILT.add(kind)
 
@@ -891,7 +891,7 @@ def _master_stages(p: Plan, xm, m_origin):
             _grid._keys.module.load(dev)
             _parts.concurrently(dev, *chains)
         else:
-            for chain in chains:
+            for chain in reversed(chains):
                 chain()
         p.refitted = True
         _rebuild_if(p, lambda: _build(p), outside)
