@@ -802,9 +802,9 @@ _BUILT = set()
 
 
 def _build(p: Plan):
-    """The master's trees from its localised points. On the CPU the two trees at once, each
-    a chain of launches and a sort on a core of its own, once a build of this kind has loaded
-    their kernels (two threads must not compile a module)."""
+    """The master's trees from its localised points: on the CPU the two at once, once a build
+    of this kind has loaded their kernels in this process (two threads must not compile a
+    module)."""
     c = p.constants
     dev = p.device
     m = p.m
@@ -819,16 +819,23 @@ def _build(p: Plan):
         args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild)
         _grid.build_faces(p.face_grid, p.face_layout, *args, p.world_bits, face_n)
 
-    chains = (faces, nodes) if p.mode == 0 else (nodes,)  # (node mode reads no face grid)
     kind = (str(dev), NP_REAL, p.self_contact, p.mode)
-    if dev.is_cpu and kind in _BUILT:  # (a GPU's launches queue on one stream anyway)
-        # (loaded here: another plan's overloads, a swept plan's, may have made it stale)
-        _grid._keys.module.load(dev)
-        _parts.concurrently(dev, *chains)
-        return
-    for chain in reversed(chains):  # (the nodes' first, as before the chains)
-        chain()
+    _both_trees(p, nodes, faces, kind in _BUILT)
     _BUILT.add(kind)
+
+
+def _both_trees(p: Plan, nodes, faces, at_once: bool):
+    """nodes() and faces() (node mode, which reads no face grid: nodes() alone), each a chain
+    of launches on its own tree: on the CPU at once where their kernels are loaded (at_once),
+    else one after the other, the nodes' first (a GPU's launches queue on one stream)."""
+    chains = (faces, nodes) if p.mode == 0 else (nodes,)
+    if p.device.is_cpu and at_once:
+        # (loaded here, not in two threads: another plan's overloads may have made it stale)
+        _grid._keys.module.load(p.device)
+        _parts.concurrently(p.device, *chains)
+    else:
+        for chain in reversed(chains):
+            chain()
 
 
 def _master_stages(p: Plan, xm, m_origin):
@@ -884,15 +891,9 @@ def _master_stages(p: Plan, xm, m_origin):
             args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
             _grid.refit_faces(p.face_grid, p.face_layout, *args)
 
-        # On the CPU the two trees at once from the plan's second refit, whose kernels the
-        # first loaded (as `_build`; self-contact 2^16: 1.6-2 ms of 89-120, two bodies none).
-        chains = (faces, nodes) if p.mode == 0 else (nodes,)
-        if dev.is_cpu and p.refitted:
-            _grid._keys.module.load(dev)
-            _parts.concurrently(dev, *chains)
-        else:
-            for chain in reversed(chains):
-                chain()
+        # At once from the plan's second refit, whose kernels the first loaded (self-contact
+        # 2^16 on the CPU: 1.6-2 ms of 89-120; two bodies: none).
+        _both_trees(p, nodes, faces, p.refitted)
         p.refitted = True
         _rebuild_if(p, lambda: _build(p), outside)
     else:
