@@ -444,7 +444,6 @@ class Plan:
     build_graph: object = None
     cmds: dict = field(default_factory=dict)  # the per-slave kernels' recorded launches
     cuts: dict = field(default_factory=dict)  # CPU: their parts' balanced cuts (_parts.launch)
-    refitted: bool = False  # a refit has loaded its kernels
 
 
 #: Graphs a plan keeps, one per set of input buffers (double-buffered inputs alternate).
@@ -797,14 +796,12 @@ def _normal_boxes(p: Plan):
     return (p.normals, p.normals), (p.face_nlo, p.face_nhi)
 
 
-#: The kinds of build whose kernels a build in this process has loaded (see `_build`).
-_BUILT = set()
+#: The trees' builds and refits whose kernels this process has loaded (see `_both_trees`).
+_LOADED = set()
 
 
 def _build(p: Plan):
-    """The master's trees from its localised points: on the CPU the two at once, once a build
-    of this kind has loaded their kernels in this process (two threads must not compile a
-    module)."""
+    """The master's trees from its localised points (on the CPU the two at once)."""
     c = p.constants
     dev = p.device
     m = p.m
@@ -819,23 +816,24 @@ def _build(p: Plan):
         args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild)
         _grid.build_faces(p.face_grid, p.face_layout, *args, p.world_bits, face_n)
 
-    kind = (str(dev), NP_REAL, p.self_contact, p.mode)
-    _both_trees(p, nodes, faces, kind in _BUILT)
-    _BUILT.add(kind)
+    _both_trees(p, "build", nodes, faces)
 
 
-def _both_trees(p: Plan, nodes, faces, at_once: bool):
+def _both_trees(p: Plan, phase: str, nodes, faces):
     """nodes() and faces() (node mode, which reads no face grid: nodes() alone), each a chain
-    of launches on its own tree: on the CPU at once where their kernels are loaded (at_once),
-    else one after the other, the nodes' first (a GPU's launches queue on one stream)."""
+    of launches on its own tree: on the CPU at once once this phase of this kind of plan has
+    loaded their kernels in this process (two threads must not compile a module), else one
+    after the other, the nodes' first (a GPU's launches queue on one stream)."""
     chains = (faces, nodes) if p.mode == 0 else (nodes,)
-    if p.device.is_cpu and at_once:
+    kind = (phase, str(p.device), NP_REAL, p.self_contact, p.mode)
+    if p.device.is_cpu and kind in _LOADED:
         # (loaded here, not in two threads: another plan's overloads may have made it stale)
         _grid._keys.module.load(p.device)
         _parts.concurrently(p.device, *chains)
-    else:
-        for chain in reversed(chains):
-            chain()
+        return
+    for chain in reversed(chains):
+        chain()
+    _LOADED.add(kind)
 
 
 def _master_stages(p: Plan, xm, m_origin):
@@ -891,10 +889,8 @@ def _master_stages(p: Plan, xm, m_origin):
             args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
             _grid.refit_faces(p.face_grid, p.face_layout, *args)
 
-        # At once from the plan's second refit, whose kernels the first loaded (self-contact
-        # 2^16 on the CPU: 1.6-2 ms of 89-120; two bodies: none).
-        _both_trees(p, nodes, faces, p.refitted)
-        p.refitted = True
+        # (at once on the CPU: self-contact 2^16 1.6-2 ms of 89-120 faster; two bodies: same)
+        _both_trees(p, "refit", nodes, faces)
         _rebuild_if(p, lambda: _build(p), outside)
     else:
         _build(p)
