@@ -520,31 +520,32 @@ def _empty(n, ids, d_max, counts=None, timings=None, **answered) -> Contacts:
 _KEPT = ("face", "xi", "point", "gap", "distance", "normal", "feature")
 
 
-def assemble(n, ids, rows, origin, out, d_max, counts, timings, answered) -> Contacts:
+def assemble(
+    n, ids, rows, origin, out, d_max, counts, timings, answered, blanked=False
+) -> Contacts:
     """Scatter the outputs of the slaves in the box (their rows; points in the local frame
-    at `origin`) into a full Contacts record (global frame, float64)."""
+    at `origin`) into a full Contacts record (global frame, float64). blanked: the back end
+    wrote the empty row's values where a slave has no answer (Warp's kernels do)."""
     c = _empty(n, ids, d_max)
     active = np.asarray(out["active"], bool)
     status = np.asarray(out["status"])
-    keep = active | (status == int(Status.PASSING_BY))
-    if len(rows) == n:  # every slave in the box (rows = 0 .. n - 1): masked copies
-        np.copyto(c.active, active)
-        np.copyto(c.status, status)
-        np.copyto(c.master_node, out["master_node"])
-        for k in _KEPT:
-            v = np.asarray(out[k])
-            dst = getattr(c, k)
+    every = len(rows) == n  # every slave in the box (rows = 0 .. n - 1): no scatter
+    at = slice(None) if every else rows
+    c.active[at] = active
+    c.status[at] = status
+    c.master_node[at] = np.asarray(out["master_node"])
+    keep = None if blanked else active | (status == int(Status.PASSING_BY))
+    for k in _KEPT:
+        v = np.asarray(out[k])
+        dst = getattr(c, k)
+        if keep is None:  # one copy a field (a scatter where some slaves are out of the box)
+            dst[at] = v
+        elif every:
             np.copyto(dst, v, where=keep.reshape((n,) + (1,) * (v.ndim - 1)))
-            if k == "point":
-                dst += origin  # NaN rows stay NaN
-    else:
-        r = rows[keep]
-        c.active[rows] = active
-        c.status[rows] = status
-        c.master_node[rows] = np.asarray(out["master_node"])
-        for k in _KEPT:
-            v = np.asarray(out[k])[keep]
-            getattr(c, k)[r] = v + origin if k == "point" else v
+        else:
+            dst[rows[keep]] = v[keep]
+        if k == "point":
+            dst += origin  # NaN rows stay NaN
     if "finer" in out:
         finer = np.zeros(n, bool)
         finer[rows] = np.asarray(out["finer"], bool)
@@ -717,7 +718,11 @@ def _detect(slave_x, ids, master, backend, mode, d_max, dtype, self_ids, t0) -> 
         capacity=cap,
     )
     timings = {"prepare": t1 - t0, **laps, "detect": t2 - t1, "total": t2 - t0}
-    return assemble(n, ids, rows, origin, out, d_max, counts, timings, answered)
+    # (Warp's kernels blank the rows without an answer: 4.1 -> 2.4 ms of a 66 ms one call,
+    # graded_1000 at 2^16 on the CPU, whose 6 slaves out of the box made every field a scatter
+    # of the answered rows)
+    blanked = backend == "warp"
+    return assemble(n, ids, rows, origin, out, d_max, counts, timings, answered, blanked)
 
 
 # --- swept detection ---------------------------------------------------------------------

@@ -78,6 +78,27 @@ def test_empty_sets(backend):
     assert (c.status == ac.Status.OUT_OF_RANGE).all() and (c.face == -1).all()
 
 
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
+@pytest.mark.parametrize("mode", ["exact", "node"])
+@pytest.mark.parametrize("far", [False, True])
+def test_rows_without_an_answer_are_empty(backend, mode, far):
+    """Rows no face answers (in the master's box or, far, out of it) hold NaN and -1 in the
+    answer's fields, whether the back end or the assembly of the record blanks them."""
+    sc = scenes.rough_surfaces(2**8, seed=3)
+    x = sc.slave.copy()
+    if far:
+        x[::7] += 50.0  # out of the box: never searched
+    c = ac.detect(x, sc.master, backend=backend, mode=mode)
+    none = ~c.active & (c.status != ac.Status.PASSING_BY)
+    assert none.sum() >= (len(x) // 7 if far else 1)
+    for k in ("xi", "point", "gap", "distance", "normal"):
+        assert np.isnan(getattr(c, k)[none]).all(), k
+    assert (c.face[none] == -1).all() and (c.feature[none] == int(ac.Feature.NONE)).all()
+    # and the answered rows keep theirs
+    assert c.active.sum() > len(x) // 2 and not np.isnan(c.gap[c.active]).any()
+    assert (c.face[c.active] >= 0).all()
+
+
 def test_jax_overflow_is_reported_and_replanned(monkeypatch):
     import arraycontact_jax._detect as jd
     import jax
