@@ -130,27 +130,42 @@ __all__ = ["pseudo_normal", "classify", "face_normal", "proximal"]
 
 
 @wp.func
+def _corner_edges(m: Master, f: int, c: int, k: int):
+    """The edges from corner c of a straight-edged face (tri3, quad4) to the next corner and
+    to the previous one: the corner's tangents (scaled), whose cross product is its normal
+    and whose angle is its weight, without the shape functions' derivatives (self-contact's
+    geometry, every node each call: spiral 2^16 quad4 on the CPU, 4.2 -> 2.1 ms)."""
+    x = m.points[m.faces[f, c]]
+    return m.points[m.faces[f, (c + 1) % k]] - x, m.points[m.faces[f, (c + k - 1) % k]] - x
+
+
+@wp.func
 def node_normal(el: Any, m: Master, node: int):
     """The pseudo-normal of a node (arraycontact._surface.node_normals) from the faces around
     it: at a corner the angle-weighted face normals, at a mid-edge or centre node their plain
     sum. Computed where needed (a slave ending on a vertex; self-contact's nodes): cheaper than
     accumulating every node's normal over every face each step."""
     k = el.n_corners
+    nn = m.faces.shape[1]
     n = vec3(0.0)
     for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
         g = m.nf_ids[j]
-        for c in range(m.faces.shape[1]):
+        for c in range(nn):
             if m.faces[g, c] == node:
-                xi = el.nodes[c]
-                t0, t1 = _tangents(el, m, g, xi)
-                w = real(1.0)
-                if c < k:
-                    e1 = el.nodes[(c + 1) % k] - xi
-                    e2 = el.nodes[(c + k - 1) % k] - xi
-                    a = t0 * e1[0] + t1 * e1[1]
-                    b = t0 * e2[0] + t1 * e2[1]
-                    w = wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b))
-                n += w * _unit(wp.cross(t0, t1))
+                if nn == k:
+                    a, b = _corner_edges(m, g, c, k)
+                    n += wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b)) * _unit(wp.cross(a, b))
+                else:
+                    xi = el.nodes[c]
+                    t0, t1 = _tangents(el, m, g, xi)
+                    w = real(1.0)
+                    if c < k:
+                        e1 = el.nodes[(c + 1) % k] - xi
+                        e2 = el.nodes[(c + k - 1) % k] - xi
+                        a = t0 * e1[0] + t1 * e1[1]
+                        b = t0 * e2[0] + t1 * e2[1]
+                        w = wp.atan2(wp.length(wp.cross(a, b)), wp.dot(a, b))
+                    n += w * _unit(wp.cross(t0, t1))
     return _unit(n)
 
 
@@ -203,7 +218,7 @@ def self_face_geometry(
                     b_lo = wp.min(b_lo, g)
                     b_hi = wp.max(b_hi, g)
             elif nn == 4 or a == 0:  # a corner's own normal (tri3: its one normal)
-                ta, ua = _tangents(el, m, f, el.nodes[a])
+                ta, ua = _corner_edges(m, f, a, k)
                 g = _unit(wp.cross(ta, ua))
                 b_lo = wp.min(b_lo, g)
                 b_hi = wp.max(b_hi, g)
