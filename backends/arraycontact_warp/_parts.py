@@ -95,14 +95,14 @@ def _same(a, b) -> bool:
     return False  # a struct: the same object only
 
 
-def _replay(cmds, kernel, n, args, dev, record_only):
+def _replay(cmds, kernel, n, args, dev, record_only, block):
     """kernel's launch through the command recorded in `cmds` (a plan's), its arguments
     packed again only where they changed: Warp packs every argument of every launch, 50-100
     us a launch of the detection's kernels on an H100's host, which a first call or a call
     without a graph pays; a recorded command's launch takes about 5."""
     hit = cmds.get(kernel)
     if hit is None:
-        cmd = wp.launch(kernel, n, inputs=args, device=dev, record_cmd=True)
+        cmd = wp.launch(kernel, n, inputs=args, device=dev, record_cmd=True, block_dim=block)
         cmds[kernel] = (cmd, list(args), [n])
     else:
         cmd, old, dim = hit
@@ -118,7 +118,17 @@ def _replay(cmds, kernel, n, args, dev, record_only):
 
 
 def launch(
-    kernel, n, inputs, outputs, dev, order=None, first=None, cmds=None, record_only=False, cuts=None
+    kernel,
+    n,
+    inputs,
+    outputs,
+    dev,
+    order=None,
+    first=None,
+    cmds=None,
+    record_only=False,
+    cuts=None,
+    block=256,
 ):
     """Launch a kernel over n independent threads (the slaves, a tree's items). inputs[order]:
     the order the threads take (a part takes its slice), or inputs[first]: the first of the
@@ -127,17 +137,17 @@ def launch(
     parts keeps the cuts that would have balanced its parts' times (`_balanced`), for its next
     launch of this kernel and size; a kernel new to the plan starts from the plan's last cuts
     of its size (a one-call detection: the closest-node kernel's cuts foretell the face
-    scan's, at 2^16 36007 and 36855 of 65536 on quad4)."""
+    scan's, at 2^16 36007 and 36855 of 65536 on quad4). block: a GPU's threads a block."""
     dev = wp.get_device(dev)
     kernel = _concrete(kernel, [*inputs, *outputs])
     one = dev.is_cuda or CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS or getattr(_chain, "on", 0)
     if cmds is not None and one:
-        _replay(cmds, kernel, n, [*inputs, *outputs], dev, record_only)
+        _replay(cmds, kernel, n, [*inputs, *outputs], dev, record_only, block)
         return
     if record_only:
         return
     if dev.is_cuda:
-        wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
+        wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev, block_dim=block)
         return
     key = (kernel, tuple(type(v) for v in inputs))
     if one or key not in _loaded:
