@@ -230,6 +230,79 @@ def test_closest_node_tie_rule():
     assert np.array_equal(o["master_node"], np.minimum(a, b))
 
 
+def _slots_of(grid):
+    """Node id -> its item slot in a Warp tree (-1 where none)."""
+    items = grid.items.numpy()
+    slot = np.full(max(items["id"].max() + 1, 1), -1)
+    used = np.flatnonzero(items["id"] >= 0)
+    slot[items["id"][used]] = used
+    return slot
+
+
+def _hinted_case(case):
+    """(plan, detect(), hints() once the trees are built) for a closest-node scan started from
+    hints that would mislead it without their checks: another world's nearest node, the
+    slave's own node (self-contact, where it never counts), or the farther-id node of a near
+    tie in a master whose longest edge is 1000x the tie's (the tie band wider than the scan's
+    rounding slack)."""
+    if case == "worlds":
+        a = scenes.rough_surfaces(2**9, seed=3)
+        b = scenes.rough_surfaces(2**9, seed=4)
+        pts = np.concatenate([a.master.points, b.master.points])
+        master = ac.Surface(pts, np.r_[a.master.faces, b.master.faces + len(a.master.points)])
+        slaves = np.r_[a.slave, b.slave]
+        sw = np.r_[np.zeros(len(a.slave), int), np.ones(len(b.slave), int)]
+        mw = np.r_[np.zeros(len(a.master.points), int), np.ones(len(b.master.points), int)]
+        p = acw.plan(master, slaves, slave_world=sw, master_world=mw, device=DEVICE)
+        d = np.linalg.norm(slaves[:, None] - pts[None], axis=2)
+        d[mw[None] == sw[:, None]] = np.inf  # the other world's nodes only
+        return p, lambda: acw.detect(p, slaves, pts), lambda: _slots_of(p.node_grid)[d.argmin(1)]
+    if case == "self":
+        s = scenes.folded_sheet(2**9).master
+        p = acw.plan_self(s, d_max=0.65, device=DEVICE)
+        return p, lambda: acw.detect_self(p, s.points), lambda: _slots_of(p.node_grid)[s.nodes]
+    n = 6  # "tie": a grid of unit spacing, node ids shuffled, and a far triangle 1000 long
+    gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    far = [[0.0, 0.0, -500.0], [1000.0, 0.0, -500.0], [0.0, 1000.0, -500.0]]
+    perm = np.random.default_rng(2).permutation(n * n)
+    pts = np.r_[np.c_[gx.ravel(), gy.ravel(), np.zeros(n * n)][np.argsort(perm)], far]
+    ids = perm.reshape(n, n)
+    faces = np.c_[ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel()]
+    master = ac.Surface(pts, np.r_[faces, [[n * n, n * n + 1, n * n + 2]]], "tri3")
+    tie = TIE_RTOL[np.dtype(np.float32)] * master.longest_edge
+    lo, hi = np.minimum(faces[:, 0], faces[:, 1]), np.maximum(faces[:, 0], faces[:, 1])
+    u = pts[hi] - pts[lo]  # unit edges along the grid
+    # Above each edge's middle, moved towards its larger id so that the smaller id is farther
+    # by half the tie band: the closest node is `hi`, the tie rule's `lo`.
+    slaves = 0.5 * (pts[lo] + pts[hi]) + [0.0, 0.0, 0.4] + 0.5 * tie * np.hypot(0.5, 0.4) * u
+    p = acw.plan(master, slaves, d_max=5.0, device=DEVICE)
+    return p, lambda: acw.detect(p, slaves, pts), lambda: _slots_of(p.node_grid)[hi]
+
+
+@pytest.mark.parametrize("case", ["worlds", "self", "tie"])
+def test_the_closest_node_scan_from_a_misleading_hint(case):
+    """The closest-node scan starts from the last call's answer (`Plan.hint`, its node's
+    distance bounding the scan) only where that node counts for the slave: hints pointing at
+    nodes that are closer but do not count, or that would cut the tie band, change nothing."""
+    p, detect, hints = _hinted_case(case)
+    first = {k: v.copy() for k, v in detect().items()}
+    assert (first["master_node"] >= 0).mean() > 0.4  # (the folded sheet: its facing sides)
+    hints = hints()
+    assert (hints >= 0).all()
+    p.hint.assign(wp.array(hints.astype(np.int32), dtype=int, device=p.device))
+    again = detect()
+    for k in ("master_node", "face", "active"):
+        assert np.array_equal(again[k], first[k]), k
+    if case == "tie":  # every slave's answer is the smaller id, within the band
+        f = p.master.faces[:-1]
+        assert np.array_equal(first["master_node"], np.minimum(f[:, 0], f[:, 1]))
+    # Random slots (empty ones too) and the answers' own slots: the same answers.
+    rng = np.random.default_rng(0)
+    for h in (rng.integers(-1, len(p.node_grid.items), len(hints)), p.hint.numpy()):
+        p.hint.assign(wp.array(h.astype(np.int32), dtype=int, device=p.device))
+        assert np.array_equal(detect()["master_node"], first["master_node"])
+
+
 @pytest.mark.parametrize("name", ["rough_tri3", "patch_quad8", "sphere_quad4"])
 def test_warp_node_mode_equals_numpy(name):
     """mode="node" (closest node, its attached faces, blind spots, passing-by nodes) in the

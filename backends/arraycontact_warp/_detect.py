@@ -39,7 +39,7 @@ from arraycontact._sweep import capture_pads
 from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
 from . import _grid, _parts, _prepare, _sweep
-from ._closest_node import closest_node
+from ._closest_node import hinted_closest_node
 from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import _concrete
 from ._parts import launch as _slave_launch
@@ -135,17 +135,22 @@ def _node_kernel(
     kind: Any,
     own_nodes: wp.array(dtype=int),
     normals: wp.array(dtype=vec3),
+    hint: wp.array(dtype=int),
     node_out: wp.array(dtype=int),
     dist: wp.array(dtype=real),
 ):
     """Stage 3: each slave's closest node and its distance (into `dist`). Self-contact (a
-    node grid with normals): slave i is node own_nodes[i], of normal normals[that node]."""
+    node grid with normals): slave i is node own_nodes[i], of normal normals[that node].
+    hint[i]: the node-tree item of slave i's last answer (-1: none), the scan's first bound,
+    then this answer's."""
     i = order[wp.tid()]
     w = slave_world[i]
     if shared == 1:
         w = 0
     o = _own(kind, own_nodes, normals, i)
-    node, dn = closest_node(slaves[i] - origin, w, shared, node_grid, d_max, tie, o, normals)
+    s = slaves[i] - origin
+    node, dn, k = hinted_closest_node(s, w, shared, node_grid, d_max, tie, o, normals, hint[i])
+    hint[i] = k
     node_out[i] = node
     dist[i] = dn
 
@@ -418,6 +423,7 @@ class Plan:
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
     dist: wp.array  # [n] between kernels: the closest node's distance, then the face's
     item: wp.array  # [n] between kernels: the chosen face's item in the face grid
+    hint: wp.array  # [n] between calls: each slave's closest node's item in the node grid
     mode: int = 0  # 0 exact, 1 node
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     # Self-contact (the slaves are the master's nodes): each slave's node, every node's
@@ -684,6 +690,7 @@ def plan(
         order_keys=wp.zeros(2 * n, dtype=int, device=device) if sort_slaves == "detect" else None,
         dist=wp.zeros(n, dtype=real, device=device),
         item=wp.zeros(n, dtype=int, device=device),
+        hint=wp.full(n, -1, dtype=int, device=device),
         mode=MODES.index(mode),
         passing_by=int(mode == "node" and not topo.closed),
         graphs=bool(graphs),
@@ -965,6 +972,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
             _self_kind(p),
             p.own_nodes,
             p.normals,
+            p.hint,
         ],
         [o["master_node"], p.dist],
         dev,
