@@ -230,18 +230,9 @@ def test_closest_node_tie_rule():
     assert np.array_equal(o["master_node"], np.minimum(a, b))
 
 
-def _slots_of(grid):
-    """Node id -> its item slot in a Warp tree (-1 where none)."""
-    items = grid.items.numpy()
-    slot = np.full(max(items["id"].max() + 1, 1), -1)
-    used = np.flatnonzero(items["id"] >= 0)
-    slot[items["id"][used]] = used
-    return slot
-
-
 def _hinted_case(case):
-    """(plan, detect(), hints() once the trees are built) for a closest-node scan started from
-    hints that would mislead it without their checks: another world's nearest node, the
+    """(plan, detect(), hints) for a closest-node scan started from hints that would mislead
+    it without their checks: another world's nearest node, the
     slave's own node (self-contact, where it never counts), or the farther-id node of a near
     tie in a master whose longest edge is 1000x the tie's (the tie band wider than the scan's
     rounding slack)."""
@@ -256,16 +247,17 @@ def _hinted_case(case):
         p = acw.plan(master, slaves, slave_world=sw, master_world=mw, device=DEVICE)
         d = np.linalg.norm(slaves[:, None] - pts[None], axis=2)
         d[mw[None] == sw[:, None]] = np.inf  # the other world's nodes only
-        return p, lambda: acw.detect(p, slaves, pts), lambda: _slots_of(p.node_grid)[d.argmin(1)]
+        return p, lambda: acw.detect(p, slaves, pts), d.argmin(1)
     if case == "self":
         s = scenes.folded_sheet(2**9).master
         p = acw.plan_self(s, d_max=0.65, device=DEVICE)
-        return p, lambda: acw.detect_self(p, s.points), lambda: _slots_of(p.node_grid)[s.nodes]
+        return p, lambda: acw.detect_self(p, s.points), s.nodes
     n = 6  # "tie": a grid of unit spacing, node ids shuffled, and a far triangle 1000 long
     gx, gy = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
     far = [[0.0, 0.0, -500.0], [1000.0, 0.0, -500.0], [0.0, 1000.0, -500.0]]
+    unused = [[2.5, 2.5, 0.4]]  # a point of no face, among the slaves (id n * n + 3)
     perm = np.random.default_rng(2).permutation(n * n)
-    pts = np.r_[np.c_[gx.ravel(), gy.ravel(), np.zeros(n * n)][np.argsort(perm)], far]
+    pts = np.r_[np.c_[gx.ravel(), gy.ravel(), np.zeros(n * n)][np.argsort(perm)], far, unused]
     ids = perm.reshape(n, n)
     faces = np.c_[ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel()]
     master = ac.Surface(pts, np.r_[faces, [[n * n, n * n + 1, n * n + 2]]], "tri3")
@@ -276,19 +268,17 @@ def _hinted_case(case):
     # by half the tie band: the closest node is `hi`, the tie rule's `lo`.
     slaves = 0.5 * (pts[lo] + pts[hi]) + [0.0, 0.0, 0.4] + 0.5 * tie * np.hypot(0.5, 0.4) * u
     p = acw.plan(master, slaves, d_max=5.0, device=DEVICE)
-    return p, lambda: acw.detect(p, slaves, pts), lambda: _slots_of(p.node_grid)[hi]
+    return p, lambda: acw.detect(p, slaves, pts), hi
 
 
 @pytest.mark.parametrize("case", ["worlds", "self", "tie"])
 def test_the_closest_node_scan_from_a_misleading_hint(case):
     """The closest-node scan starts from the last call's answer (`Plan.hint`, its node's
-    distance bounding the scan) only where that node counts for the slave: hints pointing at
-    nodes that are closer but do not count, or that would cut the tie band, change nothing."""
+    distance bounding the scan) only where that node counts for the slave: hints at nodes
+    that are closer but do not count, or that would cut the tie band, change nothing."""
     p, detect, hints = _hinted_case(case)
     first = {k: v.copy() for k, v in detect().items()}
     assert (first["master_node"] >= 0).mean() > 0.4  # (the folded sheet: its facing sides)
-    hints = hints()
-    assert (hints >= 0).all()
     p.hint.assign(wp.array(hints.astype(np.int32), dtype=int, device=p.device))
     again = detect()
     for k in ("master_node", "face", "active"):
@@ -296,9 +286,10 @@ def test_the_closest_node_scan_from_a_misleading_hint(case):
     if case == "tie":  # every slave's answer is the smaller id, within the band
         f = p.master.faces[:-1]
         assert np.array_equal(first["master_node"], np.minimum(f[:, 0], f[:, 1]))
-    # Random slots (empty ones too) and the answers' own slots: the same answers.
+    # Any ids (an unused point's and out of range too) and the answers themselves: the same.
     rng = np.random.default_rng(0)
-    for h in (rng.integers(-1, len(p.node_grid.items), len(hints)), p.hint.numpy()):
+    unused = np.full(len(hints), len(p.master.points) - 1)
+    for h in (unused, rng.integers(-3, len(p.master.points) + 3, len(hints)), p.hint.numpy()):
         p.hint.assign(wp.array(h.astype(np.int32), dtype=int, device=p.device))
         assert np.array_equal(detect()["master_node"], first["master_node"])
 

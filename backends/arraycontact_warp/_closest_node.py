@@ -32,16 +32,15 @@ FACING_TOL = 1.0e-6
 
 
 @wp.func
-def counts(o: Plain, normals: wp.array(dtype=vec3), grid: Grid, k: int):
-    """Whether node item k counts for the slave: every node, or (Own) another node whose
-    normal is at an obtuse angle to the slave's."""
+def counts(o: Plain, normals: wp.array(dtype=vec3), node: int):
+    """Whether the node counts for the slave: every node, or (Own) another node whose normal
+    is at an obtuse angle to the slave's."""
     return True
 
 
 @wp.func
-def counts(o: Own, normals: wp.array(dtype=vec3), grid: Grid, k: int):  # noqa: F811
-    i = item_id(grid, k)
-    return i != o.node and wp.dot(o.normal, normals[i]) <= real(FACING_TOL)
+def counts(o: Own, normals: wp.array(dtype=vec3), node: int):  # noqa: F811
+    return node != o.node and wp.dot(o.normal, normals[node]) <= real(FACING_TOL)
 
 
 @wp.func
@@ -57,9 +56,9 @@ def _scan(
     o: Any,
     normals: wp.array(dtype=vec3),
 ):
-    """Within d_max: the smallest distance, the second smallest (of another node), the
-    smallest node id at distance <= limit (limit < 0: the id at the smallest distance) and its
-    item, over the tree depth first (_grid: a visit tests an entry's W children, goes on with
+    """Within d_max: the smallest distance, the second smallest (of another node) and the
+    smallest node id at distance <= limit (limit < 0: the id at the smallest distance), over
+    the tree depth first (_grid: a visit tests an entry's W children, goes on with
     the nearest, keeps the others in `stack`), within the reach: d_max or `bound` (at least
     the smallest distance plus the tie band), cut to the running minimum plus the tie band
     (or the tie limit). shared = 1: every item is of this world (a master shared by all
@@ -68,7 +67,6 @@ def _scan(
     dmin = real(3.0e38)
     second = real(3.0e38)
     best = int(-1)
-    best_k = int(-1)
     reach = wp.min(d_max, wp.max(bound, limit))
     wide = reach * real(1.0001)
     stack = wp.uint64(0)  # level k's W bits: its children still to visit
@@ -89,7 +87,7 @@ def _scan(
                     if near and shared == 0:  # (Warp evaluates both sides of `or`)
                         near = item_world(grid, kk) == world
                     if near:
-                        near = counts(o, normals, grid, kk)
+                        near = counts(o, normals, item_id(grid, kk))
                     if near:
                         d = wp.sqrt(d2)
                         if d <= d_max:
@@ -99,12 +97,10 @@ def _scan(
                                 dmin = d
                                 if limit < real(0.0):
                                     best = i
-                                    best_k = kk
                             else:
                                 second = wp.min(second, d)
                             if d <= limit and (best < 0 or i < best):
                                 best = i
-                                best_k = kk
                             reach = wp.min(reach, wp.max(dmin + tie, limit))
                             wide = reach * real(1.0001)
             else:
@@ -114,7 +110,7 @@ def _scan(
                     visit = 1
         if visit == 0:
             stack, k, j, visit = next_pending(grid, top, stack, k, j)
-    return dmin, second, best, best_k
+    return dmin, second, best
 
 
 @wp.func
@@ -131,12 +127,12 @@ def closest_node(
     """(node id or -1, distance or 3e38). One scan; the tie rule needs a second only when
     another node is within `tie` of the closest (a slave equidistant from two nodes).
     o, normals: self-contact's (see _scan)."""
-    best, dmin, k = hinted_closest_node(s, world, shared, grid, d_max, tie, o, normals, -1)
+    best, dmin = bounded_closest_node(s, world, shared, grid, d_max, tie, o, normals, real(3.0e38))
     return best, dmin
 
 
 @wp.func
-def hinted_closest_node(
+def bounded_closest_node(
     s: vec3,
     world: int,
     shared: int,
@@ -145,29 +141,16 @@ def hinted_closest_node(
     tie: real,
     o: Any,
     normals: wp.array(dtype=vec3),
-    hint: int,
+    bound: real,
 ):
-    """closest_node, and the item of the node it gives (-1: none). hint: an item of the tree
-    (a detection's last answer for this slave) or -1. Where it holds a node that counts for
-    this slave, that node's distance bounds the closest one's, and the scan starts from it
-    plus the tie band instead of d_max: the entries beyond it are never marked to visit (a
-    refit keeps the items in their slots; after a build the slot holds another node, whose
-    distance bounds as well). CPU, 2^16, steady detections: the closest-node scan's thread
-    time 12.4 -> 10.9 ms (uniform), 20.4 -> 15.0 (graded_1000), 19.3 -> 13.2 (d_max 10x)."""
-    bound = real(3.0e38)
-    if hint >= 0:
-        ok = item_id(grid, hint) >= 0
-        if ok and shared == 0:
-            ok = item_world(grid, hint) == world
-        if ok:
-            ok = counts(o, normals, grid, hint)
-        if ok:
-            bound = wp.sqrt(wp.length_sq(item_lo(grid, hint) - s)) + tie
-    dmin, second, best, k = _scan(s, world, shared, grid, d_max, tie, real(-1.0), bound, o, normals)
+    """closest_node, the scan starting from `bound` (the distance to a node that counts for
+    the slave, plus the tie band) where it is below d_max: the entries beyond it are never
+    marked to visit."""
+    dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0), bound, o, normals)
     if dmin <= d_max and second <= dmin + tie:
         band = dmin + tie
-        d2, s2, best, k = _scan(s, world, shared, grid, d_max, tie, band, band, o, normals)
-    return best, dmin, k
+        d2, s2, best = _scan(s, world, shared, grid, d_max, tie, band, band, o, normals)
+    return best, dmin
 
 
-__all__ = ["closest_node", "hinted_closest_node"]
+__all__ = ["closest_node", "bounded_closest_node", "counts"]

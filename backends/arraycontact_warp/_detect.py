@@ -39,7 +39,7 @@ from arraycontact._sweep import capture_pads
 from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
 from . import _grid, _parts, _prepare, _sweep
-from ._closest_node import hinted_closest_node
+from ._closest_node import bounded_closest_node, counts
 from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import _concrete
 from ._parts import launch as _slave_launch
@@ -125,6 +125,7 @@ def _reach(  # noqa: F811 (a Warp overload)
 @wp.kernel
 def _node_kernel(
     node_grid: _grid.Grid,
+    m: Master,
     slaves: wp.array(dtype=vec3),
     order: wp.array(dtype=int),
     slave_world: wp.array(dtype=int),
@@ -141,16 +142,30 @@ def _node_kernel(
 ):
     """Stage 3: each slave's closest node and its distance (into `dist`). Self-contact (a
     node grid with normals): slave i is node own_nodes[i], of normal normals[that node].
-    hint[i]: the node-tree item of slave i's last answer (-1: none), the scan's first bound,
-    then this answer's."""
+    hint[i]: slave i's last answer (-1: none), then this one. Where that node still counts
+    for the slave (a used node of its world; self-contact: another node, obtuse), its
+    distance now bounds the answer, and the scan starts there instead of at d_max (CPU, 2^16,
+    steady detections: the scan's thread time 12.2 -> 11.4 ms uniform, 20.5 -> 15.7
+    graded_1000, 19.4 -> 13.8 with d_max 10x). Any node id is checked: hint is the plan's,
+    kept between calls (not an output a caller may hand over fresh)."""
     i = order[wp.tid()]
     w = slave_world[i]
     if shared == 1:
         w = 0
     o = _own(kind, own_nodes, normals, i)
     s = slaves[i] - origin
-    node, dn, k = hinted_closest_node(s, w, shared, node_grid, d_max, tie, o, normals, hint[i])
-    hint[i] = k
+    bound = real(3.0e38)
+    h = hint[i]
+    if h >= 0 and h < m.points.shape[0]:
+        ok = m.nf_offsets[h + 1] > m.nf_offsets[h]  # a node of some face: in the tree
+        if ok and shared == 0:
+            ok = m.node_world[h] == w
+        if ok:
+            ok = counts(o, normals, h)
+        if ok:
+            bound = wp.sqrt(wp.length_sq(m.points[h] - s)) + tie
+    node, dn = bounded_closest_node(s, w, shared, node_grid, d_max, tie, o, normals, bound)
+    hint[i] = node
     node_out[i] = node
     dist[i] = dn
 
@@ -423,7 +438,7 @@ class Plan:
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
     dist: wp.array  # [n] between kernels: the closest node's distance, then the face's
     item: wp.array  # [n] between kernels: the chosen face's item in the face grid
-    hint: wp.array  # [n] between calls: each slave's closest node's item in the node grid
+    hint: wp.array  # [n] between calls: each slave's closest node (the next scan's bound)
     mode: int = 0  # 0 exact, 1 node
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     # Self-contact (the slaves are the master's nodes): each slave's node, every node's
@@ -962,6 +977,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
         n,
         [
             p.node_grid,
+            p.m,
             xs,
             p.order,
             p.slave_world,
@@ -976,7 +992,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
         ],
         [o["master_node"], p.dist],
         dev,
-        order=2,
+        order=3,
         block=128,
         **rec,
     )
