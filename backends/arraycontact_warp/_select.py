@@ -134,7 +134,8 @@ def _corner_edges(m: Master, f: int, c: int, k: int):
     """The edges from corner c of a straight-edged face (tri3, quad4) to the next corner and
     to the previous one: the corner's tangents (scaled), whose cross product is its normal
     and whose angle is its weight, without the shape functions' derivatives (self-contact's
-    geometry, every node each call: spiral 2^16 quad4 on the CPU, 4.2 -> 2.1 ms)."""
+    geometry, every node and face each call: spiral 2^16 quad4 on the CPU, node normals 4.1
+    -> 2.9 ms, the faces' normal boxes 3.0 -> 1.9 ms)."""
     x = m.points[m.faces[f, c]]
     return m.points[m.faces[f, (c + 1) % k]] - x, m.points[m.faces[f, (c + k - 1) % k]] - x
 
