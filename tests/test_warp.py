@@ -273,13 +273,14 @@ def _hinted_case(case):
 
 @pytest.mark.parametrize("case", ["worlds", "self", "tie"])
 def test_the_closest_node_scan_from_a_misleading_hint(case):
-    """The closest-node scan starts from the last call's answer (`Plan.hint`, its node's
-    distance bounding the scan) only where that node counts for the slave: hints at nodes
-    that are closer but do not count, or that would cut the tie band, change nothing."""
+    """The closest-node scan starts from the last call's answer (the plan's `master_node`
+    output, its node's distance bounding the scan) only where that node counts for the
+    slave: hints at nodes that are closer but do not count, or that would cut the tie band,
+    change nothing."""
     p, detect, hints = _hinted_case(case)
     first = {k: v.copy() for k, v in detect().items()}
     assert (first["master_node"] >= 0).mean() > 0.4  # (the folded sheet: its facing sides)
-    p.hint.assign(wp.array(hints.astype(np.int32), dtype=int, device=p.device))
+    p.out["master_node"].assign(wp.array(hints.astype(np.int32), dtype=int, device=p.device))
     again = detect()
     for k in ("master_node", "face", "active"):
         assert np.array_equal(again[k], first[k]), k
@@ -289,8 +290,9 @@ def test_the_closest_node_scan_from_a_misleading_hint(case):
     # Any ids (an unused point's and out of range too) and the answers themselves: the same.
     rng = np.random.default_rng(0)
     unused = np.full(len(hints), len(p.master.points) - 1)
-    for h in (unused, rng.integers(-3, len(p.master.points) + 3, len(hints)), p.hint.numpy()):
-        p.hint.assign(wp.array(h.astype(np.int32), dtype=int, device=p.device))
+    answers = p.out["master_node"].numpy()
+    for h in (unused, rng.integers(-3, len(p.master.points) + 3, len(hints)), answers):
+        p.out["master_node"].assign(wp.array(h.astype(np.int32), dtype=int, device=p.device))
         assert np.array_equal(detect()["master_node"], first["master_node"])
 
 

@@ -136,18 +136,17 @@ def _node_kernel(
     kind: Any,
     own_nodes: wp.array(dtype=int),
     normals: wp.array(dtype=vec3),
-    hint: wp.array(dtype=int),
     node_out: wp.array(dtype=int),
     dist: wp.array(dtype=real),
 ):
     """Stage 3: each slave's closest node and its distance (into `dist`). Self-contact (a
     node grid with normals): slave i is node own_nodes[i], of normal normals[that node].
-    hint[i]: slave i's last answer (-1: none), then this one. Where that node still counts
-    for the slave (a used node of its world; self-contact: another node, obtuse), its
-    distance now bounds the answer, and the scan starts there instead of at d_max (CPU, 2^16,
-    steady detections: the scan's thread time 12.2 -> 11.4 ms uniform, 20.5 -> 15.7
-    graded_1000, 19.4 -> 13.8 with d_max 10x). Any node id is checked: hint is the plan's,
-    kept between calls (not an output a caller may hand over fresh)."""
+    node_out[i] holds the plan's last answer for slave i when the scan starts. Where that
+    node still counts for the slave (a used node of its world; self-contact: another node,
+    obtuse), its distance now bounds the answer, and the scan starts there instead of at
+    d_max (CPU, 2^16, steady detections: the scan's thread time 12.2 -> 11.4 ms uniform,
+    20.5 -> 15.7 graded_1000, 19.4 -> 13.8 with d_max 10x). Any value is checked (a caller
+    may have written into the returned outputs)."""
     i = order[wp.tid()]
     w = slave_world[i]
     if shared == 1:
@@ -155,7 +154,7 @@ def _node_kernel(
     o = _own(kind, own_nodes, normals, i)
     s = slaves[i] - origin
     bound = real(3.0e38)
-    h = hint[i]
+    h = node_out[i]
     if h >= 0 and h < m.points.shape[0]:
         ok = m.nf_offsets[h + 1] > m.nf_offsets[h]  # a node of some face: in the tree
         if ok and shared == 0:
@@ -165,7 +164,6 @@ def _node_kernel(
         if ok:
             bound = wp.sqrt(wp.length_sq(m.points[h] - s)) + tie
     node, dn = bounded_closest_node(s, w, shared, node_grid, d_max, tie, o, normals, bound)
-    hint[i] = node
     node_out[i] = node
     dist[i] = dn
 
@@ -438,7 +436,6 @@ class Plan:
     order_keys: wp.array  # [2 n] Morton keys (radix sort scratch), None when not sorting
     dist: wp.array  # [n] between kernels: the closest node's distance, then the face's
     item: wp.array  # [n] between kernels: the chosen face's item in the face grid
-    hint: wp.array  # [n] between calls: each slave's closest node (the next scan's bound)
     mode: int = 0  # 0 exact, 1 node
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     # Self-contact (the slaves are the master's nodes): each slave's node, every node's
@@ -705,7 +702,6 @@ def plan(
         order_keys=wp.zeros(2 * n, dtype=int, device=device) if sort_slaves == "detect" else None,
         dist=wp.zeros(n, dtype=real, device=device),
         item=wp.zeros(n, dtype=int, device=device),
-        hint=wp.full(n, -1, dtype=int, device=device),
         mode=MODES.index(mode),
         passing_by=int(mode == "node" and not topo.closed),
         graphs=bool(graphs),
@@ -988,7 +984,6 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
             _self_kind(p),
             p.own_nodes,
             p.normals,
-            p.hint,
         ],
         [o["master_node"], p.dist],
         dev,
