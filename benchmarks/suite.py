@@ -157,9 +157,11 @@ def _median_time(fn, repeats, sync=lambda: None):
 
 def _plan_time(make, repeats):
     """(The median time of make() over repeats after an unmeasured call (compilations), the
-    last plan made.) Each plan is freed before the next one's timing starts: not in it (a
-    caller keeps its plan), and not kept either (a new plan then touches memory the process
-    never used: the Warp plan at 2^16 took 65-123 ms instead of 12-23 on 9 of 16 scenes)."""
+    last plan made.) Each plan is freed, and the garbage collected, before the next one's
+    timing starts: a caller keeps its plan, so freeing one is no part of making one. (A run
+    that kept every plan instead timed the Warp plan at 65-123 ms on 9 of 16 scenes at 2^16,
+    against 12-23 ms; not explained: five plans kept in a process of their own took 16-26 ms
+    against 15-21.)"""
     plan = make()
     times = []
     for _ in range(repeats):
