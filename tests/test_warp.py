@@ -1053,7 +1053,7 @@ def _closest_nodes(grid: warp_grid.Grid, q: wp.array(dtype=wp.vec3),
                    normals: wp.array(dtype=wp.vec3), node: wp.array(dtype=int),
                    dist: wp.array(dtype=float)):  # fmt: skip
     i = wp.tid()
-    n, d = _closest_node(q[i], 0, 1, grid, 1.0e30, 0.0, warp_grid.Plain(), normals)
+    n, d = _closest_node(q[i], 0, 1, grid, 1.0e30, 0.0, warp_grid.Plain(), normals, 3.0e38)
     node[i] = n
     dist[i] = d
 

@@ -123,29 +123,13 @@ def closest_node(
     tie: real,
     o: Any,
     normals: wp.array(dtype=vec3),
-):
-    """(node id or -1, distance or 3e38). One scan; the tie rule needs a second only when
-    another node is within `tie` of the closest (a slave equidistant from two nodes).
-    o, normals: self-contact's (see _scan)."""
-    best, dmin = bounded_closest_node(s, world, shared, grid, d_max, tie, o, normals, real(3.0e38))
-    return best, dmin
-
-
-@wp.func
-def bounded_closest_node(
-    s: vec3,
-    world: int,
-    shared: int,
-    grid: Grid,
-    d_max: real,
-    tie: real,
-    o: Any,
-    normals: wp.array(dtype=vec3),
     bound: real,
 ):
-    """closest_node, the scan starting from `bound` (the distance to a node that counts for
-    the slave, plus the tie band) where it is below d_max: the entries beyond it are never
-    marked to visit."""
+    """(node id or -1, distance or 3e38), the scan starting from `bound` (the distance to a
+    node that counts for the slave, plus the tie band; 3e38: none) where it is below d_max:
+    the entries beyond it are never marked to visit. One scan; the tie rule needs a second
+    only when another node is within `tie` of the closest (a slave equidistant from two
+    nodes). o, normals: self-contact's (see _scan)."""
     dmin, second, best = _scan(s, world, shared, grid, d_max, tie, real(-1.0), bound, o, normals)
     if dmin <= d_max and second <= dmin + tie:
         band = dmin + tie
@@ -153,4 +137,4 @@ def bounded_closest_node(
     return best, dmin
 
 
-__all__ = ["closest_node", "bounded_closest_node", "counts"]
+__all__ = ["closest_node", "counts"]

@@ -39,7 +39,7 @@ from arraycontact._sweep import capture_pads
 from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
 from . import _grid, _parts, _prepare, _sweep
-from ._closest_node import bounded_closest_node, counts
+from ._closest_node import closest_node, counts
 from ._geometry import Element, Triangles, element_data, triangle_data
 from ._parts import _concrete
 from ._parts import launch as _slave_launch
@@ -163,7 +163,7 @@ def _node_kernel(
             ok = counts(o, normals, h)
         if ok:
             bound = wp.sqrt(wp.length_sq(m.points[h] - s)) + tie
-    node, dn = bounded_closest_node(s, w, shared, node_grid, d_max, tie, o, normals, bound)
+    node, dn = closest_node(s, w, shared, node_grid, d_max, tie, o, normals, bound)
     node_out[i] = node
     dist[i] = dn
 
