@@ -318,7 +318,8 @@ def plan(
         node_order, node_keys = order(t.points, t.nodes, t.n_nodes, keys_too=True)
         nf = master.n_faces
         ids = _warp_surface().iota(nf, nf, wdev)
-        face_ids, face_keys = order(t.centres, ids, nf, keys_too=True)
+        centres = _warp_surface().face_balls(t, wdev)[0]
+        face_ids, face_keys = order(centres, ids, nf, keys_too=True)
         r_max = t.r_max
     else:
         centres, radii = master.face_bounds

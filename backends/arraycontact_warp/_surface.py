@@ -120,7 +120,8 @@ def _edge_segments(
     vals: wp.array(dtype=int),
 ):
     """Node i's edges by (larger corner, face, local edge), written as the keys i n + larger
-    corner and the values f k + le: the order of a stable sort of every edge's key."""
+    corner and the values f k + le: the order of a stable sort of every edge's key. keys may
+    be pairs (each entry read before it is written)."""
     i = wp.tid()
     _sort_run(pairs, offsets[i], offsets[i + 1])
     for j in range(offsets[i], offsets[i + 1]):
@@ -258,23 +259,36 @@ def _compact(uses: wp.array(dtype=int), ranks: wp.array(dtype=int), nodes: wp.ar
         nodes[ranks[i] - 1] = i
 
 
+@wp.func
+def _ball(points: wp.array(dtype=wp.vec3d), faces: wp.array2d(dtype=int), f: int):
+    """Face f's centre (arraycontact._surface.face_bounds': its nodes' mean, summed in their
+    order) and the largest squared distance of a node from it."""
+    nn = faces.shape[1]
+    c = wp.vec3d()
+    for a in range(nn):
+        c += points[faces[f, a]]
+    c = c / wp.float64(nn)
+    r2 = wp.float64(0.0)
+    for a in range(nn):
+        r2 = wp.max(r2, wp.length_sq(points[faces[f, a]] - c))
+    return c, r2
+
+
 @wp.kernel
 def _face_scalars(
     points: wp.array(dtype=wp.vec3d),
     faces: wp.array2d(dtype=int),
     lebesgue: wp.float64,
-    centres: wp.array(dtype=wp.vec3d),
-    radii64: wp.array(dtype=wp.float64),
     radii: wp.array(dtype=wp.float32),
     ids: wp.array(dtype=int),
     out: wp.array(dtype=wp.float64),
     contiguous: int,
 ):
     """Faces t, t + T, ... (T threads; contiguous = 1, for the CPU's cache: faces t CHUNK,
-    t CHUNK + 1, ...): each face's centre and radius
-    (arraycontact._surface.face_bounds, the centre summed in its order), then one atomic
-    update of the largest squared node distance within a face (out[0]), the largest
-    radius (out[1]) and the box of the faces' balls (out[8:11] lo, out[11:14] hi)."""
+    t CHUNK + 1, ...): each face's radius in float32 (to sort: a tenth percentile needs no
+    more) and, where ids has room for them (a GPU's sort), the face ids; then one atomic
+    update of the largest squared node distance within a face (out[0]), the largest radius
+    (out[1]) and the box of the faces' balls (out[8:11] lo, out[11:14] hi)."""
     t = wp.tid()
     n_threads = (faces.shape[0] + CHUNK - 1) // CHUNK
     nn = faces.shape[1]
@@ -285,21 +299,14 @@ def _face_scalars(
     for j in range(CHUNK):
         f = wp.where(contiguous == 1, t * CHUNK + j, t + j * n_threads)
         if f < faces.shape[0]:
-            c = wp.vec3d()
+            c, r2 = _ball(points, faces, f)
             for a in range(nn):
-                c += points[faces[f, a]]
-            c = c / wp.float64(nn)
-            r2 = wp.float64(0.0)
-            for a in range(nn):
-                x = points[faces[f, a]]
-                r2 = wp.max(r2, wp.length_sq(x - c))
                 for b in range(a + 1, nn):
-                    l2 = wp.max(l2, wp.length_sq(x - points[faces[f, b]]))
+                    l2 = wp.max(l2, wp.length_sq(points[faces[f, a]] - points[faces[f, b]]))
             r = lebesgue * wp.sqrt(r2)
-            centres[f] = c
-            radii64[f] = r
-            radii[f] = wp.float32(r)  # to sort: a tenth percentile needs no more
-            ids[f] = f
+            radii[f] = wp.float32(r)
+            if f < ids.shape[0]:
+                ids[f] = f
             r_max = wp.max(r_max, r)
             lo = wp.min(lo, c - wp.vec3d(r, r, r))
             hi = wp.max(hi, c + wp.vec3d(r, r, r))
@@ -308,6 +315,20 @@ def _face_scalars(
     for a in range(3):
         wp.atomic_min(out, 8 + a, lo[a])
         wp.atomic_max(out, 11 + a, hi[a])
+
+
+@wp.kernel
+def _balls(
+    points: wp.array(dtype=wp.vec3d),
+    faces: wp.array2d(dtype=int),
+    lebesgue: wp.float64,
+    centres: wp.array(dtype=wp.vec3d),
+    radii: wp.array(dtype=wp.float64),
+):
+    f = wp.tid()
+    c, r2 = _ball(points, faces, f)
+    centres[f] = c
+    radii[f] = lebesgue * wp.sqrt(r2)
 
 
 @wp.kernel
@@ -395,8 +416,7 @@ class Topology:
     nodes: wp.array  # the used node ids, ascending
     n_nodes: int
     points: wp.array  # float64, as the Surface's
-    centres: wp.array  # float64 face centres [F]
-    radii: wp.array  # float64 face radii [F]
+    lebesgue: float  # the element's (face_balls)
     edge_starts: wp.array  # [F k]: where each edge's entries start in the sorted keys
     edges: wp.array  # [F k, 2]: each edge's corners, ascending
     n_edges: int
@@ -406,6 +426,7 @@ class Topology:
     r_small: float  # the tenth percentile of the face radii (np.quantile's, in float32)
     node_box: tuple  # (lo, hi) of the used nodes
     ball_box: tuple  # (lo, hi) of the faces' balls
+    balls: tuple = None  # face_balls' (centres, radii), once made
 
 
 #: Surface -> {device: Topology}: a Surface is immutable, so its tables on a device are made
@@ -467,10 +488,11 @@ def _topology(master: Surface, device) -> Topology:
         uses, offsets = zeros(n + 1), empty(n + 1)
         run(_count_edges, nf, faces, ends, uses)
         wp.utils.array_scan(uses, offsets, inclusive=False)
-        pairs, keys = (wp.empty(m, dtype=wp.int64, device=device) for _ in range(2))
-        vals = empty(m)
-        run(_scatter_edges, nf, faces, ends, offsets, zeros(n), pairs)
-        run(_edge_segments, n, offsets, pairs, n64, wp.int64(m), keys, vals)
+        # (the keys overwrite the pairs they come from: 3 MB less to touch at 2^16 nodes, where
+        # the plan of a Surface on memory new to the process pays about 1 us a 4 KB page)
+        keys, vals = wp.empty(m, dtype=wp.int64, device=device), empty(m)
+        run(_scatter_edges, nf, faces, ends, offsets, zeros(n), keys)
+        run(_edge_segments, n, offsets, keys, n64, wp.int64(m), keys, vals)
         ranks = t["ranks"] = empty(m)
         run(_heads, m, keys, ranks)
         wp.utils.array_scan(ranks, ranks, inclusive=True)
@@ -502,13 +524,14 @@ def _topology(master: Surface, device) -> Topology:
         run(_box, -(-n // CHUNK), points, uses, 1, out, bad)
 
     def scalar_chain():
-        # Face centres and radii in float64; the longest edge, the largest radius and the
-        # box of the faces' balls.
-        t["centres"] = wp.empty(nf, dtype=wp.vec3d, device=device)
-        t["radii"] = wp.empty(nf, dtype=wp.float64, device=device)
-        radii, rows = wp.empty(2 * nf, dtype=wp.float32, device=device), empty(2 * nf)
-        scalars = (points, faces, wp.float64(e.lebesgue), t["centres"], t["radii"], radii, rows)
-        run(_face_scalars, -(-nf // CHUNK), *scalars, out, int(not device.is_cuda))
+        # The longest edge, the largest radius, the box of the faces' balls and the tenth
+        # percentile of their radii (the balls themselves: face_balls, for those who read
+        # them; 4 MB at 2^16 nodes that a plan would touch for nothing).
+        cuda = device.is_cuda
+        radii = wp.empty(2 * nf if cuda else nf, dtype=wp.float32, device=device)
+        rows = empty(2 * nf if cuda else 0)  # (the CPU takes the percentile by a partition)
+        scalars = (points, faces, wp.float64(e.lebesgue), radii, rows)
+        run(_face_scalars, -(-nf // CHUNK), *scalars, out, int(not cuda))
         t["r_small"] = _tenth(radii, rows, nf, device)
 
     _count_edges.module.load(device)  # once, before threads launch its kernels
@@ -522,8 +545,7 @@ def _topology(master: Surface, device) -> Topology:
         **{a: t[a] for a in ("prev_node", "next_node", "prev_face", "next_face")},
         n_nodes=n_nodes,
         points=points,
-        centres=t["centres"],
-        radii=t["radii"],
+        lebesgue=e.lebesgue,
         edge_starts=t["edge_starts"],
         edges=t["edges"],
         n_edges=n_edges,
@@ -592,6 +614,21 @@ def _padded(offsets: wp.array(dtype=int), ids: wp.array(dtype=int), table: wp.ar
     table[i, j] = wp.where(j < offsets[i + 1] - a, ids[a + j], -1)
 
 
+def face_balls(t: Topology, device):
+    """Each face's ball, arraycontact._surface.face_bounds' in float64: (centres [F] vec3d,
+    radii [F]), made on first use."""
+    if t.balls is None:
+        nf = t.faces.shape[0]
+        c = wp.empty(nf, dtype=wp.vec3d, device=device)
+        r = wp.empty(nf, dtype=wp.float64, device=device)
+        if nf:
+            wp.launch(
+                _balls, nf, inputs=[t.points, t.faces, wp.float64(t.lebesgue), c, r], device=device
+            )
+        t.balls = (c, r)
+    return t.balls
+
+
 def node_face_table(t: Topology, n_points: int, max_valence: int, device):
     """[n_points, V] the faces of each node padded with -1 (V: the largest valence), as
     arraycontact_jax._gradients.padded_node_faces; None when V exceeds max_valence."""
@@ -634,6 +671,7 @@ def fill_surface(master: Surface, device) -> Topology:
 __all__ = [
     "Topology",
     "device_points",
+    "face_balls",
     "fill_surface",
     "iota",
     "morton_order",
