@@ -155,22 +155,35 @@ def _median_time(fn, repeats, sync=lambda: None):
     return statistics.median(times)
 
 
-def _plan_time(make, repeats):
+def _plan_time(make, repeats, faults=None, key=None):
     """(The median time of make() over repeats after an unmeasured call (compilations), the
     last plan made.) Each plan is freed, and the garbage collected, before the next one's
     timing starts: a caller keeps its plan, so freeing one is no part of making one. (A run
     that kept every plan instead timed the Warp plan at 65-123 ms on 9 of 16 scenes at 2^16,
-    against 12-23 ms; not explained: five plans kept in a process of their own took 16-26 ms
-    against 15-21.)"""
+    against 12-23 ms.) faults: a dict that gets, at `key`, the median count of the process's
+    minor page faults during a plan: memory new to the process costs about 1 us a 4 KB
+    page on the 2-core machine, so the same plan takes longer where the process's allocator
+    hands it fresh pages (the thirtieth session: a Warp plan of uniform 2^16 made 8000-9000
+    faults and took 24-26 ms with every plan kept, 15 ms with each freed)."""
     plan = make()
-    times = []
+    times, counts = [], []
     for _ in range(repeats):
         plan = None
         gc.collect()
+        f0 = _minor_faults()
         t0 = time.perf_counter()
         plan = make()
         times.append(time.perf_counter() - t0)
+        counts.append(_minor_faults() - f0)
+    if faults is not None:
+        faults[key] = int(statistics.median(counts))
     return statistics.median(times), plan
+
+
+def _minor_faults():
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def topology_time(master):
@@ -343,7 +356,10 @@ def run_cpu(a):
         # Warp's own BVH on its CPU device (wp.Mesh, mesh_query_point_no_sign within d_max;
         # one launch, which Warp runs on one core).
         bvh = mesh_peers(m, scene.slave, d_max, repeats=a.repeats, device="cpu")
-        ours = {}
+        ours, faults = {}, {}
+        f0 = _minor_faults()  # (one more call: the faults of fcpw's build + query)
+        fcpw_run()
+        faults["fcpw"] = _minor_faults() - f0
         for dtype in ("float32", "float64"):
             # The one-shot call a user makes: plan (Morton order, trees) and detect.
             def fn(dtype=dtype):
@@ -365,6 +381,8 @@ def run_cpu(a):
             ours[f"warp_cpu_{dtype}_plan_s"], p = _plan_time(
                 lambda: acw.plan(next(news), scene.slave, d_max=d_max, device="cpu", dtype=dtype),
                 a.repeats,
+                faults,
+                f"warp_cpu_{dtype}_plan",
             )
             acw.detect(p, scene.slave, m.points)
             ours[f"warp_cpu_{dtype}_detect_s"] = _median_time(
@@ -402,7 +420,10 @@ def run_cpu(a):
             rec[f"jax_{search}_plan_s"], _ = _plan_time(
                 lambda s=search: acj.plan(m, scene.slave, d_max=d_max, dtype=np.float32, search=s),
                 a.repeats,
+                faults,
+                f"jax_{search}_plan",
             )
+        rec["plan_faults"] = faults  # median minor page faults of one plan (_plan_time)
         rec["setup_vs_fcpw"] = {
             k[:-2]: rec.get(k, ours.get(k)) / t_fcpw
             for k in ("topology_s", "warp_cpu_float32_plan_s", "jax_jax_plan_s", "jax_warp_plan_s")
