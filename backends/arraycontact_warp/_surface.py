@@ -113,19 +113,18 @@ def _sort_run(a: wp.array(dtype=Any), lo: int, hi: int):
 @wp.kernel
 def _edge_segments(
     offsets: wp.array(dtype=int),
-    pairs: wp.array(dtype=wp.int64),
+    keys: wp.array(dtype=wp.int64),
     n: wp.int64,
     m: wp.int64,
-    keys: wp.array(dtype=wp.int64),
     vals: wp.array(dtype=int),
 ):
-    """Node i's edges by (larger corner, face, local edge), written as the keys i n + larger
-    corner and the values f k + le: the order of a stable sort of every edge's key. keys may
-    be pairs (each entry read before it is written)."""
+    """Node i's edges, given as _scatter_edges' pairs, sorted by (larger corner, face, local
+    edge) and written over them as the keys i n + larger corner, with the values f k + le:
+    the order of a stable sort of every edge's key."""
     i = wp.tid()
-    _sort_run(pairs, offsets[i], offsets[i + 1])
+    _sort_run(keys, offsets[i], offsets[i + 1])
     for j in range(offsets[i], offsets[i + 1]):
-        p = pairs[j]
+        p = keys[j]
         b = p // m
         keys[j] = wp.int64(i) * n + b
         vals[j] = int(p - b * m)
@@ -492,7 +491,7 @@ def _topology(master: Surface, device) -> Topology:
         # the plan of a Surface on memory new to the process pays about 1 us a 4 KB page)
         keys, vals = wp.empty(m, dtype=wp.int64, device=device), empty(m)
         run(_scatter_edges, nf, faces, ends, offsets, zeros(n), keys)
-        run(_edge_segments, n, offsets, keys, n64, wp.int64(m), keys, vals)
+        run(_edge_segments, n, offsets, keys, n64, wp.int64(m), vals)
         ranks = t["ranks"] = empty(m)
         run(_heads, m, keys, ranks)
         wp.utils.array_scan(ranks, ranks, inclusive=True)
