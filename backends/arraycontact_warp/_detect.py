@@ -122,6 +122,33 @@ def _reach(  # noqa: F811 (a Warp overload)
     return best
 
 
+@wp.func
+def _bound(
+    m: Master,
+    s: vec3,
+    w: int,
+    shared: int,
+    o: Any,
+    normals: wp.array(dtype=vec3),
+    h: int,
+    tie: real,
+):
+    """The distance from s to node h (the plan's last answer for this slave) plus the tie
+    band, where that node still counts for the slave (a node of some face, of its world;
+    self-contact: another node, obtuse): the closest node is no farther. Else 3e38. Any h is
+    checked (a caller may have written into the returned outputs)."""
+    bound = real(3.0e38)
+    if h >= 0 and h < m.points.shape[0]:
+        ok = m.nf_offsets[h + 1] > m.nf_offsets[h]  # a node of some face: in the tree
+        if ok and shared == 0:
+            ok = m.node_world[h] == w
+        if ok:
+            ok = counts(o, normals, h)
+        if ok:
+            bound = wp.sqrt(wp.length_sq(m.points[h] - s)) + tie
+    return bound
+
+
 @wp.kernel
 def _node_kernel(
     node_grid: _grid.Grid,
@@ -139,30 +166,20 @@ def _node_kernel(
     node_out: wp.array(dtype=int),
     dist: wp.array(dtype=real),
 ):
-    """Stage 3: each slave's closest node and its distance (into `dist`). Self-contact (a
+    """Stage 3 (node mode and self-contact; two-body exact mode finds the closest node in its
+    face scan): each slave's closest node and its distance (into `dist`). Self-contact (a
     node grid with normals): slave i is node own_nodes[i], of normal normals[that node].
-    node_out[i] holds the plan's last answer for slave i when the scan starts. Where that
-    node still counts for the slave (a used node of its world; self-contact: another node,
-    obtuse), its distance now bounds the answer, and the scan starts there instead of at
-    d_max (CPU, 2^16, steady detections: the scan's thread time 12.2 -> 11.4 ms uniform,
-    20.5 -> 15.7 graded_1000, 19.4 -> 13.8 with d_max 10x). Any value is checked (a caller
-    may have written into the returned outputs)."""
+    node_out[i] holds the plan's last answer for slave i when the scan starts: the scan
+    starts from its `_bound` instead of d_max (CPU, 2^16, steady detections: the scan's
+    thread time 12.2 -> 11.4 ms uniform, 20.5 -> 15.7 graded_1000, 19.4 -> 13.8 with d_max
+    10x)."""
     i = order[wp.tid()]
     w = slave_world[i]
     if shared == 1:
         w = 0
     o = _own(kind, own_nodes, normals, i)
     s = slaves[i] - origin
-    bound = real(3.0e38)
-    h = node_out[i]
-    if h >= 0 and h < m.points.shape[0]:
-        ok = m.nf_offsets[h + 1] > m.nf_offsets[h]  # a node of some face: in the tree
-        if ok and shared == 0:
-            ok = m.node_world[h] == w
-        if ok:
-            ok = counts(o, normals, h)
-        if ok:
-            bound = wp.sqrt(wp.length_sq(m.points[h] - s)) + tie
+    bound = _bound(m, s, w, shared, o, normals, node_out[i], tie)
     node, dn = closest_node(s, w, shared, node_grid, d_max, tie, o, normals, bound)
     node_out[i] = node
     dist[i] = dn
@@ -193,41 +210,69 @@ def _face_kernel(
     nlo: wp.array(dtype=vec3),
     nhi: wp.array(dtype=vec3),
     kp: Any,
+    nodes_too: int,
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
 ):
-    """Stage 4, exact mode: the smallest distance (into `dist`, replacing the closest node's),
-    the face of the tie rule (into face_out) and its face-grid item. Self-contact: the closest
-    admissible face (arraycontact.detect_self), within d_max (the closest node bounds
-    nothing: it need not lie on an admissible face)."""
+    """Stage 4, exact mode: the smallest distance (into `dist`), the face of the tie rule
+    (into face_out) and its face-grid item. Two-body (nodes_too = 1): stage 3 in the same
+    walk, the closest node (into `nodes`, which holds the plan's last answer when the scan
+    starts: the walk starts from its `_bound`). Self-contact (nodes_too = 0): `nodes` and
+    `dist` hold the node kernel's closest node and distance; the closest admissible face,
+    within d_max (the closest node bounds nothing: it need not lie on an admissible face)."""
     i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
     if shared == 1:
         w = 0
     o = _own(kind, own_nodes, normals, i)
-    rho = _reach(o, el, m, nodes[i], dist[i], d_max, nlo, nhi) + slack
+    n_reach = real(-1.0)
+    rho = real(0.0)
+    if nodes_too == 1:
+        n_reach = wp.min(d_max, _bound(m, s, w, shared, o, normals, nodes[i], tie))
+        rho = n_reach + slack
+    else:
+        rho = _reach(o, el, m, nodes[i], dist[i], d_max, nlo, nhi) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
-    # unsure. One call site in a loop keeps the generated code small.
+    # unsure; and the smallest node id within `tie` of the closest node's distance only when
+    # another node is that near (closest_node's rule). One call site in a loop keeps the
+    # generated code small.
     limit = real(-1.0)
-    unsure = int(0)
+    n_limit = real(-1.0)
+    track = nodes_too
     dmin = real(3.0e38)
     f = int(-1)
     k = int(-1)
+    node = int(-1)
     for scan in range(2):
-        if scan == 0 or (dmin <= d_max and unsure == 1):
-            d, f, k, unsure = scan_faces(
-                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o, kp, i
-            )
+        if scan == 0 or rho >= real(0.0) or track == 1:
+            d, ff, kk, u, n_d, n_2, n_b = scan_faces(
+                el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o, kp,
+                i, d_max, track, n_reach, n_limit,
+            )  # fmt: skip
+            if scan == 0 or rho >= real(0.0):
+                f = ff
+                k = kk
+            if scan == 0 or track == 1:
+                node = n_b
             if scan == 0:
                 dmin = d
                 limit = dmin + tie
                 rho = wp.min(rho, limit + slack)  # the second scan needs only this near
+                if not (dmin <= d_max and u == 1):
+                    rho = real(-1.0)  # (no face then)
+                track = int(0)
+                if nodes_too == 1 and n_d <= d_max and n_2 <= n_d + tie:
+                    track = int(1)
+                    n_limit = n_d + tie
+                    n_reach = n_limit
     dist[i] = dmin
     face_out[i] = f
     item[i] = k
+    if nodes_too == 1:
+        nodes[i] = node
 
 
 # Self-contact's face scan (the Own overload: the slave's node and normal, the facing tests)
@@ -644,7 +689,9 @@ def plan(
     margin = (growth - 1) * topo.r_small
     n_worlds = 1 if shared else int(nw.max()) + 1
     box = (lo - origin, float((hi - lo).max()), device, margin, n_worlds)
-    node_grid, world_bits = _grid.new_grid(topo.n_nodes, *box, normals=self_contact)
+    # Two-body exact mode finds the closest node in its face scan: no node tree.
+    n_tree = topo.n_nodes if (mode == "node" or self_contact) else 0
+    node_grid, world_bits = _grid.new_grid(n_tree, *box, normals=self_contact)
     face_grid, _ = _grid.new_grid(master.n_faces, *box, normals=self_contact)
     tri3 = e.name == "tri3"
     # On a GPU the trees are sized by how the master at plan time groups (_grid.measure: room
@@ -659,18 +706,20 @@ def plan(
         wp.launch(
             _prepare.localise64, n_pts, inputs=[topo.points, o64], outputs=[m.points], device=device
         )
-        node_means = _grid.measure_nodes(
-            node_grid, m.points, topo.nodes, m.node_world, topo.n_nodes, device, world_bits
-        )
+        if n_tree:
+            node_means = _grid.measure_nodes(
+                node_grid, m.points, topo.nodes, m.node_world, n_tree, device, world_bits
+            )
         if mode == "exact":  # node mode reads no face grid
             face_means = _grid.measure_faces(
                 face_grid, m.points, m.faces, e.lebesgue, m.face_world, device, world_bits
             )
-    node_layout = _grid.allot(node_grid, topo.n_nodes, device, node_means)
+    node_layout = _grid.allot(node_grid, n_tree, device, node_means)
     face_layout = _grid.allot(face_grid, master.n_faces, device, face_means, corners=tri3)
     if built:  # the keys are sorted: the rest of a build
         rebuild = wp.zeros(1, dtype=wp.int32, device=device)
-        _grid.place(node_grid, node_layout, m.points, m.node_world, topo.n_nodes, device, rebuild)
+        if n_tree:
+            _grid.place(node_grid, node_layout, m.points, m.node_world, n_tree, device, rebuild)
         if mode == "exact":
             args = (m.points, m.faces, e.lebesgue, m.face_world, device, tri3, rebuild)
             _grid.place_faces(face_grid, face_layout, *args)
@@ -838,11 +887,11 @@ def _build(p: Plan):
 
 
 def _both_trees(p: Plan, phase: str, nodes, faces):
-    """nodes() and faces() (node mode, which reads no face grid: nodes() alone), each a chain
-    of launches on its own tree: on the CPU at once once this phase of this kind of plan has
+    """nodes() and faces() (node mode, which reads no face grid: nodes() alone; two-body exact
+    mode, which reads no node tree: faces() alone), each a chain of launches on its own tree: on the CPU at once once this phase of this kind of plan has
     loaded their kernels in this process (two threads must not compile a module), else one
     after the other, the nodes' first (a GPU's launches queue on one stream)."""
-    chains = (faces, nodes) if p.mode == 0 else (nodes,)
+    chains = ((faces, nodes) if p.self_contact else (faces,)) if p.mode == 0 else (nodes,)
     kind = (phase, str(p.device), NP_REAL, p.self_contact, p.mode)
     if p.device.is_cpu and kind in _LOADED:
         # (loaded here, not in two threads: another plan's overloads may have made it stale)
@@ -968,29 +1017,31 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
     # frees its SM's room when its slowest warp ends. Self-contact's face scan, one block of
     # 256 an SM at its 255 registers, ran 2-5 % slower in blocks of 128.
     scan = 256 if p.self_contact else 128
-    _slave_launch(
-        _node_kernel,
-        n,
-        [
-            p.node_grid,
-            p.m,
-            xs,
-            p.order,
-            p.slave_world,
-            p.shared,
-            s_origin,
-            real(c.d_max),
-            real(c.tie),
-            _self_kind(p),
-            p.own_nodes,
-            p.normals,
-        ],
-        [o["master_node"], p.dist],
-        dev,
-        order=3,
-        block=128,
-        **rec,
-    )
+    nodes_too = int(p.mode == 0 and not p.self_contact)  # the face scan finds the node too
+    if not nodes_too:
+        _slave_launch(
+            _node_kernel,
+            n,
+            [
+                p.node_grid,
+                p.m,
+                xs,
+                p.order,
+                p.slave_world,
+                p.shared,
+                s_origin,
+                real(c.d_max),
+                real(c.tie),
+                _self_kind(p),
+                p.own_nodes,
+                p.normals,
+            ],
+            [o["master_node"], p.dist],
+            dev,
+            order=3,
+            block=128,
+            **rec,
+        )
     if p.mode == 0:
         _slave_launch(
             _self_face_kernel if p.self_contact else _face_kernel,
@@ -1016,6 +1067,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
                 p.face_nlo,
                 p.face_nhi,
                 p.kept,
+                nodes_too,
             ],
             [p.dist, o["face"], p.item],
             dev,

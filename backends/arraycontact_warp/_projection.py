@@ -353,6 +353,18 @@ def project_facing(  # noqa: F811 (a Warp overload)
 
 
 @wp.func
+def _face_node(el: Triangles, m: Master, grid: Grid, k: int, f: int, c: int):
+    """Node c of face f (tree item k): a triangle's from the tree's own copy of its corners
+    (no gather through the connectivity)."""
+    return grid.corners[k, c]
+
+
+@wp.func
+def _face_node(el: Element, m: Master, grid: Grid, k: int, f: int, c: int):  # noqa: F811
+    return m.points[m.faces[f, c]]
+
+
+@wp.func
 def scan_faces(
     el: Any,
     m: Master,
@@ -369,6 +381,10 @@ def scan_faces(
     o: Any,
     kp: Any,
     i: int,
+    d_max: real,
+    nodes_too: int,
+    n_reach: real,
+    n_limit: real,
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its tree item. Its projection goes to kp
@@ -389,6 +405,18 @@ def scan_faces(
     distance is in it too, faces this scan did not keep: then `unsure` = 1 (three faces within
     about twice `tie`: rare) and the caller runs the second scan. limit >= 0, the second
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far.
+    rho < 0: no face is projected (a second scan for the closest node alone).
+
+    nodes_too = 1 (two-body exact mode, no node tree): the same walk also finds the closest
+    master node within d_max, as _closest_node's scan does over the node tree, from the
+    nodes of the faces it meets: a node within reach r of s has every face of its own within
+    r, so walking the faces within the node reach (n_reach: d_max, or less from a bound,
+    shrinking to the closest node's distance plus the tie band) meets it. The closest node
+    also bounds the face reach (its faces are no farther). n_limit < 0: the node at the
+    smallest distance and the smallest distance of another node (the caller's tie test); n_limit
+    >= 0: the smallest node id within n_limit. The faces between the face reach and the node
+    reach are walked but not projected: H100, uniform 2^20, the face scan walking to the closest
+    node's distance took 0.943 ms against 0.919 (the node scan it replaces: 0.31 ms).
 
     o: Plain, or Own (self-contact): faces that hold the slave's node, or whose normal at
     the closest point does not face the slave's (arraycontact.detect_self), count as absent."""
@@ -401,6 +429,14 @@ def scan_faces(
     b_d = real(3.0e38)
     b_k = int(-1)
     unsure = int(0)
+    n_dmin = real(3.0e38)  # nodes_too: the closest node's distance, the next node's, the id
+    n_second = real(3.0e38)
+    n_best = int(-1)
+    # (a node's distance against the boxes' gaps: _closest_node's widening for rounding)
+    n_wide = real(-1.0)
+    if nodes_too == 1:
+        n_wide = n_reach * real(1.0001)
+    walk = wp.max(reach, n_wide)
     found = _candidates(0)
     stack = wp.uint64(0)  # level k's W bits: its children still to visit
     root = grid.root[0]
@@ -412,17 +448,41 @@ def scan_faces(
         n = int(0)
         first = int(0)  # the collected face with the nearest box: projected first
         box = entry(grid, lv, j)
-        if enters(s, world, shared, box, reach):
+        if enters(s, world, shared, box, walk):
             if lv == 1:
                 first_d2 = real(3.0e38)
                 for t in range(W):
                     k = box.first + t  # (an empty slot is out of every reach)
                     d2 = box_gap_sq(s, item_lo(grid, k), item_hi(grid, k))
-                    near = d2 <= reach * reach
+                    near = d2 <= walk * walk
                     if near and shared == 0:  # (Warp evaluates both sides of `or`)
                         near = item_world(grid, k) == world
                     if near:
                         near = may_face_item(o, grid, k)
+                    if near and nodes_too == 1 and d2 <= n_wide * n_wide:
+                        f = item_id(grid, k)
+                        for c in range(m.faces.shape[1]):
+                            e2 = wp.length_sq(_face_node(el, m, grid, k, f, c) - s)
+                            if e2 <= n_wide * n_wide:
+                                e = wp.sqrt(e2)
+                                if e <= d_max:
+                                    node = m.faces[f, c]
+                                    if n_limit < real(0.0):
+                                        if e < n_dmin:
+                                            n_second = n_dmin
+                                            n_dmin = e
+                                            n_best = node
+                                        elif node != n_best:  # (met again through another face)
+                                            n_second = wp.min(n_second, e)
+                                    elif e <= n_limit and (n_best < 0 or node < n_best):
+                                        n_best = node
+                                        n_dmin = wp.min(n_dmin, e)
+                                    n_wide = wp.min(n_reach, wp.max(n_dmin + tie, n_limit))
+                                    n_wide = n_wide * real(1.0001)
+                                    reach = wp.min(reach, n_dmin + slack)
+                                    walk = wp.max(reach, n_wide)
+                    if near:
+                        near = reach >= real(0.0) and d2 <= reach * reach
                     if near:
                         if d2 < first_d2:
                             first = n
@@ -430,7 +490,7 @@ def scan_faces(
                         found[n] = k
                         n += 1
             else:
-                mask, near_c = children(grid, s, world, shared, lv, box.first, reach, 0, o)
+                mask, near_c = children(grid, s, world, shared, lv, box.first, walk, 0, o)
                 if mask != 0:
                     stack, lv, j = descend(stack, lv, box.first, mask, near_c)
                     visit = 1
@@ -481,9 +541,10 @@ def scan_faces(
                     b_k = kt
                     keep(kp, i, kt, xi, feature, local, conv)
                 reach = wp.min(reach, wp.max(dmin, limit) + slack)
+                walk = wp.max(reach, n_wide)
         if visit == 0:
             stack, lv, j, visit = next_pending(grid, root, stack, lv, j)
-    return dmin, best, b_k, unsure
+    return dmin, best, b_k, unsure, n_dmin, n_second, n_best
 
 
 @wp.func
