@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 from arraycontact_warp import _grid as warp_grid
+from arraycontact_warp import _real as acw_real
 from arraycontact_warp._closest_node import closest_node as _closest_node
 from conftest import assert_matches_reference
 from radix import grid_points, radix_groups
@@ -28,6 +29,20 @@ SCENES = {
     "graded_tri3": lambda: scenes.graded_surfaces(2**10, ratio=1000.0),
     "patch_tri3": lambda: scenes.fine_patch(12, ratio=1000.0),
 }
+
+
+@pytest.fixture(params=["node tree", "face walk"])
+def node_search(request, monkeypatch):
+    """Both ways a two-body exact plan finds the closest node, on this device: a node tree and
+    kernel of its own (a GPU's way) or the face scan's walk (the CPU's), each precision's."""
+    walk = request.param == "face walk"
+    _node_search(monkeypatch, walk)
+    return walk
+
+
+def _node_search(monkeypatch, walk: bool):
+    for dtype in ("float32", "float64"):
+        monkeypatch.setattr(acw_real.precision(dtype), "NODES_IN_FACE_SCAN", {0: walk, 1: walk})
 
 
 def _same_as_numpy(o, r, L, rows=None):
@@ -53,7 +68,7 @@ def _same_as_numpy(o, r, L, rows=None):
 
 
 @pytest.mark.parametrize("name", sorted(SCENES))
-def test_warp_equals_numpy_float32_and_the_reference(name):
+def test_warp_equals_numpy_float32_and_the_reference(name, node_search):
     s = SCENES[name]()
     p = acw.plan(s.master, s.slave, device=DEVICE)
     o = acw.detect(p, s.slave, s.master.points)
@@ -65,7 +80,7 @@ def test_warp_equals_numpy_float32_and_the_reference(name):
 
 
 @pytest.mark.parametrize("name", ["rough_tri3", "patch_quad8", "graded_tri3"])
-def test_warp_float64_equals_numpy_float64_and_the_reference(name):
+def test_warp_float64_equals_numpy_float64_and_the_reference(name, node_search):
     """The float64 twin of the kernels (the same source, `_real`) matches NumPy in float64."""
     s = SCENES[name]()
     p = acw.plan(s.master, s.slave, device=DEVICE, dtype="float64")
@@ -126,7 +141,7 @@ def test_the_box_of_the_morton_cells_does_not_change_the_result():
 
 
 @pytest.mark.parametrize("n_fan", [5, 12])
-def test_tie_rule_at_a_vertex_of_many_faces(n_fan):
+def test_tie_rule_at_a_vertex_of_many_faces(n_fan, node_search):
     """Slaves above the centre of a fan of triangles (ids shuffled) are equidistant from every
     face: the smallest id wins. 12 faces overflow the first scan's band of 8, so the second
     scan decides; 5 fit in it."""
@@ -202,7 +217,7 @@ def test_slaves_on_master_corners_get_the_node_pseudo_normal(name):
     assert np.abs(o["normal"] - m.node_normals[corners]).max() <= 1e-5
 
 
-def test_closest_node_tie_rule():
+def test_closest_node_tie_rule(node_search):
     """A slave equidistant from two nodes (above the middle of an edge) goes to the smaller id,
     as in NumPy."""
     n = 6
@@ -272,12 +287,13 @@ def _hinted_case(case):
 
 
 @pytest.mark.parametrize("case", ["worlds", "self", "tie"])
-def test_the_closest_node_scan_from_a_misleading_hint(case):
+def test_the_closest_node_scan_from_a_misleading_hint(case, node_search):
     """The closest-node scan starts from the last call's answer (the plan's `master_node`
     output, its node's distance bounding the scan) only where that node counts for the
     slave: hints at nodes that are closer but do not count, or that would cut the tie band,
     change nothing."""
     p, detect, hints = _hinted_case(case)
+    assert p.nodes_too == (node_search and case != "self")  # (self-contact: a node tree)
     first = {k: v.copy() for k, v in detect().items()}
     assert (first["master_node"] >= 0).mean() > 0.4  # (the folded sheet: its facing sides)
     p.out["master_node"].assign(wp.array(hints.astype(np.int32), dtype=int, device=p.device))
@@ -321,7 +337,7 @@ def test_warp_node_mode_equals_numpy(name):
     _same_as_numpy(o, r, s.master.longest_edge, rows=keep)
 
 
-def test_warp_far_from_the_origin():
+def test_warp_far_from_the_origin(node_search):
     s = scenes.rough_surfaces(2**10, seed=2)
     shift = np.array([1e6, -2e6, 3e6]) * s.master.longest_edge
     master = s.master.with_points(s.master.points + shift)
@@ -329,7 +345,7 @@ def test_warp_far_from_the_origin():
     assert_matches_reference(c, s.slave + shift, master, dtype=np.float32)
 
 
-def test_worlds_equal_running_each_world_alone():
+def test_worlds_equal_running_each_world_alone(node_search):
     a = scenes.rough_surfaces(2**9, seed=3)
     b = scenes.rough_surfaces(2**9, seed=4, element="tri3")
     # Two worlds on top of each other: without world ids they would see each other's master.
@@ -586,10 +602,12 @@ def _tree_state(g):
 
 
 @pytest.mark.parametrize("name", ["graded_tri3", "rough_quad4", "self_quad4"])
-def test_refit_in_one_launch_equals_a_launch_a_level(name):
+def test_refit_in_one_launch_equals_a_launch_a_level(name, monkeypatch):
     """A refit's boxes (`_refit_up`: every level in one launch, the last thread to reach a
     group making its parent) are the bytes of `fill`'s (one reduction launch a level), on
-    master coordinates moved twice; its arrival counts are back at zero after each launch."""
+    master coordinates moved twice; its arrival counts are back at zero after each launch.
+    (Two-body plans with a node tree, as a GPU's.)"""
+    _node_search(monkeypatch, False)
     if name == "self_quad4":
         s = scenes.crumpled_sheet(2**10)
         p = acw.plan_self(s.master, device=DEVICE)

@@ -62,6 +62,17 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
 
+#: Two-body exact mode, by device (is_cuda): whether the face scan also finds the closest node
+#: (from the nodes of the faces its walk meets, which then reaches the closest node's distance
+#: where the face scan alone stops at the closest face's) instead of a node tree and a kernel
+#: of its own. The same answers. Warp's CPU device, 2^16, steady detections, thread times
+#: (.probe/suite_stages.py): uniform node 12.2 + face 31.7 -> 37.0 ms, steep 11.1 + 19.4 ->
+#: 22.6, graded_1000 16.0 + 55.5 -> 63.3; and the plan and a first call build no node tree.
+#: An H100, 2^20 (benchmarks/gpu_stages.py): the one walk 1.59 ms against 0.92 + 0.31 ms
+#: uniform, 3.10 against 1.75 + 0.51 graded_1000, 5.33 against 3.60 + 0.34 quad4 (its extra
+#: state and branches cost a latency-bound scan more than a second, simpler scan does).
+NODES_IN_FACE_SCAN = {False: True, True: False}
+
 
 @wp.func
 def _own(kind: _grid.Plain, own_nodes: wp.array(dtype=int), normals: wp.array(dtype=vec3), i: int):
@@ -482,6 +493,9 @@ class Plan:
     dist: wp.array  # [n] between kernels: the closest node's distance, then the face's
     item: wp.array  # [n] between kernels: the chosen face's item in the face grid
     mode: int = 0  # 0 exact, 1 node
+    # Two-body exact mode where NODES_IN_FACE_SCAN says: the face scan finds the closest node
+    # too, and there is no node tree.
+    nodes_too: int = 0
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     # Self-contact (the slaves are the master's nodes): each slave's node, every node's
     # normal and mesh size, every face's normal box and size (recomputed with the master).
@@ -689,8 +703,8 @@ def plan(
     margin = (growth - 1) * topo.r_small
     n_worlds = 1 if shared else int(nw.max()) + 1
     box = (lo - origin, float((hi - lo).max()), device, margin, n_worlds)
-    # Two-body exact mode finds the closest node in its face scan: no node tree.
-    n_tree = topo.n_nodes if (mode == "node" or self_contact) else 0
+    nodes_too = mode == "exact" and not self_contact and NODES_IN_FACE_SCAN[device.is_cuda]
+    n_tree = 0 if nodes_too else topo.n_nodes
     node_grid, world_bits = _grid.new_grid(n_tree, *box, normals=self_contact)
     face_grid, _ = _grid.new_grid(master.n_faces, *box, normals=self_contact)
     tri3 = e.name == "tri3"
@@ -752,6 +766,7 @@ def plan(
         dist=wp.zeros(n, dtype=real, device=device),
         item=wp.zeros(n, dtype=int, device=device),
         mode=MODES.index(mode),
+        nodes_too=int(nodes_too),
         passing_by=int(mode == "node" and not topo.closed),
         graphs=bool(graphs),
         refit=bool(refit),
@@ -887,11 +902,12 @@ def _build(p: Plan):
 
 
 def _both_trees(p: Plan, phase: str, nodes, faces):
-    """nodes() and faces() (node mode, which reads no face grid: nodes() alone; two-body exact
-    mode, which reads no node tree: faces() alone), each a chain of launches on its own tree: on the CPU at once once this phase of this kind of plan has
-    loaded their kernels in this process (two threads must not compile a module), else one
-    after the other, the nodes' first (a GPU's launches queue on one stream)."""
-    chains = ((faces, nodes) if p.self_contact else (faces,)) if p.mode == 0 else (nodes,)
+    """nodes() and faces() (node mode, which reads no face grid: nodes() alone; a plan whose
+    face scan finds the closest node, `nodes_too`: faces() alone), each a chain of launches on
+    its own tree: on the CPU at once once this phase of this kind of plan has loaded their
+    kernels in this process (two threads must not compile a module), else one after the
+    other, the nodes' first (a GPU's launches queue on one stream)."""
+    chains = ((faces,) if p.nodes_too else (faces, nodes)) if p.mode == 0 else (nodes,)
     kind = (phase, str(p.device), NP_REAL, p.self_contact, p.mode)
     if p.device.is_cpu and kind in _LOADED:
         # (loaded here, not in two threads: another plan's overloads may have made it stale)
@@ -1017,8 +1033,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
     # frees its SM's room when its slowest warp ends. Self-contact's face scan, one block of
     # 256 an SM at its 255 registers, ran 2-5 % slower in blocks of 128.
     scan = 256 if p.self_contact else 128
-    nodes_too = int(p.mode == 0 and not p.self_contact)  # the face scan finds the node too
-    if not nodes_too:
+    if not p.nodes_too:
         _slave_launch(
             _node_kernel,
             n,
@@ -1067,7 +1082,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
                 p.face_nlo,
                 p.face_nhi,
                 p.kept,
-                nodes_too,
+                p.nodes_too,
             ],
             [p.dist, o["face"], p.item],
             dev,
