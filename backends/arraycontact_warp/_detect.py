@@ -46,7 +46,10 @@ from ._parts import launch as _slave_launch
 from ._projection import (
     Kept,
     Master,
+    Nodes,
+    NoNodes,
     Unkept,
+    finds_nodes,
     holds,
     kept_type,
     projected,
@@ -221,17 +224,18 @@ def _face_kernel(
     nlo: wp.array(dtype=vec3),
     nhi: wp.array(dtype=vec3),
     kp: Any,
-    nodes_too: int,
+    nt: Any,
     dist: wp.array(dtype=real),
     face_out: wp.array(dtype=int),
     item: wp.array(dtype=int),
 ):
     """Stage 4, exact mode: the smallest distance (into `dist`), the face of the tie rule
-    (into face_out) and its face-grid item. Two-body (nodes_too = 1): stage 3 in the same
-    walk, the closest node (into `nodes`, which holds the plan's last answer when the scan
-    starts: the walk starts from its `_bound`). Self-contact (nodes_too = 0): `nodes` and
-    `dist` hold the node kernel's closest node and distance; the closest admissible face,
-    within d_max (the closest node bounds nothing: it need not lie on an admissible face)."""
+    (into face_out) and its face-grid item. nt: Nodes (two-body, NODES_IN_FACE_SCAN): stage 3
+    in the same walk, the closest node (into `nodes`, which holds the plan's last answer when
+    the scan starts: the walk starts from its `_bound`); NoNodes: `nodes` and `dist` hold the
+    node kernel's closest node and distance. Self-contact (NoNodes): the closest admissible
+    face, within d_max (the closest node bounds nothing: it need not lie on an admissible
+    face)."""
     i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
@@ -240,7 +244,9 @@ def _face_kernel(
     o = _own(kind, own_nodes, normals, i)
     n_reach = real(-1.0)
     rho = real(0.0)
-    if nodes_too == 1:
+    nodes_too = int(0)
+    if finds_nodes(nt):
+        nodes_too = 1
         n_reach = wp.min(d_max, _bound(m, s, w, shared, o, normals, nodes[i], tie))
         rho = n_reach + slack
     else:
@@ -261,7 +267,7 @@ def _face_kernel(
         if scan == 0 or rho >= real(0.0) or track == 1:
             d, ff, kk, u, n_d, n_2, n_b = scan_faces(
                 el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o, kp,
-                i, d_max, track, n_reach, n_limit,
+                i, d_max, nt, track, n_reach, n_limit,
             )  # fmt: skip
             if scan == 0 or rho >= real(0.0):
                 f = ff
@@ -815,13 +821,18 @@ def _declare(p: Plan, tri3: bool):
     _declare_kernels(Triangles if tri3 else Element, bool(p.self_contact), p.mode == 0, cuda)
 
 
-def _declare_kernels(el, self_contact: bool, exact: bool, cuda: bool):
+def _declare_kernels(el, self_contact: bool, exact: bool, cuda: bool, nodes_too=None):
     kind = _grid.Own if self_contact else _grid.Plain
     kp = kept_type(el, cuda)
-    wp.overload(_node_kernel, {"kind": kind})
+    if nodes_too is None:
+        nodes_too = NODES_IN_FACE_SCAN[cuda]
+    nodes_too = nodes_too and exact and not self_contact
+    if not nodes_too:
+        wp.overload(_node_kernel, {"kind": kind})
     if exact:
         face_kernel = _self_face_kernel if self_contact else _face_kernel
-        wp.overload(face_kernel, {"el": el, "kind": kind, "kp": kp})
+        nt = Nodes if nodes_too else NoNodes
+        wp.overload(face_kernel, {"el": el, "kind": kind, "kp": kp, "nt": nt})
     wp.overload(_finish_kernel, {"el": el, "kp": kp})
     if self_contact:
         wp.overload(self_face_geometry, {"el": el})
@@ -837,8 +848,8 @@ def declare_all(cuda: bool = False):
     their compile time.) cuda: a GPU's overloads (its scans keep no projection: kept_type)."""
     for el in (Triangles, Element):
         wp.overload(_sweep.swept_scan, {"el": el})
-        for self_contact in (False, True):
-            _declare_kernels(el, self_contact, True, cuda)
+        for self_contact, nodes_too in ((False, False), (False, True), (True, False)):
+            _declare_kernels(el, self_contact, True, cuda, nodes_too)
 
 
 def _kind(a):
@@ -1082,7 +1093,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
                 p.face_nlo,
                 p.face_nhi,
                 p.kept,
-                p.nodes_too,
+                Nodes() if p.nodes_too else NoNodes(),
             ],
             [p.dist, o["face"], p.item],
             dev,
