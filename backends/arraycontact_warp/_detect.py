@@ -9,8 +9,10 @@ projections), _select (gap, normal). Three kernels, each slave one thread: the c
 (the face tree depth first within the reach, each leaf's faces within reach projected, the tie
 rule applied as they come, a second scan only when that was unsure); then the chosen face's
 projection, or in node mode the projections on the faces attached to the closest node, and
-every output. The two scans take the slaves in Morton order, so that the threads of a GPU warp
-walk the same entries. There is no pair buffer and no planned size that motion can outgrow.
+every output. On the CPU a two-body exact detection has two: its face scan walks on to the
+closest node's distance and finds that node among its faces' nodes (NODES_IN_FACE_SCAN). The
+scans take the slaves in Morton order, so that the threads of a GPU warp walk the same
+entries. There is no pair buffer and no planned size that motion can outgrow.
 Inside a CUDA graph the master's trees are refitted (the previous order kept, the boxes
 recomputed: exact for any motion) while every item stays within the plan's margin of where it
 was sorted, and sorted again when one does not (the tree would grow loose): a conditional
