@@ -120,6 +120,22 @@ def pytest_sessionstart(session):
             raise RuntimeError("compiling the Warp kernels failed:\n" + err[-4000:])
 
 
+@pytest.fixture(params=["node tree", "face walk"])
+def node_search(request, monkeypatch):
+    """Both ways a Warp exact plan finds the closest node, on this device: a node tree and
+    kernel of its own (a GPU's way) or the face scan's walk (the CPU's), each precision's."""
+    walk = request.param == "face walk"
+    set_node_search(monkeypatch, walk)
+    return walk
+
+
+def set_node_search(monkeypatch, walk: bool):
+    from arraycontact_warp import _real
+
+    for dtype in ("float32", "float64"):
+        monkeypatch.setattr(_real.precision(dtype), "NODES_IN_FACE_SCAN", {0: walk, 1: walk})
+
+
 @pytest.fixture(params=BACKENDS)
 def backend(request):
     return request.param

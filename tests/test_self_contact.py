@@ -224,13 +224,13 @@ needs_warp_cpu = pytest.mark.skipif(
 
 @needs_warp_cpu
 def test_warp_first_reach_needs_a_surely_facing_face():
-    """Warp self-contact's first reach (`_detect._reach` for `Own`): the closest obtuse
+    """Warp self-contact's first reach (`_projection.first_reach` for `Own`): the closest obtuse
     node's distance (0.25 here) only through a face of that node that does not hold the
     slave's node and whose whole normal box faces the slave's normal (n . n_f < -0.01 over
     it); else d_max (1.0). Node 5 of a flat 4 x 4 quad4 grid holds faces 0, 1, 3, 4; node 0
     only face 0, node 15 only face 8."""
     import warp as wp
-    from arraycontact_warp import _detect, _geometry, _grid
+    from arraycontact_warp import _detect, _geometry, _grid, _projection
 
     u = np.arange(4.0)
     x, y = np.meshgrid(u, u, indexing="xy")
@@ -255,7 +255,7 @@ def test_warp_first_reach_needs_a_surely_facing_face():
         o = _grid.Own()
         o.node = own[i]
         o.normal = normal[i]
-        out[i] = _detect._reach(o, el, m, node[i], 0.25, 1.0, nlo, nhi)
+        out[i] = _projection.first_reach(o, el, m, node[i], 0.25, 1.0, nlo, nhi)
 
     def first_reach(own, normal, node, lo, hi):
         out = wp.zeros(1, dtype=float, device="cpu")
@@ -339,7 +339,7 @@ def test_jax_plan_detect_grad_vmap():
 
 
 @needs_warp_cpu
-def test_warp_plan_detect_worlds():
+def test_warp_plan_detect_worlds(node_search):
     """arraycontact_warp.plan_self / detect_self: equal to NumPy at the plan's and at moved
     coordinates (a refit), and with two worlds in one surface, each world alone."""
     import arraycontact_warp as acw
@@ -347,6 +347,7 @@ def test_warp_plan_detect_worlds():
     sc = scenes.crumpled_sheet(800, element="tri3")
     s, d = sc.master, sc.params["d_max"]
     p = acw.plan_self(s, d_max=d, dtype="float64", device="cpu")
+    assert p.nodes_too == node_search
     for x in (s.points, s.points + np.array([0.0, 0.0, 0.01]) * s.points[:, :1]):
         want = ac.detect_self(s.with_points(x), backend="numpy", d_max=d)
         got = acw.detect_self(p, x)

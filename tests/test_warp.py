@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import warp as wp
 from arraycontact_warp import _grid as warp_grid
-from arraycontact_warp import _real as acw_real
 from arraycontact_warp._closest_node import closest_node as _closest_node
-from conftest import assert_matches_reference
+from conftest import assert_matches_reference, set_node_search
 from radix import grid_points, radix_groups
 
 import arraycontact as ac
@@ -29,20 +28,6 @@ SCENES = {
     "graded_tri3": lambda: scenes.graded_surfaces(2**10, ratio=1000.0),
     "patch_tri3": lambda: scenes.fine_patch(12, ratio=1000.0),
 }
-
-
-@pytest.fixture(params=["node tree", "face walk"])
-def node_search(request, monkeypatch):
-    """Both ways a two-body exact plan finds the closest node, on this device: a node tree and
-    kernel of its own (a GPU's way) or the face scan's walk (the CPU's), each precision's."""
-    walk = request.param == "face walk"
-    _node_search(monkeypatch, walk)
-    return walk
-
-
-def _node_search(monkeypatch, walk: bool):
-    for dtype in ("float32", "float64"):
-        monkeypatch.setattr(acw_real.precision(dtype), "NODES_IN_FACE_SCAN", {0: walk, 1: walk})
 
 
 def _same_as_numpy(o, r, L, rows=None):
@@ -293,7 +278,7 @@ def test_the_closest_node_scan_from_a_misleading_hint(case, node_search):
     slave: hints at nodes that are closer but do not count, or that would cut the tie band,
     change nothing."""
     p, detect, hints = _hinted_case(case)
-    assert p.nodes_too == (node_search and case != "self")  # (self-contact: a node tree)
+    assert p.nodes_too == node_search
     first = {k: v.copy() for k, v in detect().items()}
     assert (first["master_node"] >= 0).mean() > 0.4  # (the folded sheet: its facing sides)
     p.out["master_node"].assign(wp.array(hints.astype(np.int32), dtype=int, device=p.device))
@@ -607,7 +592,7 @@ def test_refit_in_one_launch_equals_a_launch_a_level(name, monkeypatch):
     group making its parent) are the bytes of `fill`'s (one reduction launch a level), on
     master coordinates moved twice; its arrival counts are back at zero after each launch.
     (Two-body plans with a node tree, as a GPU's.)"""
-    _node_search(monkeypatch, False)
+    set_node_search(monkeypatch, False)
     if name == "self_quad4":
         s = scenes.crumpled_sheet(2**10)
         p = acw.plan_self(s.master, device=DEVICE)

@@ -52,7 +52,7 @@ from ._projection import (
     NoNodes,
     Unkept,
     finds_nodes,
-    holds,
+    first_reach,
     kept_type,
     projected,
     scan_attached,
@@ -94,48 +94,6 @@ def _own(  # noqa: F811 (a Warp overload)
     o.node = own_nodes[i]
     o.normal = normals[o.node]
     return o
-
-
-@wp.func
-def _reach(
-    kind: _grid.Plain,
-    el: Any,
-    m: Master,
-    node: int,
-    dn: real,
-    d_max: real,
-    nlo: wp.array(dtype=vec3),
-    nhi: wp.array(dtype=vec3),
-):
-    """The face scan's first reach: the closest node's distance bounds the answer."""
-    return wp.min(dn, d_max)
-
-
-@wp.func
-def _reach(  # noqa: F811 (a Warp overload)
-    kind: _grid.Own,
-    el: Any,
-    m: Master,
-    node: int,
-    dn: real,
-    d_max: real,
-    nlo: wp.array(dtype=vec3),
-    nhi: wp.array(dtype=vec3),
-):
-    # Self-contact: the closest (obtuse) node bounds the answer only through a face of its
-    # own that counts (arraycontact._detect.self_reach, which projects on them): the node is
-    # a point of that face. A face of straight edges (tri3, quad4) whose corner normals all
-    # face the slave's counts wherever its closest point is (its normal x_xi x x_eta is an
-    # affine mix of the corner ones), so no projection is needed. On a thin body most nodes
-    # have such a face across the gap: their scan starts near the gap, not at d_max.
-    best = d_max
-    if node >= 0 and m.faces.shape[1] == el.n_corners:
-        for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
-            f = m.nf_ids[j]
-            if not holds(m, f, kind.node):
-                if _grid.surely_facing(kind.normal, nlo[f], nhi[f]):
-                    best = wp.min(best, dn)
-    return best
 
 
 @wp.func
@@ -249,10 +207,14 @@ def _face_kernel(
     nodes_too = int(0)
     if finds_nodes(nt):
         nodes_too = 1
-        n_reach = wp.min(d_max, _bound(m, s, w, shared, o, normals, nodes[i], tie))
-        rho = n_reach + slack
+        h = nodes[i]
+        bound = _bound(m, s, w, shared, o, normals, h, tie)
+        n_reach = wp.min(d_max, bound)
+        if bound > d_max:
+            h = int(-1)  # (a node that does not count, or beyond d_max, bounds nothing)
+        rho = first_reach(o, el, m, h, n_reach, d_max, nlo, nhi) + slack
     else:
-        rho = _reach(o, el, m, nodes[i], dist[i], d_max, nlo, nhi) + slack
+        rho = first_reach(o, el, m, nodes[i], dist[i], d_max, nlo, nhi) + slack
     # The first scan finds the smallest distance and applies the tie rule as it goes; a second
     # (the smallest face id within `tie` of the smallest distance) runs only when the first was
     # unsure; and the smallest node id within `tie` of the closest node's distance only when
@@ -269,7 +231,7 @@ def _face_kernel(
         if scan == 0 or rho >= real(0.0) or track == 1:
             d, ff, kk, u, n_d, n_2, n_b = scan_faces(
                 el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o, kp,
-                i, d_max, nt, track, n_reach, n_limit,
+                i, d_max, nt, track, n_reach, n_limit, normals, nlo, nhi,
             )  # fmt: skip
             if scan == 0 or rho >= real(0.0):
                 f = ff
@@ -711,7 +673,7 @@ def plan(
     margin = (growth - 1) * topo.r_small
     n_worlds = 1 if shared else int(nw.max()) + 1
     box = (lo - origin, float((hi - lo).max()), device, margin, n_worlds)
-    nodes_too = mode == "exact" and not self_contact and NODES_IN_FACE_SCAN[device.is_cuda]
+    nodes_too = mode == "exact" and NODES_IN_FACE_SCAN[device.is_cuda]
     n_tree = 0 if nodes_too else topo.n_nodes
     node_grid, world_bits = _grid.new_grid(n_tree, *box, normals=self_contact)
     face_grid, _ = _grid.new_grid(master.n_faces, *box, normals=self_contact)
@@ -828,7 +790,7 @@ def _declare_kernels(el, self_contact: bool, exact: bool, cuda: bool, nodes_too=
     kp = kept_type(el, cuda)
     if nodes_too is None:
         nodes_too = NODES_IN_FACE_SCAN[cuda]
-    nodes_too = nodes_too and exact and not self_contact
+    nodes_too = nodes_too and exact
     if not nodes_too:
         wp.overload(_node_kernel, {"kind": kind})
     if exact:
@@ -850,8 +812,9 @@ def declare_all(cuda: bool = False):
     their compile time.) cuda: a GPU's overloads (its scans keep no projection: kept_type)."""
     for el in (Triangles, Element):
         wp.overload(_sweep.swept_scan, {"el": el})
-        for self_contact, nodes_too in ((False, False), (False, True), (True, False)):
-            _declare_kernels(el, self_contact, True, cuda, nodes_too)
+        for self_contact in (False, True):
+            for nodes_too in (False, True):
+                _declare_kernels(el, self_contact, True, cuda, nodes_too)
 
 
 def _kind(a):

@@ -12,6 +12,7 @@ from typing import Any
 
 import warp as wp
 
+from ._closest_node import counts
 from ._geometry import (
     EDGE,
     FACE,
@@ -46,6 +47,7 @@ from ._grid import (
     item_world,
     may_face_item,
     next_pending,
+    surely_facing,
 )
 from ._real import real, vec2, vec3
 
@@ -352,6 +354,49 @@ def project_facing(  # noqa: F811 (a Warp overload)
     return xi, feature, local, conv, diff, facing
 
 
+@wp.func
+def first_reach(
+    kind: Plain,
+    el: Any,
+    m: Master,
+    node: int,
+    dn: real,
+    d_max: real,
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
+):
+    """How far the face scan need reach once `node`, a node that counts for the slave, is at
+    distance dn: its faces are no farther (else d_max)."""
+    return wp.min(dn, d_max)
+
+
+@wp.func
+def first_reach(  # noqa: F811 (a Warp overload)
+    kind: Own,
+    el: Any,
+    m: Master,
+    node: int,
+    dn: real,
+    d_max: real,
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
+):
+    # Self-contact: the closest (obtuse) node bounds the answer only through a face of its
+    # own that counts (arraycontact._detect.self_reach, which projects on them): the node is
+    # a point of that face. A face of straight edges (tri3, quad4) whose corner normals all
+    # face the slave's counts wherever its closest point is (its normal x_xi x x_eta is an
+    # affine mix of the corner ones), so no projection is needed. On a thin body most nodes
+    # have such a face across the gap: their scan starts near the gap, not at d_max.
+    best = d_max
+    if node >= 0 and m.faces.shape[1] == el.n_corners:
+        for j in range(m.nf_offsets[node], m.nf_offsets[node + 1]):
+            f = m.nf_ids[j]
+            if not holds(m, f, kind.node):
+                if surely_facing(kind.normal, nlo[f], nhi[f]):
+                    best = wp.min(best, dn)
+    return best
+
+
 @wp.struct
 class NoNodes:
     """A face scan alone (a node tree and kernel of their own find the closest node)."""
@@ -423,6 +468,9 @@ def scan_faces(
     track: int,
     n_reach: real,
     n_limit: real,
+    normals: wp.array(dtype=vec3),
+    nlo: wp.array(dtype=vec3),
+    nhi: wp.array(dtype=vec3),
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its tree item. Its projection goes to kp
@@ -445,17 +493,20 @@ def scan_faces(
     scan: the smallest face id at distance <= limit, skipping larger ids than the best so far.
     rho < 0 (Nodes): no face is projected (a second scan for the closest node alone).
 
-    nt: NoNodes, or Nodes with track = 1 (two-body exact mode, no node tree): the same walk
-    also finds the closest
-    master node within d_max, as _closest_node's scan does over the node tree, from the
-    nodes of the faces it meets: a node within reach r of s has every face of its own within
-    r, so walking the faces within the node reach (n_reach: d_max, or less from a bound,
-    shrinking to the closest node's distance plus the tie band) meets it. The closest node
-    also bounds the face reach (its faces are no farther). n_limit < 0: the node at the
-    smallest distance and the smallest distance of another node (the caller's tie test); n_limit
-    >= 0: the smallest node id within n_limit. The faces between the face reach and the node
-    reach are walked but not projected: H100, uniform 2^20, the face scan walking to the closest
-    node's distance took 0.943 ms against 0.919 (the node scan it replaces: 0.31 ms).
+    nt: NoNodes, or Nodes with track = 1 (no node tree: NODES_IN_FACE_SCAN): the same walk
+    also finds the closest master node within d_max that counts for the slave (`counts`:
+    self-contact's another node, obtuse), as _closest_node's scan does over the node tree,
+    from the nodes of the faces it meets. A node within reach r of s has every face of its
+    own within r, and (self-contact) one that may face the slave: a pseudo-normal obtuse to
+    the slave's is an angle-weighted mean of its faces' normals there, so one of those is
+    obtuse too, and its face's normal box lets the walk in. So walking the faces within the
+    node reach (n_reach: d_max, or less from a bound, shrinking to the closest node's
+    distance plus the tie band) meets it. Each closer node found may bound the face reach
+    (`first_reach`). n_limit < 0: the node at the smallest distance and the smallest
+    distance of another node (the caller's tie test); n_limit >= 0: the smallest node id
+    within n_limit. The faces between the face reach and the node reach are walked but not
+    projected. normals: the nodes' pseudo-normals, nlo / nhi the faces' normal boxes
+    (self-contact's; unread otherwise).
 
     o: Plain, or Own (self-contact): faces that hold the slave's node, or whose normal at
     the closest point does not face the slave's (arraycontact.detect_self), count as absent."""
@@ -504,13 +555,16 @@ def scan_faces(
                             e2 = wp.length_sq(_face_node(el, m, grid, k, f, c) - s)
                             if e2 <= n_wide * n_wide:
                                 e = wp.sqrt(e2)
-                                if e <= d_max:
-                                    node = m.faces[f, c]
+                                node = m.faces[f, c]
+                                if e <= d_max and counts(o, normals, node):
                                     if n_limit < real(0.0):
                                         if e < n_dmin:
                                             n_second = n_dmin
                                             n_dmin = e
                                             n_best = node
+                                            # (a face of that node may bound the answer)
+                                            r = first_reach(o, el, m, node, e, d_max, nlo, nhi)
+                                            reach = wp.min(reach, r + slack)
                                         elif node != n_best:  # (met again through another face)
                                             n_second = wp.min(n_second, e)
                                     elif e <= n_limit and (n_best < 0 or node < n_best):
@@ -518,7 +572,6 @@ def scan_faces(
                                         n_dmin = wp.min(n_dmin, e)
                                     n_wide = wp.min(n_reach, wp.max(n_dmin + tie, n_limit))
                                     n_wide = n_wide * real(1.0001)
-                                    reach = wp.min(reach, n_dmin + slack)
                                     walk = _walk(nt, reach, n_wide)
                     if near:
                         near = d2 <= reach * reach
