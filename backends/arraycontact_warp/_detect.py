@@ -9,8 +9,8 @@ projections), _select (gap, normal). Three kernels, each slave one thread: the c
 (the face tree depth first within the reach, each leaf's faces within reach projected, the tie
 rule applied as they come, a second scan only when that was unsure); then the chosen face's
 projection, or in node mode the projections on the faces attached to the closest node, and
-every output. On the CPU a two-body exact detection has two: its face scan walks on to the
-closest node's distance and finds that node among its faces' nodes (NODES_IN_FACE_SCAN). The
+every output. On the CPU an exact detection has two: its face scan walks on to the closest
+node's distance and finds that node among its faces' nodes (NODES_IN_FACE_SCAN). The
 scans take the slaves in Morton order, so that the threads of a GPU warp walk the same
 entries. There is no pair buffer and no planned size that motion can outgrow.
 Inside a CUDA graph the master's trees are refitted (the previous order kept, the boxes
@@ -67,15 +67,17 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 GROWTH = 1.25
 
-#: Two-body exact mode, by device (is_cuda): whether the face scan also finds the closest node
-#: (from the nodes of the faces its walk meets, which then reaches the closest node's distance
-#: where the face scan alone stops at the closest face's) instead of a node tree and a kernel
-#: of its own. The same answers. Warp's CPU device, 2^16, steady detections, thread times
-#: (.probe/suite_stages.py): uniform node 12.2 + face 31.7 -> 37.0 ms, steep 11.1 + 19.4 ->
-#: 22.6, graded_1000 16.0 + 55.5 -> 63.3; and the plan and a first call build no node tree.
-#: An H100, 2^20 (benchmarks/gpu_stages.py): the one walk 1.59 ms against 0.92 + 0.31 ms
-#: uniform, 3.10 against 1.75 + 0.51 graded_1000, 5.33 against 3.60 + 0.34 quad4 (its extra
-#: state and branches cost a latency-bound scan more than a second, simpler scan does).
+#: Exact mode (two-body and self-contact), by device (is_cuda): whether the face scan also
+#: finds the closest node (from the nodes of the faces its walk meets, which then reaches the
+#: closest node's distance where the face scan alone stops at the closest face's) instead of
+#: a node tree and a kernel of its own. The same answers. Warp's CPU device, 2^16, steady
+#: detections, thread times (.probe/suite_stages.py): uniform node 12.2 + face 31.7 -> 37.0
+#: ms, steep 11.1 + 19.4 -> 22.6, graded_1000 16.0 + 55.5 -> 63.3; self-contact wall times
+#: (.probe/self_stages.py) spiral 71.8 -> 57.1 ms, two bodies 53.0 -> 39.3; and the plan and
+#: a first call build no node tree. An H100, 2^20 (benchmarks/gpu_stages.py): the one walk
+#: 1.59 ms against 0.92 + 0.31 ms uniform, 3.10 against 1.75 + 0.51 graded_1000, 5.33 against
+#: 3.60 + 0.34 quad4; self-contact at 2^17, spiral 2.36 against 1.83 + 0.19 (its extra state
+#: and branches cost a latency-bound scan more than a second, simpler scan does).
 NODES_IN_FACE_SCAN = {False: True, True: False}
 
 
@@ -140,8 +142,8 @@ def _node_kernel(
     node_out: wp.array(dtype=int),
     dist: wp.array(dtype=real),
 ):
-    """Stage 3 (node mode and self-contact; two-body exact mode finds the closest node in its
-    face scan): each slave's closest node and its distance (into `dist`). Self-contact (a
+    """Stage 3 (node mode; exact mode unless NODES_IN_FACE_SCAN has the face scan find it):
+    each slave's closest node and its distance (into `dist`). Self-contact (a
     node grid with normals): slave i is node own_nodes[i], of normal normals[that node].
     node_out[i] holds the plan's last answer for slave i when the scan starts: the scan
     starts from its `_bound` instead of d_max (CPU, 2^16, steady detections: the scan's
@@ -190,12 +192,12 @@ def _face_kernel(
     item: wp.array(dtype=int),
 ):
     """Stage 4, exact mode: the smallest distance (into `dist`), the face of the tie rule
-    (into face_out) and its face-grid item. nt: Nodes (two-body, NODES_IN_FACE_SCAN): stage 3
-    in the same walk, the closest node (into `nodes`, which holds the plan's last answer when
-    the scan starts: the walk starts from its `_bound`); NoNodes: `nodes` and `dist` hold the
-    node kernel's closest node and distance. Self-contact (NoNodes): the closest admissible
-    face, within d_max (the closest node bounds nothing: it need not lie on an admissible
-    face)."""
+    (into face_out) and its face-grid item. nt: Nodes (NODES_IN_FACE_SCAN): stage 3 in the
+    same walk, the closest node (into `nodes`, which holds the plan's last answer when the
+    scan starts: the walk starts from its `_bound`); NoNodes: `nodes` and `dist` hold the node
+    kernel's closest node and distance. Self-contact: the closest admissible face, within
+    d_max (the closest node bounds it only through a face of its own that surely counts,
+    `first_reach`)."""
     i = order[wp.tid()]
     s = slaves[i] - origin
     w = slave_world[i]
@@ -463,8 +465,8 @@ class Plan:
     dist: wp.array  # [n] between kernels: the closest node's distance, then the face's
     item: wp.array  # [n] between kernels: the chosen face's item in the face grid
     mode: int = 0  # 0 exact, 1 node
-    # Two-body exact mode where NODES_IN_FACE_SCAN says: the face scan finds the closest node
-    # too, and there is no node tree.
+    # Exact mode where NODES_IN_FACE_SCAN says: the face scan finds the closest node too,
+    # and there is no node tree.
     nodes_too: int = 0
     passing_by: int = 0  # node mode on an open master: the boundary test of eqs. (12)-(13)
     # Self-contact (the slaves are the master's nodes): each slave's node, every node's
