@@ -339,6 +339,27 @@ def test_jax_plan_detect_grad_vmap():
 
 
 @needs_warp_cpu
+@pytest.mark.parametrize(
+    "name, element", [("spiral_strip", "quad4"), ("coil_spring", "quad4"), ("two_bodies", "tri6")]
+)
+def test_warp_closest_obtuse_node_equals_numpy(name, element, node_search):
+    """Warp's exact self-contact, with a node tree or with the face scan's walk (which meets a
+    counting node through a face whose normal box may face the slave), gives NumPy's closest
+    obtuse node, face and status on every row (float64)."""
+    import arraycontact_warp as acw
+
+    sc = getattr(scenes, name)(600, element=element)
+    s, d = sc.master, sc.params["d_max"]
+    p = acw.plan_self(s, d_max=d, dtype="float64", device="cpu")
+    assert p.nodes_too == node_search
+    got = acw.detect_self(p, s.points)
+    want = ac.detect_self(s, backend="numpy", d_max=d)
+    assert (want.master_node >= 0).sum() >= 100  # (rows with an obtuse node within d_max)
+    for k in ("master_node", "face", "status"):
+        np.testing.assert_array_equal(got[k], getattr(want, k), err_msg=k)
+
+
+@needs_warp_cpu
 def test_warp_plan_detect_worlds(node_search):
     """arraycontact_warp.plan_self / detect_self: equal to NumPy at the plan's and at moved
     coordinates (a refit), and with two worlds in one surface, each world alone."""
