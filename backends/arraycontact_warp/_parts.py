@@ -136,8 +136,9 @@ def launch(
     part replays (record_only: record, do not launch). cuts: a plan's dict where a launch in
     parts keeps the cuts that would have balanced its parts' times (`_balanced`), for its next
     launch of this kernel and size; a kernel new to the plan starts from the plan's last cuts
-    of its size (a one-call detection: the closest-node kernel's cuts foretell the face
-    scan's, at 2^16 36007 and 36855 of 65536 on quad4). block: a GPU's threads a block."""
+    of its size (where a closest-node kernel runs before the face scan, as it did in every
+    one-call detection, its cuts foretell the scan's: at 2^16 36007 and 36855 of 65536 on
+    quad4). block: a GPU's threads a block."""
     dev = wp.get_device(dev)
     kernel = _concrete(kernel, [*inputs, *outputs])
     one = dev.is_cuda or CPU_PARTS < 2 or n < MIN_PART * CPU_PARTS or getattr(_chain, "on", 0)
