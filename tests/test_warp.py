@@ -230,6 +230,31 @@ def test_closest_node_tie_rule(node_search):
     assert np.array_equal(o["master_node"], np.minimum(a, b))
 
 
+@pytest.mark.parametrize("name", ["rough_quad4", "graded_tri3", "self_quad4"])
+def test_the_node_walk_gives_the_node_trees_bits(name, monkeypatch):
+    """A plan whose face scan finds the closest node (the CPU's way) and one with a node tree
+    (a GPU's) return the same bits in every output, in a first call and in a second (which
+    starts from the first's answers)."""
+    s = scenes.crumpled_sheet(2**10) if name == "self_quad4" else SCENES[name]()
+    outs = []
+    for walk in (False, True):
+        set_node_search(monkeypatch, walk)
+        if name == "self_quad4":
+            p = acw.plan_self(s.master, device=DEVICE)
+            args = (s.master.points,)
+        else:
+            p = acw.plan(s.master, s.slave, device=DEVICE)
+            args = (s.slave, s.master.points)
+        assert p.nodes_too == walk
+        call = acw.detect_self if p.self_contact else acw.detect
+        first = {k: v.copy() for k, v in call(p, *args).items()}
+        outs.append((first, {k: v.copy() for k, v in call(p, *args).items()}))
+    assert (outs[0][0]["master_node"] >= 0).mean() > 0.3
+    for tree, walk in zip(*outs):
+        for k in tree:
+            assert np.array_equal(tree[k], walk[k], equal_nan=tree[k].dtype.kind == "f"), k
+
+
 def _hinted_case(case):
     """(plan, detect(), hints) for a closest-node scan started from hints that would mislead
     it without their checks: another world's nearest node, the
