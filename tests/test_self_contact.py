@@ -360,6 +360,46 @@ def test_warp_closest_obtuse_node_equals_numpy(name, element, node_search):
 
 
 @needs_warp_cpu
+@pytest.mark.parametrize("element", ["quad4", "tri3"])
+def test_warp_face_tree_sorts_each_cell_by_normal_class(monkeypatch, element):
+    """Self-contact's face tree keys each face by its cell and, within cells of 8 d_max, by
+    its normal's class (largest component's axis and sign): on the spiral strip, a thin solid
+    whose two sides are an element apart, hardly a leaf mixes classes, where most do with
+    the cells alone; the answer is the same bit for bit."""
+    import arraycontact_warp as acw
+    from arraycontact_warp._real import precision
+
+    sc = scenes.spiral_strip(2**12, element=element)
+    s, d = sc.master, sc.params["d_max"]
+    x = s.points[s.faces]
+    if element == "quad4":  # (the corner normal Warp keys by: the diagonals' cross product)
+        n = np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1])
+    else:
+        n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    axis = np.argmax(np.abs(n), 1)
+    cls = 2 * axis + (n[np.arange(len(n)), axis] < 0)
+
+    def run():
+        p = acw.plan_self(s, d_max=d, device="cpu")
+        out = acw.detect_self(p, s.points)
+        g = p.face_grid
+        w = 8  # (_grid.W: items a leaf)
+        ids = g.items.numpy()["id"][: w * int(g.counts.numpy()[1])].reshape(-1, w)
+        assert np.array_equal(np.sort(ids[ids >= 0]), np.arange(len(s.faces)))
+        mixed = np.mean([len(set(cls[r[r >= 0]])) > 1 for r in ids])
+        return out, mixed
+
+    out, mixed = run()
+    grid = precision("float32")._grid
+    plain = grid.new_grid
+    monkeypatch.setattr(grid, "new_grid", lambda *a, sides=0.0, **k: plain(*a, **k))
+    want, mixed_plain = run()
+    assert mixed < 0.02 and mixed_plain > 0.5, (mixed, mixed_plain)
+    for k in want:
+        np.testing.assert_array_equal(out[k], want[k], err_msg=k)
+
+
+@needs_warp_cpu
 def test_warp_plan_detect_worlds(node_search):
     """arraycontact_warp.plan_self / detect_self: equal to NumPy at the plan's and at moved
     coordinates (a refit), and with two worlds in one surface, each world alone."""

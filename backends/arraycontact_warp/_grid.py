@@ -111,6 +111,7 @@ class Grid:
     corner: vec3  # the lower corner of the plan's box (local frame): the Morton cells' origin
     quantum: real  # the Morton cell: 2^bits of them a side over the plan's box
     bits: int  # Morton bits an axis (fewer when world ids take the key's high bits)
+    sides: int  # > 0: the Morton level of the faces' normal classes in their keys
     # A build sorts again when a refit finds an item farther than this from where it was
     # sorted (a tree's refit is always exact: only its tightness is at stake).
     margin: real
@@ -562,8 +563,42 @@ def _face_keys(
 ):
     f = first + wp.tid()
     c, r, lo, hi = face_bounds(points, faces, f, lebesgue)
-    grid.keys[f] = morton_key(c - grid.corner, world[f], grid.quantum, grid.bits)
+    key = morton_key(c - grid.corner, world[f], grid.quantum, grid.bits)
+    if grid.sides > 0:
+        key = _side_key(key, _face_normal(points, faces, f), grid.sides)
+    grid.keys[f] = key
     grid.sorted_ids[f] = f
+
+
+@wp.func
+def _face_normal(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int):
+    """The face's corner normal (unnormalised): its diagonals' cross product on quads."""
+    x0 = points[faces[f, 0]]
+    x1 = points[faces[f, 1]]
+    x2 = points[faces[f, 2]]
+    k = faces.shape[1]
+    if k == 4 or k == 8 or k == 9:
+        return wp.cross(x2 - x0, points[faces[f, 3]] - x1)
+    return wp.cross(x1 - x0, x2 - x0)
+
+
+@wp.func
+def _side_key(key: wp.int64, n: vec3, level: int):
+    """key with the class of normal n (its largest component's axis and sign: 6 classes) put
+    in as three bits at Morton level `level` (the finest level's bits dropped), so that
+    within each cell of that level the faces are sorted by class."""
+    a = int(0)
+    if wp.abs(n[1]) > wp.abs(n[a]):
+        a = 1
+    if wp.abs(n[2]) > wp.abs(n[a]):
+        a = 2
+    c = 2 * a
+    if n[a] < real(0.0):
+        c += 1
+    b = wp.int64(3 * level)
+    one = wp.int64(1)
+    low = (key & ((one << b) - one)) >> wp.int64(3)
+    return ((key >> b) << b) | (wp.int64(c) << (b - wp.int64(3))) | low
 
 
 @wp.func
@@ -1139,12 +1174,14 @@ def new_grid(
     margin: float,
     n_worlds: int = 1,
     normals=False,
+    sides: float = 0.0,
 ):
     """A tree for n items in the cube of side `extent` at `corner` (local frame), with
     `margin` the distance an item may move before a refit asks for a build; normals: with
-    normal boxes (self-contact). Its levels: `allot`. Returns (grid, world bits). (Arrays
-    that a build writes before any read are left unset: on the CPU, zeroing them cost more
-    than the build.)"""
+    normal boxes (self-contact); sides > 0 (faces): the keys sort each Morton cell of at
+    least that side by the class of the face's normal (`_side_key`). Its levels: `allot`.
+    Returns (grid, world bits). (Arrays that a build writes before any read are left unset:
+    on the CPU, zeroing them cost more than the build.)"""
     world_bits = max(int(n_worlds - 1).bit_length(), 0)
     g = Grid()
     g.n = max(n, 0)
@@ -1168,6 +1205,10 @@ def new_grid(
     g.keys = wp.empty(2 * m, dtype=wp.int64, device=device)
     g.centres = wp.full(m, vec3(1.0e30), dtype=vec3, device=device)
     g.normals = int(normals)
+    g.sides = 0
+    if sides > 0:
+        level = int(np.ceil(np.log2(max(sides / float(g.quantum), 2.0))))
+        g.sides = min(level, g.bits)
     return g, world_bits
 
 
