@@ -362,10 +362,10 @@ def test_warp_closest_obtuse_node_equals_numpy(name, element, node_search):
 @needs_warp_cpu
 @pytest.mark.parametrize("element", ["quad4", "tri3"])
 def test_warp_face_tree_sorts_each_cell_by_normal_class(monkeypatch, element):
-    """Self-contact's face tree keys each face by its cell and, within cells of 8 d_max, by
+    """Self-contact's face tree keys each face by its cell and, within cells of 4 d_max, by
     its normal's class (largest component's axis and sign): on the spiral strip, a thin solid
-    whose two sides are an element apart, hardly a leaf mixes classes, where most do with
-    the cells alone; the answer is the same bit for bit."""
+    whose two sides are an element apart, under a quarter of the leaves mix classes (cells of
+    few faces), where most do with the cells alone; the answer is the same bit for bit."""
     import arraycontact_warp as acw
     from arraycontact_warp._real import precision
 
@@ -394,7 +394,7 @@ def test_warp_face_tree_sorts_each_cell_by_normal_class(monkeypatch, element):
     plain = grid.new_grid
     monkeypatch.setattr(grid, "new_grid", lambda *a, sides=0.0, **k: plain(*a, **k))
     want, mixed_plain = run()
-    assert mixed < 0.02 and mixed_plain > 0.5, (mixed, mixed_plain)
+    assert mixed < 0.25 and mixed_plain > 0.6, (mixed, mixed_plain)
     for k in want:
         np.testing.assert_array_equal(out[k], want[k], err_msg=k)
 

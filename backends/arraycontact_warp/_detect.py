@@ -678,13 +678,15 @@ def plan(
     nodes_too = mode == "exact" and NODES_IN_FACE_SCAN[device.is_cuda]
     n_tree = 0 if nodes_too else topo.n_nodes
     node_grid, world_bits = _grid.new_grid(n_tree, *box, normals=self_contact)
-    # Self-contact: the face tree sorts each cell of 8 d_max by the faces' normal classes
-    # (_grid._side_key; a thin solid's two sides, one element apart, share no leaf), so that
-    # normal boxes drop a slave's own side above the leaves (Warp's CPU device, quad4 at 2^16,
-    # the face scan's thread time: spiral 90-94 -> 81-82 ms, coil 108-109 -> 96-97, two
-    # bodies 57 -> 47-48; crumpled sheet 136 either way; 4 d_max: a little less, the whole
-    # box: the crumpled sheet's walk twice as long).
-    sides = 8 * d_max if self_contact else 0.0
+    # Self-contact: the face tree sorts each cell of 4 d_max by the faces' normal classes
+    # (_grid._side_key; a thin solid's two sides, one element apart, then share no leaf), so
+    # that normal boxes drop a slave's own side above the leaves. The face scan's time, quad4
+    # at 2^16 on Warp's CPU device (thread time) and 2^17 on an H100, cells alone -> 4 d_max:
+    # spiral 86 -> 78 ms and 1.82 -> 1.64 ms, coil 104 -> 94 and 2.01 -> 1.90, two bodies
+    # 52-54 -> 45-46 and 1.16 -> 1.08, folded sheet 61-63 -> 57-59 and 2.02 -> 1.92, the
+    # crumpled sheet (steep folds: classes in patches) 132 -> 135 and 4.36 -> 4.37. 8 d_max
+    # and more: the crumpled sheet 6-12 % slower on the H100.
+    sides = 4 * d_max if self_contact else 0.0
     face_grid, _ = _grid.new_grid(master.n_faces, *box, normals=self_contact, sides=sides)
     tri3 = e.name == "tri3"
     # On a GPU the trees are sized by how the master at plan time groups (_grid.measure: room
