@@ -379,18 +379,18 @@ def test_warp_face_tree_sorts_each_cell_by_normal_class(monkeypatch, element):
     axis = np.argmax(np.abs(n), 1)
     cls = 2 * axis + (n[np.arange(len(n)), axis] < 0)
 
+    grid = precision("float32")._grid
+
     def run():
         p = acw.plan_self(s, d_max=d, device="cpu")
         out = acw.detect_self(p, s.points)
-        g = p.face_grid
-        w = 8  # (_grid.W: items a leaf)
+        g, w = p.face_grid, grid.W  # (W item slots a leaf)
         ids = g.items.numpy()["id"][: w * int(g.counts.numpy()[1])].reshape(-1, w)
         assert np.array_equal(np.sort(ids[ids >= 0]), np.arange(len(s.faces)))
         mixed = np.mean([len(set(cls[r[r >= 0]])) > 1 for r in ids])
         return out, mixed
 
     out, mixed = run()
-    grid = precision("float32")._grid
     plain = grid.new_grid
     monkeypatch.setattr(grid, "new_grid", lambda *a, sides=0.0, **k: plain(*a, **k))
     want, mixed_plain = run()
