@@ -1207,8 +1207,10 @@ def new_grid(
     g.normals = int(normals)
     g.sides = 0
     if sides > 0:
+        # (below the top level: classes above every cell split the tree into six that a
+        # slave walks side by side, the crumpled sheet's walk twice as long)
         level = int(np.ceil(np.log2(max(sides / float(g.quantum), 2.0))))
-        g.sides = min(level, g.bits)
+        g.sides = min(level, g.bits - 1)
     return g, world_bits
 
 
