@@ -6,6 +6,7 @@ devices (2^20 a device), rough surfaces, float32.
     python benchmarks/sharding_trace.py summary DIR         # GPU time a call per stream/kernel
     python benchmarks/sharding_trace.py diff A B            # kernels of trace A against B
     python benchmarks/sharding_trace.py collectives         # the collectives alone, all devices
+    python benchmarks/sharding_trace.py options [--search jax]  # XLA's command buffers, A/B
 
 `run` writes DIR/perfetto_<search>_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
 deep folders) and prints each case's median wall time of 10 calls.
@@ -160,17 +161,89 @@ def collectives(repeats=50):
     print(f"  two all_to_alls, C = 600: {t:.3f} ms")
 
 
+#: XLA compiler options tried on the detection (jit's compiler_options: this call's programs
+#: alone, not the process's XLA_FLAGS). The default command buffers leave the collectives
+#: out, so a sharded call is several graphs launched around its all_to_alls.
+OPTIONS = {
+    "default": None,
+    "collectives": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,COLLECTIVES",
+    "collectives+while": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,COLLECTIVES,WHILE,CONDITIONAL",
+    "off": "",
+}
+
+
+def options(search="jax", log2=20, rounds=4, calls=15):
+    """One device's detection at 2^log2 nodes a surface and all devices' at n_dev x 2^log2
+    (rough, float32), each compiled with every entry of OPTIONS; rounds of `calls` synchronised
+    calls (median) and of `calls` dispatched back to back with one wait (mean, "pipelined"),
+    the variants taking turns. Prints a JSON record a case and variant."""
+    import arraycontact_jax as acj
+    import jax
+    from arraycontact_jax import _detect
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from arraycontact import scenes
+
+    n_dev = len(jax.devices())
+    mesh = Mesh(np.array(jax.devices()), ("space",))
+    cases = {}
+    for name, n, m in (("one", 2**log2, None), (f"mesh{n_dev}", n_dev * 2**log2, mesh)):
+        s = scenes.rough_surfaces(n, seed=0)
+        p = acj.plan(s.master, s.slave, dtype=np.float32, search=search, mesh=m)
+        sl, pts = s.slave.astype(np.float32), s.master.points.astype(np.float32)
+        where = None if m is None else NamedSharding(m, P("space"))
+        body = _detect.detect.__wrapped__ if m is None else _detect._shard_detect
+        fns = {
+            k: jax.jit(body, compiler_options={"xla_gpu_enable_command_buffer": v})
+            if v is not None
+            else jax.jit(body)
+            for k, v in OPTIONS.items()
+        }
+        cases[name] = (p, jax.device_put(sl, where), jax.device_put(pts, where), fns)
+    first = {}
+    for name, (p, sl, pts, fns) in cases.items():
+        for k, f in fns.items():
+            face = np.asarray(jax.block_until_ready(f(p, sl, pts)).face)
+            first.setdefault(name, face)
+            assert np.array_equal(face, first[name]), f"{name} {k}: other faces than the default"
+            for _ in range(5):
+                jax.block_until_ready(f(p, sl, pts))
+    times = collections.defaultdict(list)
+    for _ in range(rounds):
+        for name, (p, sl, pts, fns) in cases.items():
+            for k, f in fns.items():
+                ts = []
+                for _ in range(calls):
+                    t = time.perf_counter()
+                    jax.block_until_ready(f(p, sl, pts))
+                    ts.append(time.perf_counter() - t)
+                times[name, k, "synced"].append(float(np.median(ts)))
+                t = time.perf_counter()
+                for _ in range(calls):
+                    r = f(p, sl, pts)
+                jax.block_until_ready(r)
+                times[name, k, "pipelined"].append((time.perf_counter() - t) / calls)
+    for (name, k, how), v in times.items():
+        rec = dict(case=name, search=search, log2=log2, option=k, flag=OPTIONS[k], how=how)
+        rec.update(ms=[round(x * 1e3, 3) for x in v], median_ms=round(float(np.median(v)) * 1e3, 3))
+        print(json.dumps(rec), flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=["run", "summary", "diff", "collectives"])
+    ap.add_argument("what", choices=["run", "summary", "diff", "collectives", "options"])
     ap.add_argument("folder", nargs="*", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--search", choices=["warp", "jax"], default="warp")
+    ap.add_argument("--log2", type=int, default=20, help="options: nodes a surface a device")
     a = ap.parse_args()
     if a.what == "run":
         run(a.out or os.environ["OUT"], a.search)
     elif a.what == "collectives":
         collectives()
+    elif a.what == "options":
+        options(a.search, a.log2)
     elif a.what == "diff":
         diff(*a.folder)
     else:
