@@ -164,6 +164,7 @@ def collectives(repeats=50):
 #: XLA compiler options tried on the detection (jit's compiler_options: this call's programs
 #: alone, not the process's XLA_FLAGS). The default command buffers leave the collectives
 #: out, so a sharded call is several graphs launched around its all_to_alls.
+KEY = "xla_gpu_enable_command_buffer"
 OPTIONS = {
     "default": None,
     "collectives": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,COLLECTIVES",
@@ -195,9 +196,7 @@ def options(search="jax", log2=20, rounds=4, calls=15):
         where = None if m is None else NamedSharding(m, P("space"))
         body = _detect.detect.__wrapped__ if m is None else _detect._shard_detect
         fns = {
-            k: jax.jit(body, compiler_options={"xla_gpu_enable_command_buffer": v})
-            if v is not None
-            else jax.jit(body)
+            k: jax.jit(body, compiler_options=v if v is None else {KEY: v})
             for k, v in OPTIONS.items()
         }
         cases[name] = (p, jax.device_put(sl, where), jax.device_put(pts, where), fns)
