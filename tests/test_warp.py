@@ -1181,31 +1181,45 @@ def test_tree_groups_are_the_radix_trees_largest_nodes(kind, measured, aligned):
     np.testing.assert_allclose(hit, d.min(1), rtol=1e-6, atol=1e-7)
 
 
-@pytest.mark.skipif(
-    not wp.is_cpu_available(), reason="Warp's CPU device cannot compile here (no LLVM)"
-)
 def test_plan_declares_the_overloads_its_detect_launches():
     """A Warp plan adds every scan-kernel overload its detections launch, so the first detect
     does not add one (each added overload rebuilds the whole module: three compilations of
-    the scans on a first call). In a fresh process, each case's types are new there."""
+    the scans on a first call). And each of the back end's Warp modules is built for one
+    block size a device (Warp builds a module once for each block size its launches and loads
+    ask: a cold cache compiled the topology's module four times on the CPU, the detection's
+    twice on a GPU). In a fresh process, each case's types are new there."""
     code = """
+import itertools, sys
+import warp as wp
 import arraycontact as ac, arraycontact_warp as acw
 from arraycontact import scenes
 from arraycontact_warp import _detect as d
 kernels = [d._node_kernel, d._face_kernel, d._self_face_kernel, d._finish_kernel]
 def sigs():
     return [set(k.overloads) for k in kernels]
-for element, mode, self_contact in [("tri3", "exact", False), ("quad4", "exact", True)]:
+cases = [("tri3", "exact", False), ("quad4", "exact", True)]
+# (a GPU machine's Warp may have no LLVM to compile for its CPU)
+devices = ["cpu"] * wp.is_cpu_available() + ["cuda:0"] * wp.is_cuda_available()
+for device, (element, mode, self_contact) in itertools.product(devices, cases):
     s = scenes.two_bodies(200, element=element)
     if self_contact:
-        p = acw.plan_self(s.master, d_max=0.65, device="cpu", mode=mode)
+        p = acw.plan_self(s.master, d_max=0.65, device=device, mode=mode)
     else:
-        p = acw.plan(s.master, s.master.points[:50], d_max=0.65, device="cpu", mode=mode)
+        p = acw.plan(s.master, s.master.points[:50], d_max=0.65, device=device, mode=mode)
     before = sigs()
     x = s.master.points
     acw.detect_self(p, x) if self_contact else acw.detect(p, x[:50], x)
-    assert sigs() == before, (element, mode, self_contact)
+    assert sigs() == before, (device, element, mode, self_contact)
     assert sum(map(len, before)) > 0
+    # (a second call loads the trees' modules before its threads launch their kernels)
+    acw.detect_self(p, x) if self_contact else acw.detect(p, x[:50], x)
+modules = {k.module for name, m in list(sys.modules.items()) if name.startswith("arraycontact_warp")
+           for k in vars(m).values() if isinstance(k, wp.Kernel)}
+blocks = {}
+for m in modules:
+    for context, block in m.execs:
+        blocks.setdefault((m.name, context), set()).add(block)
+assert blocks and all(len(b) == 1 for b in blocks.values()), blocks
 print("ok")
 """
     import subprocess

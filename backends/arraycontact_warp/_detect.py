@@ -79,6 +79,14 @@ GROWTH = 1.25
 #: 3.60 + 0.34 quad4; self-contact at 2^17, spiral 2.36 against 1.83 + 0.19 (its extra state
 #: and branches cost a latency-bound scan more than a second, simpler scan does).
 NODES_IN_FACE_SCAN = {False: True, True: False}
+#: A GPU's threads a block for every kernel of this module. Warp builds a module once for each
+#: block size its launches ask (a cold kernel cache compiled this module twice, 48 s each on an
+#: H100's host for float64 quad4, when the scans ran in blocks of 128 and the rest of 256).
+#: 128 for the scans (H100, 2^20, against 256: uniform face scan 0.98 -> 0.92 ms and closest
+#: node 0.34 -> 0.32, steep 0.44 -> 0.39 and 0.29 -> 0.26, graded_1000 1.85 -> 1.75 and 0.88
+#: -> 0.82; quad4 alike; 64 and 32 no better): a block frees its SM's room when its slowest
+#: warp ends.
+BLOCK = 128
 
 
 @wp.func
@@ -919,7 +927,7 @@ def _both_trees(p: Plan, phase: str, nodes, faces):
     kind = (phase, str(p.device), NP_REAL, p.self_contact, p.mode)
     if p.device.is_cpu and kind in _LOADED:
         # (loaded here, not in two threads: another plan's overloads may have made it stale)
-        _grid._keys.module.load(p.device)
+        _parts.load(_grid._keys, p.device)
         _parts.concurrently(p.device, *chains)
         return
     for chain in reversed(chains):
@@ -1021,7 +1029,8 @@ def _launch(p: Plan, xs, s_origin, master):
     if master is not None:
         _master_stages(p, *master)
         if p.self_contact:
-            wp.launch(_gather_rows, p.n_slaves, inputs=[master[0], p.own_nodes, xs], device=dev)
+            args = [master[0], p.own_nodes, xs]
+            wp.launch(_gather_rows, p.n_slaves, inputs=args, device=dev, block_dim=BLOCK)
     if p.order_keys is not None:
         _grid.spatial_order(xs, s_origin, real(c.quantum), p.order_keys, p.order, p.n_slaves, dev)
     _slave_stages(p, xs, s_origin)
@@ -1035,12 +1044,9 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
     o = p.out
     n = p.n_slaves
     rec = dict(cmds=p.cmds, record_only=record_only, cuts=p.cuts)
-    # GPU blocks of 128 threads for the two scans (H100, 2^20, against 256: uniform face scan
-    # 0.98 -> 0.92 ms and closest node 0.34 -> 0.32, steep 0.44 -> 0.39 and 0.29 -> 0.26,
-    # graded_1000 1.85 -> 1.75 and 0.88 -> 0.82; quad4 alike; 64 and 32 no better): a block
-    # frees its SM's room when its slowest warp ends. Self-contact's face scan, one block of
-    # 256 an SM at its 255 registers, ran 2-5 % slower in blocks of 128.
-    scan = 256 if p.self_contact else 128
+    # Self-contact's face scan, in a module of its own, one block of 256 an SM at its 255
+    # registers, ran 2-5 % slower in blocks of 128 (BLOCK).
+    scan = 256 if p.self_contact else BLOCK
     if not p.nodes_too:
         _slave_launch(
             _node_kernel,
@@ -1062,7 +1068,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
             [o["master_node"], p.dist],
             dev,
             order=3,
-            block=128,
+            block=BLOCK,
             **rec,
         )
     if p.mode == 0:
@@ -1125,6 +1131,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
         [p.finer] + [o[k] for k, _ in OUTPUTS],
         dev,
         first=18,
+        block=BLOCK,
         **rec,
     )
 

@@ -26,6 +26,15 @@ _pool = None
 _loaded = set()
 
 
+def load(kernel, dev):
+    """Load kernel's module on dev as its launches there will, before threads launch its
+    kernels (two threads must not compile a module). Warp builds a module once per block size
+    and a CPU launch runs blocks of 1, while `Module.load` alone builds the module's default
+    256 (on a cold kernel cache that was a second compile of the module, and the threads then
+    compiled the stale block-1 build at once: the topology's module three times over)."""
+    kernel.module.load(dev, block_dim=1 if dev.is_cpu else None)
+
+
 def _get_pool():
     global _pool
     if _pool is None:
@@ -155,7 +164,7 @@ def launch(
         wp.launch(kernel, n, inputs=inputs, outputs=outputs, device=dev)
         _loaded.add(key)
         return
-    kernel.module.load(dev)  # another kernel's new overload may have made the module stale
+    load(kernel, dev)  # another kernel's new overload may have made the module stale
     at = None if cuts is None else cuts.get((kernel, n), cuts.get(n))
     if at is None or len(at) != CPU_PARTS + 1:
         at = np.linspace(0, n, CPU_PARTS + 1).astype(int)

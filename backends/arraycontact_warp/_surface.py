@@ -36,7 +36,7 @@ import warp as wp
 
 from arraycontact._surface import Surface, validate_points
 
-from ._parts import concurrently
+from ._parts import concurrently, load
 
 wp.set_module_options({"enable_backward": False})
 
@@ -533,7 +533,7 @@ def _topology(master: Surface, device) -> Topology:
         run(_face_scalars, -(-nf // CHUNK), *scalars, out, int(not cuda))
         t["r_small"] = _tenth(radii, rows, nf, device)
 
-    _count_edges.module.load(device)  # once, before threads launch its kernels
+    load(_count_edges, device)  # once, before threads launch its kernels
     concurrently(device, edge_chain, node_chain, scalar_chain)
     s = out.numpy()
     n_nodes = int(t["flags"][n - 1 : n].numpy()[0]) if n else 0
