@@ -79,6 +79,8 @@ GROWTH = 1.25
 #: 3.60 + 0.34 quad4; self-contact at 2^17, spiral 2.36 against 1.83 + 0.19 (its extra state
 #: and branches cost a latency-bound scan more than a second, simpler scan does).
 NODES_IN_FACE_SCAN = {False: True, True: False}
+
+
 #: A GPU's threads a block for every kernel of this module. Warp builds a module once for each
 #: block size its launches ask (a cold kernel cache compiled this module twice, 48 s each on an
 #: H100's host for float64 quad4, when the scans ran in blocks of 128 and the rest of 256).
@@ -274,6 +276,119 @@ _self_face_kernel = wp.kernel(
 )(_face_kernel.func)
 
 
+@wp.struct
+class Exact:
+    """The finish kernel of exact mode: the chosen face's projection. A type, not a flag, so
+    that exact mode's kernel holds no code of node mode's search: with both, the finish kernel
+    of a quad4 or quadratic master took 3.4x longer to compile (float64, quad4, self-contact,
+    sm_90, compile_aot_module on this 2-core host: 16.2 -> 5.3 s)."""
+
+    unused: int
+
+
+@wp.struct
+class NodeSearch:
+    """The finish kernel of node mode: the search among the faces around the closest node."""
+
+    unused: int
+
+
+_EXACT, _NODE_SEARCH = Exact(), NodeSearch()
+
+
+@wp.func
+def _answer(
+    md: Exact,
+    el: Any,
+    m: Master,
+    grid: _grid.Grid,
+    kp: Any,
+    i: int,
+    s: vec3,
+    node: int,
+    own: int,
+    f: int,
+    d: real,
+    k: int,
+    d_max: real,
+    tie: real,
+    iterations: int,
+    tol: real,
+    passing_by: int,
+    h_node: wp.array(dtype=real),
+):
+    """Slave i's face, xi, feature, local, converged, s - point, active and status: exact
+    mode's from the scan's face f at distance d (its face-grid item k)."""
+    if d <= d_max:
+        xi, feature, local, conv, diff = projected(el, m, grid, kp, i, k, s, f, iterations, tol)
+        return f, xi, feature, local, conv, diff, int(1), int(0)
+    return f, vec2(0.0), int(-1), int(-1), int(0), vec3(0.0), int(0), int(1)  # out of range
+
+
+@wp.func
+def _answer(  # noqa: F811 (a Warp overload)
+    md: NodeSearch,
+    el: Any,
+    m: Master,
+    grid: _grid.Grid,
+    kp: Any,
+    i: int,
+    s: vec3,
+    node: int,
+    own: int,
+    f: int,
+    d: real,
+    k: int,
+    d_max: real,
+    tie: real,
+    iterations: int,
+    tol: real,
+    passing_by: int,
+    h_node: wp.array(dtype=real),
+):
+    """Node mode's answer from the closest node: the faces attached to it; the closest
+    projection landing inside a face, else (a blind spot) the closest of all, each by the tie
+    rule (a second pass picks the smallest face id within `tie`). A blind spot at a boundary
+    node outside its proximal volume is passing by: reported, not active."""
+    if node < 0:
+        return int(-1), vec2(0.0), int(-1), int(-1), int(0), vec3(0.0), int(0), int(1)
+    only_face = int(0)
+    limit = real(-1.0)
+    f = int(-1)
+    xi = vec2(0.0)
+    feature = int(-1)
+    local = int(-1)
+    conv = int(0)
+    diff = vec3(0.0)
+    for scan in range(2):
+        d_face, d_any, f, xi, feature, local, conv, diff = scan_attached(
+            el, m, grid, s, node, only_face, limit, iterations, tol, own
+        )
+        if scan == 0:
+            limit = d_any + tie
+            if d_face < real(3.0e38):
+                only_face = 1
+                limit = d_face + tie
+    active = int(f >= 0)
+    status = 1 - active
+    if only_face == 0 and active == 1:
+        status = 2  # blind spot
+        if passing_by == 1 and (m.prev_face[node] >= 0 or m.next_face[node] >= 0):
+            if not proximal(el, m, s, node):
+                active = 0
+                status = 3  # passing by
+    if own >= 0 and active == 1:
+        # Seed 000 section 3, item 5 (as arraycontact._detect.run_stages).
+        h_i = h_node[own]
+        h_j = h_node[node]
+        coarser = h_i > h_j * real(1.0 + SIZE_RTOL)
+        finer = h_i * real(1.0 + SIZE_RTOL) < h_j
+        if coarser or (not finer and only_face == 0 and own > node):
+            active = 0
+            status = 5  # master side
+    return f, xi, feature, local, conv, diff, active, status
+
+
 # 64 registers (79 unbounded): 0.175 -> 0.148 ms at 2^20 on an H100 (40: 0.162, 48: 0.154,
 # 56: 0.148, 80: 0.174). The closest-node kernel gains nothing from a cap (55 registers).
 @wp.kernel(cuda_max_registers=64)
@@ -287,7 +402,7 @@ def _finish_kernel(
     tie: real,
     iterations: int,
     tol: real,
-    mode: int,
+    md: Any,
     passing_by: int,
     selfc: int,
     own_nodes: wp.array(dtype=int),
@@ -311,7 +426,7 @@ def _finish_kernel(
     local_out: wp.array(dtype=int),
 ):
     """The chosen face's projection (exact mode) or the node-mode search on the faces around
-    the closest node, then stage 5 and every output. Slaves in their own order, so that the
+    the closest node (md: Exact or NodeSearch, `_answer`), then stage 5 and every output. Slaves in their own order, so that the
     outputs are written in whole cache lines. Self-contact (selfc = 1): the
     faces of the slave's node drop out of node mode, whose pair goes to the finer side
     (MASTER_SIDE), and `finer_out` is written. Thread t takes slave first + t."""
@@ -321,55 +436,10 @@ def _finish_kernel(
     own = int(-1)
     if selfc == 1:
         own = own_nodes[i]
-    f = int(-1)
-    xi = vec2(0.0)
-    feature = int(-1)
-    local = int(-1)
-    conv = int(0)
-    diff = vec3(0.0)
-    active = int(0)
-    status = int(1)  # out of range
-    if mode == 0:
-        f = face_out[i]
-        if dist[i] <= d_max:
-            xi, feature, local, conv, diff = projected(
-                el, m, face_grid, kp, i, item[i], s, f, iterations, tol
-            )
-            active = 1
-            status = 0
-    elif node >= 0:
-        # Node mode: the faces attached to the closest node; the closest projection landing
-        # inside a face, else (a blind spot) the closest of all, each by the tie rule (a second
-        # pass picks the smallest face id within `tie`). A blind spot at a boundary node outside
-        # its proximal volume is passing by: reported, not active.
-        only_face = int(0)
-        limit = real(-1.0)
-        for scan in range(2):
-            d_face, d_any, f, xi, feature, local, conv, diff = scan_attached(
-                el, m, face_grid, s, node, only_face, limit, iterations, tol, own
-            )
-            if scan == 0:
-                limit = d_any + tie
-                if d_face < real(3.0e38):
-                    only_face = 1
-                    limit = d_face + tie
-        active = int(f >= 0)
-        status = 1 - active
-        if only_face == 0 and active == 1:
-            status = 2  # blind spot
-            if passing_by == 1 and (m.prev_face[node] >= 0 or m.next_face[node] >= 0):
-                if not proximal(el, m, s, node):
-                    active = 0
-                    status = 3  # passing by
-        if own >= 0 and active == 1:
-            # Seed 000 section 3, item 5 (as arraycontact._detect.run_stages).
-            h_i = h_node[own]
-            h_j = h_node[node]
-            coarser = h_i > h_j * real(1.0 + SIZE_RTOL)
-            finer = h_i * real(1.0 + SIZE_RTOL) < h_j
-            if coarser or (not finer and only_face == 0 and own > node):
-                active = 0
-                status = 5  # master side
+    f, xi, feature, local, conv, diff, active, status = _answer(
+        md, el, m, face_grid, kp, i, s, node, own, face_out[i], dist[i], item[i], d_max, tie,
+        iterations, tol, passing_by, h_node,
+    )  # fmt: skip
     nan = real(wp.nan)
     if own >= 0:
         finer_out[i] = 0
@@ -837,22 +907,24 @@ def _declare_kernels(el, self_contact: bool, exact: bool, cuda: bool, nodes_too=
         face_kernel = _self_face_kernel if self_contact else _face_kernel
         nt = Nodes if nodes_too else NoNodes
         wp.overload(face_kernel, {"el": el, "kind": kind, "kp": kp, "nt": nt})
-    wp.overload(_finish_kernel, {"el": el, "kp": kp})
+    wp.overload(_finish_kernel, {"el": el, "kp": kp, "md": Exact if exact else NodeSearch})
     if self_contact:
         wp.overload(self_face_geometry, {"el": el})
         wp.overload(self_node_geometry, {"el": el})
 
 
 def declare_all(cuda: bool = False):
-    """Every overload of the generic kernels (both element structs, both scan kinds, swept),
-    before any launch, so that each module compiles once whatever the process detects next.
-    For the test suite: its Warp warm-up and its workers call it, so the workers load what the
-    warm-up compiled instead of compiling each new mix of overloads again. (A plan declares
-    only what its detections launch: on a GPU the scans of an unused element type would add
-    their compile time.) cuda: a GPU's overloads (its scans keep no projection: kept_type)."""
+    """Every overload of the generic kernels (both element structs, both scan kinds, both
+    modes, swept), before any launch, so that each module compiles once whatever the process
+    detects next. For the test suite: its Warp warm-up and its workers call it, so the workers
+    load what the warm-up compiled instead of compiling each new mix of overloads again. (A
+    plan declares only what its detections launch: on a GPU the scans of an unused element
+    type would add their compile time.) cuda: a GPU's overloads (its scans keep no
+    projection: kept_type)."""
     for el in (Triangles, Element):
         wp.overload(_sweep.swept_scan, {"el": el})
         for self_contact in (False, True):
+            _declare_kernels(el, self_contact, False, cuda)  # node mode
             for nodes_too in (False, True):
                 _declare_kernels(el, self_contact, True, cuda, nodes_too)
 
@@ -1117,7 +1189,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False):
             real(c.tie),
             c.iterations,
             real(c.tol),
-            p.mode,
+            _EXACT if p.mode == 0 else _NODE_SEARCH,
             p.passing_by,
             p.self_contact,
             p.own_nodes,
