@@ -426,10 +426,11 @@ def _finish_kernel(
     local_out: wp.array(dtype=int),
 ):
     """The chosen face's projection (exact mode) or the node-mode search on the faces around
-    the closest node (md: Exact or NodeSearch, `_answer`), then stage 5 and every output. Slaves in their own order, so that the
-    outputs are written in whole cache lines. Self-contact (selfc = 1): the
-    faces of the slave's node drop out of node mode, whose pair goes to the finer side
-    (MASTER_SIDE), and `finer_out` is written. Thread t takes slave first + t."""
+    the closest node (md: Exact or NodeSearch, `_answer`), then stage 5 and every output.
+    Slaves in their own order, so that the outputs are written in whole cache lines.
+    Self-contact (selfc = 1): the faces of the slave's node drop out of node mode, whose pair
+    goes to the finer side (MASTER_SIDE), and `finer_out` is written. Thread t takes slave
+    first + t."""
     i = first + wp.tid()
     s = slaves[i] - origin
     node = node_out[i]
