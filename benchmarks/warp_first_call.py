@@ -6,6 +6,7 @@ where Warp hands the driver PTX, the driver caches its own compilation across pr
 
     python benchmarks/warp_first_call.py [--cases tri3:two quad4:two tri3:self quad4:self]
         [--backends DIR] [--run ID] [--out DIR]
+    python benchmarks/warp_first_call.py --table MACHINE RUN [RUN ...]   # their records
 
 Cases: element:two (`ac.detect` of the rough surfaces, 2000 nodes a surface) or element:self
 (`ac.detect_self` of the crumpled sheet, 300 nodes): small scenes, so that compilation is
@@ -61,6 +62,20 @@ def child(element, kind, cache):
     print(json.dumps(rec), flush=True)
 
 
+def table(machine, runs):
+    """First and second call per case (rows) and run (columns), from the records."""
+    recs = _records.load("warp_first_call", machine)
+    cases = list(dict.fromkeys(f"{r['element']}:{r['kind']}" for r in recs if r["run"] in runs))
+    print("| case | " + " | ".join(f"{run}: first / second call" for run in runs) + " |")
+    print("|---" * (len(runs) + 1) + "|")
+    for case in cases:
+        cells = []
+        for run in runs:
+            r = [x for x in recs if x["run"] == run and f"{x['element']}:{x['kind']}" == case]
+            cells.append(f"{r[-1]['first_s']:.1f} s / {r[-1]['second_s']:.3f} s" if r else "")
+        print(f"| {case} | " + " | ".join(cells) + " |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument(
@@ -69,10 +84,13 @@ def main():
     ap.add_argument("--backends", default=str(HERE.parent / "backends"))
     ap.add_argument("--run", default=None)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--table", nargs="+", metavar="MACHINE RUN", help="a table of runs")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)  # element, kind, cache folder
     a = ap.parse_args()
     if a.child:
         return child(*a.child)
+    if a.table:
+        return table(a.table[0], a.table[1:])
     meta = _records.meta(a.run)
     backends = str(Path(a.backends).resolve())
     env = dict(os.environ, CUDA_CACHE_DISABLE="1")
