@@ -914,14 +914,22 @@ def _declare_kernels(el, self_contact: bool, exact: bool, cuda: bool, nodes_too=
         wp.overload(self_node_geometry, {"el": el})
 
 
-def declare_all(cuda: bool = False):
+def declare_all(cuda: bool | None = None):
     """Every overload of the generic kernels (both element structs, both scan kinds, both
     modes, swept), before any launch, so that each module compiles once whatever the process
     detects next. For the test suite: its Warp warm-up and its workers call it, so the workers
     load what the warm-up compiled instead of compiling each new mix of overloads again. (A
     plan declares only what its detections launch: on a GPU the scans of an unused element
     type would add their compile time.) cuda: a GPU's overloads (its scans keep no
-    projection: kept_type)."""
+    projection: kept_type), or the CPU's; None: those of each kind of device present (a GPU
+    machine's tests declared the CPU's alone, so every GPU plan added overloads to modules
+    that held the CPU's too, and each module was compiled again for each: a cold kernel
+    cache's GPU tests did not finish in 10 minutes)."""
+    if cuda is None:
+        kinds = [False] * wp.is_cpu_available() + [True] * wp.is_cuda_available()
+        for c in kinds:
+            declare_all(c)
+        return
     for el in (Triangles, Element):
         wp.overload(_sweep.swept_scan, {"el": el})
         for self_contact in (False, True):
