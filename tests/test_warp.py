@@ -1197,7 +1197,7 @@ from arraycontact_warp import _detect as d
 kernels = [d._node_kernel, d._face_kernel, d._self_face_kernel, d._finish_kernel]
 def sigs():
     return [set(k.overloads) for k in kernels]
-cases = [("tri3", "exact", False), ("quad4", "exact", True)]
+cases = [("tri3", "exact", False), ("quad4", "exact", True), ("quad4", "node", False)]
 # (a GPU machine's Warp may have no LLVM to compile for its CPU)
 devices = ["cpu"] * wp.is_cpu_available() + ["cuda:0"] * wp.is_cuda_available()
 for device, (element, mode, self_contact) in itertools.product(devices, cases):
