@@ -96,7 +96,9 @@ def main():
     env = dict(os.environ, CUDA_CACHE_DISABLE="1")
     env["PYTHONPATH"] = os.pathsep.join([backends, str(HERE.parent), env.get("PYTHONPATH", "")])
     for case in a.cases:
-        element, kind = case.split(":")
+        element, _, kind = case.partition(":")
+        if kind not in ("two", "self"):
+            raise ValueError(f"a case is element:two or element:self, got {case!r}")
         cache = tempfile.mkdtemp(prefix="warp_cache_")
         cmd = [sys.executable, __file__, "--child", element, kind, cache]
         out = subprocess.run(cmd, capture_output=True, text=True, env=env)

@@ -297,6 +297,12 @@ _EXACT, _NODE_SEARCH = Exact(), NodeSearch()
 
 
 @wp.func
+def _no_answer(f: int):
+    """`_answer` of a slave without one (out of range): face f as the scan left it."""
+    return f, vec2(0.0), int(-1), int(-1), int(0), vec3(0.0), int(0), int(1)
+
+
+@wp.func
 def _answer(
     md: Exact,
     el: Any,
@@ -322,7 +328,7 @@ def _answer(
     if d <= d_max:
         xi, feature, local, conv, diff = projected(el, m, grid, kp, i, k, s, f, iterations, tol)
         return f, xi, feature, local, conv, diff, int(1), int(0)
-    return f, vec2(0.0), int(-1), int(-1), int(0), vec3(0.0), int(0), int(1)  # out of range
+    return _no_answer(f)
 
 
 @wp.func
@@ -351,7 +357,7 @@ def _answer(  # noqa: F811 (a Warp overload)
     rule (a second pass picks the smallest face id within `tie`). A blind spot at a boundary
     node outside its proximal volume is passing by: reported, not active."""
     if node < 0:
-        return int(-1), vec2(0.0), int(-1), int(-1), int(0), vec3(0.0), int(0), int(1)
+        return _no_answer(int(-1))
     only_face = int(0)
     limit = real(-1.0)
     f = int(-1)
