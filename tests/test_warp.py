@@ -686,13 +686,14 @@ def test_exported_geometry_in_a_user_kernel():
     assert np.array_equal(feat.numpy(), ref.feature)
 
 
-def _edges_kernel(g, real, vec3):
-    """A user kernel calling the exported edge solver of geometry module g."""
+def _edges_kernel(g, real, vec3, struct):
+    """A user kernel calling the exported edge solver of geometry module g on element data of
+    type `struct` (g.Element, or g.Quads for quad4)."""
 
     # (A compact signature: see test_exported_geometry_in_a_user_kernel.)
     # fmt: off
     @wp.kernel(module="unique")
-    def edges(el: g.Element, pts: wp.array(dtype=vec3), q: wp.array(dtype=vec3),
+    def edges(el: struct, pts: wp.array(dtype=vec3), q: wp.array(dtype=vec3),
               t_out: wp.array2d(dtype=real), d_out: wp.array2d(dtype=real)):
         i = wp.tid()
         xe = g.FaceNodes()
@@ -711,6 +712,7 @@ def _edges_kernel(g, real, vec3):
     "element,dtype",
     [
         ("quad4", "float32"),
+        ("quad4 as Quads", "float64"),
         ("tri6", "float32"),
         ("quad8", "float32"),
         ("quad9", "float32"),
@@ -718,11 +720,16 @@ def _edges_kernel(g, real, vec3):
     ],
 )
 def test_exported_closest_point_edge(element, dtype):
-    """The exact edge solver as a @wp.func: the same minimum as dense sampling of each edge."""
+    """The exact edge solver as a @wp.func: the same minimum as dense sampling of each edge
+    (quad4 in an Element and in a Quads struct)."""
     from arraycontact._elements import get_element, shape_functions
 
     g = acw.geometry(dtype)
     real, vec3 = (wp.float32, wp.vec3) if dtype == "float32" else (wp.float64, wp.vec3d)
+    quads = element == "quad4 as Quads"
+    element = element.split()[0]
+    struct = g.Quads if quads else g.Element
+    data = g.quad_data(DEVICE) if quads else g.element_data(element, DEVICE)
 
     e = get_element(element)
     rng = np.random.default_rng(4)
@@ -735,9 +742,9 @@ def test_exported_closest_point_edge(element, dtype):
         return wp.array(a.astype(dtype), dtype=vec3, device=DEVICE)
 
     wp.launch(
-        _edges_kernel(g, real, vec3),
+        _edges_kernel(g, real, vec3, struct),
         300,
-        inputs=[g.element_data(element, DEVICE), arr(pts), arr(q)],
+        inputs=[data, arr(pts), arr(q)],
         outputs=[t, d],
         device=DEVICE,
     )

@@ -35,12 +35,14 @@ from ._detect import run_one_shot as run_one_shot  # noqa: E402
 from ._detect import run_swept as run_swept  # noqa: E402
 from ._geometry import Element as Element  # noqa: E402
 from ._geometry import FaceNodes as FaceNodes  # noqa: E402
+from ._geometry import Quads as Quads  # noqa: E402
 from ._geometry import closest_point_edge as closest_point_edge  # noqa: E402
 from ._geometry import closest_point_face as closest_point_face  # noqa: E402
 from ._geometry import closest_point_triangle as closest_point_triangle  # noqa: E402
 from ._geometry import element_data as element_data  # noqa: E402
 from ._geometry import face_nodes as face_nodes  # noqa: E402
 from ._geometry import face_point as face_point  # noqa: E402
+from ._geometry import quad_data as quad_data  # noqa: E402
 from ._geometry import set_node as set_node  # noqa: E402
 from ._geometry import start_option_one as start_option_one  # noqa: E402
 from ._real import precision as _precision  # noqa: E402
@@ -59,6 +61,7 @@ __all__ = [
     "Element",
     "FaceNodes",
     "Plan",
+    "Quads",
     "closest_point_edge",
     "closest_point_face",
     "closest_point_triangle",
@@ -71,6 +74,7 @@ __all__ = [
     "plan",
     "plan_self",
     "master_scalars",
+    "quad_data",
     "run_one_shot",
     "run_swept",
     "set_node",

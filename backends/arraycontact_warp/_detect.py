@@ -42,7 +42,7 @@ from arraycontact_warp import _surface  # one set of its (precision-free) kernel
 
 from . import _grid, _parts, _prepare, _sweep
 from ._closest_node import closest_node, counts
-from ._geometry import Element, Triangles, element_data, triangle_data
+from ._geometry import Element, Quads, Triangles, element_data, quad_data, triangle_data
 from ._parts import _concrete
 from ._parts import launch as _slave_launch
 from ._projection import (
@@ -527,7 +527,7 @@ class Plan:
     master: Surface
     n_slaves: int
     element: Element
-    kernel_element: object  # Triangles for tri3 (a specialised kernel), else the Element
+    kernel_element: object  # the detection kernels' element type (`_element_structs`)
     m: Master
     node_grid: _grid.Grid
     face_grid: _grid.Grid
@@ -848,7 +848,7 @@ def plan(
     p.face_nhi = wp.zeros(n_faces, dtype=vec3, device=device)
     p.h_face = wp.zeros(n_faces, dtype=real, device=device)
     p.finer = wp.zeros(n_self, dtype=wp.int32, device=device)
-    kept = kept_type(Triangles if tri3 else Element, wp.get_device(device).is_cuda) is Kept
+    kept = kept_type(_kernel_type(e.name), wp.get_device(device).is_cuda) is Kept
     p.kept = Kept() if kept else Unkept()
     p.kept.item = wp.full(n if kept else 1, -1, dtype=int, device=device)
     if kept:
@@ -856,7 +856,7 @@ def plan(
         p.kept.tag = wp.zeros(n, dtype=int, device=device)
     if self_contact:
         out["finer"] = p.finer
-    _declare(p, tri3)
+    _declare(p)
     if sort_slaves == "plan":  # the per-call sort, run once on the plan's points
         wp.launch(_prepare.localise64, n, inputs=[xd, o64], outputs=[p.slave_in], device=device)
         _grid.spatial_order(
@@ -875,24 +875,32 @@ def plan(
 _ELEMENTS = {}
 
 
+def _kernel_type(name: str):
+    """The struct type a plan's detection kernels specialise on: Triangles for tri3 (closed
+    form), Quads for quad4 (no curved-face code), else the Element."""
+    return {"tri3": Triangles, "quad4": Quads}.get(name, Element)
+
+
 def _element_structs(name: str, device):
-    """The element's structs for a plan's kernels (Element, and Triangles for tri3's scans),
-    made once a device: their arrays are constants no kernel writes (building them took 0.5
-    ms of a 15 ms plan on the CPU)."""
+    """The element's structs for a plan's kernels, the Element and its `_kernel_type`'s, made
+    once a device: their arrays are constants no kernel writes (building them took 0.5 ms of
+    a 15 ms plan on the CPU)."""
     key = (name, device.alias)
     if key not in _ELEMENTS:
         el = element_data(name, device)
-        _ELEMENTS[key] = (el, triangle_data(device) if name == "tri3" else el)
+        kernel = {Triangles: triangle_data, Quads: quad_data}.get(_kernel_type(name))
+        _ELEMENTS[key] = (el, kernel(device) if kernel else el)
     return _ELEMENTS[key]
 
 
-def _declare(p: Plan, tri3: bool):
+def _declare(p: Plan):
     """Adds the overloads of the scan kernels that the plan's detections launch before the
     first launch. Warp rebuilds a module whenever a launch adds an overload, so a first detect
     compiled this module three times, the scans again each time (cold kernel cache, quad4,
     CPU: first call 10.5 -> 7.9 s; tri3 8.6 -> 6.9 s). Now it compiles once."""
     cuda = wp.get_device(p.device).is_cuda
-    _declare_kernels(Triangles if tri3 else Element, bool(p.self_contact), p.mode == 0, cuda)
+    el = _kernel_type(p.master.element.name)
+    _declare_kernels(el, bool(p.self_contact), p.mode == 0, cuda)
 
 
 _DECLARED = set()
@@ -938,6 +946,7 @@ def declare_all(cuda: bool | None = None):
         return
     for el in (Triangles, Element):
         wp.overload(_sweep.swept_scan, {"el": el})
+    for el in (Triangles, Quads, Element):
         for self_contact in (False, True):
             _declare_kernels(el, self_contact, False, cuda)  # node mode
             for nodes_too in (False, True):
@@ -1574,7 +1583,8 @@ def plan_swept(
         device=device,
         master=master,
         n_slaves=n,
-        kernel_element=_element_structs(e.name, device)[1],
+        # (swept kernels specialise on tri3 alone: quad4's take the Element)
+        kernel_element=_element_structs(e.name, device)[e.name == "tri3"],
         faces=arr(master.faces.astype(np.int32), int),
         face_world=arr(0 * fw if shared else fw, int),
         slave_world=arr(sw, int),

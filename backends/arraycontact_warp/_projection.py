@@ -17,7 +17,6 @@ from ._geometry import (
     EDGE,
     FACE,
     VERTEX,
-    Element,
     FaceNodes,
     Triangles,
     beyond_an_edge,
@@ -28,7 +27,9 @@ from ._geometry import (
     face_nodes,
     face_point,
     face_tangents,
+    is_bilinear,
     start_option_one,
+    straight,
     surely_convex,
 )
 from ._grid import (
@@ -75,7 +76,7 @@ class Master:
 
 @wp.func
 def exact_edges(
-    el: Element, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int, conv: int, best: real
+    el: Any, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int, conv: int, best: real
 ):
     """The exact closest point over the face's edges (closest_point_edge) replaces Newton's
     answer xi (at squared distance `best`) when at most as far: no start can miss a minimum
@@ -103,7 +104,7 @@ def exact_edges(
 
 
 @wp.func
-def lattice_start(el: Element, r: vec3, xe: FaceNodes):
+def lattice_start(el: Any, r: vec3, xe: FaceNodes):
     """The closest of a 5 x 5 lattice of interior points (15 on triangles), as in NumPy."""
     best = el.centre
     best_d = real(3.0e38)
@@ -149,7 +150,7 @@ def project_face(el: Triangles, m: Master, grid: Grid, s: vec3, f: int, iteratio
 
 @wp.func
 def project_face(  # noqa: F811 (a Warp overload)
-    el: Element, m: Master, grid: Grid, s: vec3, f: int, iterations: int, tol: real
+    el: Any, m: Master, grid: Grid, s: vec3, f: int, iterations: int, tol: real
 ):
     return project(el, m, grid, -1, s, f, iterations, tol)
 
@@ -157,7 +158,7 @@ def project_face(  # noqa: F811 (a Warp overload)
 # A Warp overload of the tri3 `project` above, chosen by the element struct's type.
 @wp.func
 def project(  # noqa: F811 (a Warp overload)
-    el: Element,
+    el: Any,
     m: Master,
     grid: Grid,
     k: int,
@@ -173,7 +174,7 @@ def project(  # noqa: F811 (a Warp overload)
 
 
 @wp.func
-def _project_nodes(el: Element, r: vec3, xe: FaceNodes, iterations: int, tol: real):
+def _project_nodes(el: Any, r: vec3, xe: FaceNodes, iterations: int, tol: real):
     """`project` of the point r on the face of nodes xe (both in a frame at its first node)."""
     xi = vec2(0.0)
     feature = int(0)
@@ -183,9 +184,9 @@ def _project_nodes(el: Element, r: vec3, xe: FaceNodes, iterations: int, tol: re
     # a bilinear face the lattice start unless one start surely suffices; the closest result
     # wins, the first on a tie. One call site keeps the generated code small.
     n_starts = 1
-    if el.nn > el.n_corners:
+    if not straight(el):
         n_starts = el.n_corners + 3
-    elif el.n_corners == 4:
+    elif is_bilinear(el):
         if beyond_an_edge(r, xe):
             n_starts = 0  # the closest point is on the edges
         elif not surely_convex(el, r, xe):
@@ -195,7 +196,7 @@ def _project_nodes(el: Element, r: vec3, xe: FaceNodes, iterations: int, tol: re
         start = el.centre
         if k == 0:
             start = start_option_one(el, r, xe)
-        elif k == el.n_corners + 2 or el.nn == el.n_corners:
+        elif k == el.n_corners + 2 or straight(el):
             start = lattice_start(el, r, xe)
         elif k > 1:
             start = el.nodes[el.n_corners + k - 2]
@@ -237,7 +238,7 @@ class Unkept:
 
 def kept_type(el, cuda: bool):
     """The `kp` struct of a detection's scans: Kept for bilinear and curved faces off a GPU."""
-    return Kept if el is Element and not cuda else Unkept
+    return Kept if el is not Triangles and not cuda else Unkept
 
 
 @wp.func
@@ -342,7 +343,7 @@ def project_facing(  # noqa: F811 (a Warp overload)
 
 @wp.func
 def project_facing(  # noqa: F811 (a Warp overload)
-    o: Own, el: Element, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int, tol: real
+    o: Own, el: Any, m: Master, grid: Grid, k: int, s: vec3, f: int, iterations: int, tol: real
 ):
     # The face's nodes loaded once for both: loaded again for the normal, the self-contact
     # face kernel ran 6-9 % slower on an H100 (2^17, the five self-contact scenes).
@@ -442,7 +443,7 @@ def _face_node(el: Triangles, m: Master, grid: Grid, k: int, f: int, c: int):
 
 
 @wp.func
-def _face_node(el: Element, m: Master, grid: Grid, k: int, f: int, c: int):  # noqa: F811
+def _face_node(el: Any, m: Master, grid: Grid, k: int, f: int, c: int):  # noqa: F811
     return m.points[m.faces[f, c]]
 
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import warp as wp
 
-from ._geometry import EDGE, FACE, Element, Triangles, face_nodes, face_tangents
+from ._geometry import EDGE, FACE, Triangles, face_nodes, face_tangents
 from ._projection import Master
 from ._real import real, vec2, vec3
 
@@ -26,14 +26,14 @@ def _unit(v: vec3):
 
 
 @wp.func
-def face_normal(el: Element, m: Master, f: int, xi: vec2):
+def face_normal(el: Any, m: Master, f: int, xi: vec2):
     xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
     t0, t1 = face_tangents(el, xe, xi)
     return _unit(wp.cross(t0, t1))
 
 
 @wp.func
-def _tangents(el: Element, m: Master, f: int, xi: vec2):
+def _tangents(el: Any, m: Master, f: int, xi: vec2):
     xe = face_nodes(m.points, m.faces, f, m.points[m.faces[f, 0]])
     return face_tangents(el, xe, xi)
 
