@@ -35,6 +35,18 @@ def load(kernel, dev):
     kernel.module.load(dev, block_dim=1 if dev.is_cpu else None)
 
 
+def load_at_once(dev, kernels):
+    """Load the modules of `kernels` [(kernel, a GPU's block size for it, or None: its module's
+    default)] on dev, one thread a module (as Warp's `force_load`: a module's compilation runs
+    outside the GIL)."""
+    jobs = [
+        _get_pool().submit(k.module.load, dev, block_dim=1 if dev.is_cpu else block)
+        for k, block in kernels
+    ]
+    for j in jobs:
+        j.result()
+
+
 def _get_pool():
     global _pool
     if _pool is None:
