@@ -171,10 +171,12 @@ def _node_kernel(
     dist[i] = dn
 
 
-# Three kernels rather than one: the face scan alone spills fewer registers. 128 registers a
-# thread (face kernel at 2^20 on an H100, benchmarks/gpu_stages.py: 64: 3.18 ms, 80: 1.99,
-# 96: 1.49, 128: 1.47, no cap: 2.36 ms).
-@wp.kernel(cuda_max_registers=128)
+# Three kernels rather than one: the face scan alone spills fewer registers. 96 registers a
+# thread (face kernel at 2^20 on an H100, benchmarks/gpu_stages.py, uniform: 64: 3.18 ms, 80:
+# 1.99, 96: 1.49, 128: 1.47, no cap: 2.36 ms; since quad4's kernels of their own, uniform /
+# quad4 / graded_1000: 80: 0.95 / 2.81 / 1.79 ms, 96: 0.82 / 2.82 / 1.56, 112: 0.91 / 2.99 /
+# 1.72, 128: 0.85 / 2.85 / 1.61, 168: 0.96 / 3.05, no cap: 0.99 / 3.55).
+@wp.kernel(cuda_max_registers=96)
 def _face_kernel(
     el: Any,
     m: Master,
