@@ -135,7 +135,10 @@ def _bound(
     return bound
 
 
-@wp.kernel
+# 64 registers a thread (H100, `gpu_stages.py`, the node kernel: 2^20 uniform / graded_1000 /
+# steep / dmax_10 0.31 / 0.51 / 0.25 / 0.42 ms uncapped, 0.24 / 0.40 / 0.21 / 0.32 at 64,
+# 0.27 / 0.45 at 96, 0.30 / 0.48 at 48; self-contact 2^17 spiral 0.185 -> 0.151 ms).
+@wp.kernel(cuda_max_registers=64)
 def _node_kernel(
     node_grid: _grid.Grid,
     m: Master,
