@@ -970,9 +970,8 @@ def declare_all(cuda: bool | None = None):
         for c in kinds:
             declare_all(c)
         return
-    for el in (Triangles, Element):
-        wp.overload(_sweep.swept_scan, {"el": el})
     for el in (Triangles, Quads, Element):
+        wp.overload(_sweep.swept_scan, {"el": el})
         for self_contact in (False, True):
             _declare_kernels(el, self_contact, False, cuda)  # node mode
             for nodes_too in (False, True):
@@ -1609,8 +1608,7 @@ def plan_swept(
         device=device,
         master=master,
         n_slaves=n,
-        # (swept kernels specialise on tri3 alone: quad4's take the Element)
-        kernel_element=_element_structs(e.name, device)[e.name == "tri3"],
+        kernel_element=_element_structs(e.name, device)[1],
         faces=arr(master.faces.astype(np.int32), int),
         face_world=arr(0 * fw if shared else fw, int),
         slave_world=arr(sw, int),

@@ -55,9 +55,14 @@ _ELEMENT_FIELDS = {
 }
 
 
-def _element_struct(name: str, doc: str):
-    ns = {"__annotations__": dict(_ELEMENT_FIELDS), "__doc__": doc, "__module__": __name__}
+def make_struct(name: str, fields: dict, doc: str, module: str = __name__):
+    """A Warp struct `name` of `fields` {name: type} (several structs of one field table)."""
+    ns = {"__annotations__": dict(fields), "__doc__": doc, "__module__": module}
     return wp.struct(type(name, (), {**ns, "__qualname__": name}))
+
+
+def _element_struct(name: str, doc: str):
+    return make_struct(name, _ELEMENT_FIELDS, doc)
 
 
 #: Any element (quad4 too): the data the element functions below read.

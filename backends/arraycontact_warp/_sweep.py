@@ -24,12 +24,16 @@ from ._geometry import (
     VERTEX,
     Element,
     FaceNodes,
+    Quads,
     Triangles,
     _corner_weights,
     _row,
     face_nodes,
+    is_bilinear,
+    make_struct,
     set_node,
     shape,
+    straight,
 )
 from ._grid import (
     Grid,
@@ -71,7 +75,7 @@ def _natural(el: Triangles, s: real, w: real):
 
 
 @wp.func
-def _natural(el: Element, s: real, w: real):  # noqa: F811 (a Warp overload)
+def _natural(el: Any, s: real, w: real):  # noqa: F811 (a Warp overload)
     if el.n_corners == 3:
         return vec2(s, w)
     return vec2(real(2.0) * s - real(1.0), real(2.0) * w - real(1.0))
@@ -93,10 +97,10 @@ def _ab(el: Triangles, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2)
 
 
 @wp.func
-def _ab(el: Element, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):  # noqa: F811
+def _ab(el: Any, xa: FaceNodes, va: FaceNodes, p: vec3, v: vec3, xi: vec2):  # noqa: F811
     a = -p
     b = -v
-    if el.bilinear == 1:  # the loop below written out (_geometry._corner_weights)
+    if is_bilinear(el):  # the loop below written out (_geometry._corner_weights)
         n0, n1, n2, n3 = _corner_weights(xi)
         a = a + n0 * xa.x0 + n1 * xa.x1 + n2 * xa.x2 + n3 * xa.x3
         b = b + n0 * va.x0 + n1 * va.x1 + n2 * va.x2 + n3 * va.x3
@@ -114,8 +118,8 @@ def _grade(el: Triangles):
 
 
 @wp.func
-def _grade(el: Element):  # noqa: F811
-    if el.nn == el.n_corners:
+def _grade(el: Any):  # noqa: F811
+    if straight(el):
         return 2
     return 3
 
@@ -150,25 +154,40 @@ class TriPair:
     r: int  # the face's corner at the origin (_corner_shift)
 
 
-@wp.struct
-class CurvedPair:
-    """A (node, face) pair of any element in its frame: face nodes xa at t = 0 and their
-    motion va, the node's p and v; as TriPair's the rest."""
+#: A (node, face) pair of any element in its frame: face nodes xa at t = 0 and their motion
+#: va, the node's p and v; as TriPair's the rest. One struct per element struct (el's type).
+_CURVED_PAIR_FIELDS = {
+    "xa": FaceNodes,
+    "va": FaceNodes,
+    "p": vec3,
+    "v": vec3,
+    "n0": vec3,
+    "n1": vec3,
+    "margin": real,
+    "delta": real,
+    "r": int,  # a triangle's corner at the origin (_corner_shift); 0 for quads
+    "band": int,  # 1: a bilinear quad, h1 and h2 set (_band)
+    "h1": vec4,
+    "h2": vec4,
+    "h_margin": real,
+}
+CurvedPair = make_struct(
+    "CurvedPair", {"el": Element, **_CURVED_PAIR_FIELDS}, "A pair of any element.", __name__
+)
+#: quad4's (its functions specialised on Quads: no curved-face code, as the static scans)
+QuadPair = make_struct(
+    "QuadPair", {"el": Quads, **_CURVED_PAIR_FIELDS}, "A pair of a quad4 face.", __name__
+)
 
-    el: Element
-    xa: FaceNodes
-    va: FaceNodes
-    p: vec3
-    v: vec3
-    n0: vec3
-    n1: vec3
-    margin: real
-    delta: real
-    r: int  # a triangle's corner at the origin (_corner_shift); 0 for quads
-    band: int  # 1: a bilinear quad, h1 and h2 set (_band)
-    h1: vec4
-    h2: vec4
-    h_margin: real
+
+@wp.func
+def _new_pair(el: Element):
+    return CurvedPair()
+
+
+@wp.func
+def _new_pair(el: Quads):  # noqa: F811 (a Warp overload)
+    return QuadPair()
 
 
 @wp.func
@@ -269,7 +288,7 @@ def _pair(
 
 @wp.func
 def _pair(  # noqa: F811 (a Warp overload)
-    el: Element,
+    el: Any,
     x0: wp.array(dtype=vec3),
     x1: wp.array(dtype=vec3),
     faces: wp.array2d(dtype=int),
@@ -282,7 +301,7 @@ def _pair(  # noqa: F811 (a Warp overload)
     if el.n_corners == 3:
         r = _corner_shift(x0[faces[f, 0]], x0[faces[f, 1]], x0[faces[f, 2]])
     o = x0[_node(f, 0, r, faces)]
-    q = CurvedPair()
+    q = _new_pair(el)
     q.el = el
     q.r = r
     xb = FaceNodes()
@@ -302,13 +321,13 @@ def _pair(  # noqa: F811 (a Warp overload)
     q.margin = real(ROUND) * EPS * sc
     q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
     q.band = 0
-    if el.nn == 4:
+    if is_bilinear(el):
         q = _band(q, xb)
     return q
 
 
 @wp.func
-def _band(q: CurvedPair, xb: FaceNodes):
+def _band(q: Any, xb: FaceNodes):
     """A bilinear quad's twist band. With c its centroid, n = d1 x d2 (its diagonals) and w =
     (x0 - x1 + x2 - x3) / 4, corners 0 and 2 lie at height w . n above the plane through c
     normal to n and corners 1 and 3 as far below, so every point of the face has
@@ -340,7 +359,7 @@ def _f(q: TriPair, s: real, w: real, t: real):
 
 
 @wp.func
-def _f(q: CurvedPair, s: real, w: real, t: real):  # noqa: F811
+def _f(q: Any, s: real, w: real, t: real):  # noqa: F811
     a, b = _ab(q.el, q.xa, q.va, q.p, q.v, _natural(q.el, s, w))
     return a + t * b
 
@@ -448,7 +467,7 @@ def _examine(q: TriPair, box: Box6):
 
 
 @wp.func
-def _examine(q: CurvedPair, box: Box6):  # noqa: F811 (a Warp overload)
+def _examine(q: Any, box: Box6):  # noqa: F811 (a Warp overload)
     """arraycontact._sweep.examine for one box (and the Jacobian's bounds: the hull of the
     derivatives' Bernstein coefficients, differences of the control points)."""
     el = q.el
@@ -606,7 +625,7 @@ def _nodes(el: Triangles):
 
 
 @wp.func
-def _nodes(el: Element):  # noqa: F811
+def _nodes(el: Any):  # noqa: F811
     return el.nn
 
 
@@ -622,7 +641,7 @@ def _shape(el: Triangles, xi: vec2, i: int):
 
 
 @wp.func
-def _shape(el: Element, xi: vec2, i: int):  # noqa: F811
+def _shape(el: Any, xi: vec2, i: int):  # noqa: F811
     return shape(el, xi, i)
 
 
@@ -632,7 +651,7 @@ def _centre(el: Triangles):
 
 
 @wp.func
-def _centre(el: Element):  # noqa: F811
+def _centre(el: Any):  # noqa: F811
     return el.centre
 
 
@@ -875,7 +894,7 @@ def _narrow(q: TriPair, bound: real, start: real):
 
 
 @wp.func
-def _narrow(q: CurvedPair, bound: real, start: real):  # noqa: F811 (a Warp overload)
+def _narrow(q: Any, bound: real, start: real):  # noqa: F811 (a Warp overload)
     """_narrowed by a bilinear quad's band (_band); other faces: the unit box."""
     if q.band == 1:
         return _narrowed(q.h1, q.h2, q.h_margin, bound, start)
@@ -918,7 +937,7 @@ def earliest(q: Any, bound: real, t_tol: real, budget: int):
 def search(q: Any, node: Box6, bound: real, t_tol: real, budget: int):
     """The pair's earliest contact (arraycontact._sweep.roots for one pair) in the dyadic box
     `node` (the unit box, or a slab of time) before `bound`: (toi or 3e38, the contact box's
-    centre (s, w), converged, boxes visited). q: TriPair or CurvedPair (_pair).
+    centre (s, w), converged, boxes visited). q: TriPair, CurvedPair or QuadPair (_pair).
 
     The same depth-first order as roots' stack (the earlier half first, boxes that start at
     or after the earliest contact skipped), without the stack: a pending box is always the
@@ -1082,7 +1101,7 @@ def _pair_tri(q: TriPair):
 
 
 @wp.func
-def _pair_tri(q: CurvedPair):  # noqa: F811
+def _pair_tri(q: Any):  # noqa: F811
     return _is_tri(q.el)
 
 
@@ -1092,7 +1111,7 @@ def _is_tri(el: Triangles):
 
 
 @wp.func
-def _is_tri(el: Element):  # noqa: F811
+def _is_tri(el: Any):  # noqa: F811
     return el.n_corners == 3
 
 
