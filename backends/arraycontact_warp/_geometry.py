@@ -61,18 +61,16 @@ def make_struct(name: str, fields: dict, doc: str, module: str = __name__):
     return wp.struct(type(name, (), {**ns, "__qualname__": name}))
 
 
-def _element_struct(name: str, doc: str):
-    return make_struct(name, _ELEMENT_FIELDS, doc)
-
-
 #: Any element (quad4 too): the data the element functions below read.
-Element = _element_struct("Element", "Any element's data (`element_data`).")
+Element = make_struct("Element", _ELEMENT_FIELDS, "Any element's data (`element_data`).")
 
 #: quad4 as a type of its own, for the detection kernels: the functions below take the
 #: bilinear shortcuts at compile time (`is_bilinear`, `straight`), so a quad4 kernel holds no
 #: curved-face code (behind a run-time flag it cost the kernels registers: H100, 2^20 quad4,
 #: face scan 3.84 -> 2.86 ms, finish kernel 0.79 -> 0.39 ms; float64 first call 26 -> 18 s).
-Quads = _element_struct("Quads", "quad4's data (`quad_data`): an `Element` known bilinear.")
+Quads = make_struct(
+    "Quads", _ELEMENT_FIELDS, "quad4's data (`quad_data`): an `Element` known bilinear."
+)
 
 
 @wp.struct
