@@ -645,16 +645,17 @@ def _face_gather(
     k = first + wp.tid()
     i = grid.sorted_ids[k]
     c, r, lo, hi = face_bounds(points, faces, i, lebesgue)
+    q = slot(grid, k)
+    if corners == 1:  # before any other store: the compiler reuses face_bounds' loads
+        grid.corners[q, 0] = points[faces[i, 0]]
+        grid.corners[q, 1] = points[faces[i, 1]]
+        grid.corners[q, 2] = points[faces[i, 2]]
     if refit == 1:
         if wp.length(c - grid.centres[k]) > grid.margin:
             rebuild[0] = 1
     else:
         grid.centres[k] = c
-    q = slot(grid, k)
     write_item(grid, q, lo, i, hi, world[i])
-    if corners == 1:
-        for j in range(3):
-            grid.corners[q, j] = points[faces[i, j]]
 
 
 @wp.func

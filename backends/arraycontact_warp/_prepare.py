@@ -38,6 +38,22 @@ def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: i
     holds the face (the nodes' box when the shape functions are non-negative), and so does the
     ball's cube."""
     nn = faces.shape[1]
+    if nn <= 4 and lebesgue == real(1.0):
+        # Linear faces (tri3, quad4): the nodes' box itself, as arraycontact._surface's, each
+        # corner read once (a refit's gathers run every call: the loops below read them twice).
+        x0 = points[faces[f, 0]]
+        x1 = points[faces[f, 1]]
+        x2 = points[faces[f, 2]]
+        x3 = x2
+        if nn == 4:
+            x3 = points[faces[f, 3]]
+        s = x0 + x1 + x2
+        if nn == 4:
+            s = s + x3
+        c = s / real(nn)
+        r = wp.max(wp.length(x0 - c), wp.length(x1 - c))
+        r = wp.max(r, wp.max(wp.length(x2 - c), wp.length(x3 - c)))
+        return c, r, wp.min(wp.min(x0, x1), wp.min(x2, x3)), wp.max(wp.max(x0, x1), wp.max(x2, x3))
     c = vec3(0.0)
     a = points[faces[f, 0]]
     b = a
