@@ -209,6 +209,35 @@ def test_warped_quad4_faces(backend):
     assert_self_matches(ac.detect_self(sc.master, backend=backend, d_max=d), sc.master, d)
 
 
+@pytest.mark.parametrize("element", ["tri3", "quad4", "quad8"])
+def test_warp_face_slab_holds_its_face(element):
+    """Self-contact's `Slab` (Warp: skips a face whose slab is beyond the scan's reach): the
+    unit normal n and the range of n . x over a straight-edged face's corners holds every point
+    of the face (sampled densely, the crumpled sheet's warped quads among them); curved faces
+    get the whole range."""
+    import arraycontact_warp as acw
+
+    sc = scenes.crumpled_sheet(300, element=element)
+    m = sc.master
+    p = acw.plan_self(m, d_max=sc.params["d_max"], dtype="float64", device="cpu")
+    acw.detect_self(p, m.points)
+    slab = p.face_slab.numpy()
+    n, lo, hi = slab[:, :3], slab[:, 3], slab[:, 4]
+    g = np.linspace(-1.0, 1.0, 9) if m.element.kind == "quad" else np.linspace(0.0, 1.0, 9)
+    xi = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    if m.element.kind == "tri":
+        xi = xi[xi.sum(1) <= 1.0]
+    x, _ = interpolate(m.element, m.points[m.faces][:, None], xi[None])  # [F, samples, 3]
+    if element == "quad8":
+        assert np.all(n == 0.0) and np.all(lo <= -1e29) and np.all(hi >= 1e29)
+        return
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, rtol=1e-12)
+    h = np.einsum("fk,fsk->fs", n, x - p.origin)  # (the plan's frame)
+    tol = 1e-12 * np.abs(m.points).max()
+    assert np.all(h >= lo[:, None] - tol) and np.all(h <= hi[:, None] + tol)
+    assert element == "tri3" or np.ptp(hi - lo) > 0  # (warped quads: slabs of some thickness)
+
+
 def _warp_cpu_compiles() -> bool:
     import warp as wp
 

@@ -50,6 +50,7 @@ from ._projection import (
     Master,
     Nodes,
     NoNodes,
+    Slab,
     Unkept,
     finds_nodes,
     first_reach,
@@ -200,6 +201,7 @@ def _face_kernel(
     nodes: wp.array(dtype=int),
     nlo: wp.array(dtype=vec3),
     nhi: wp.array(dtype=vec3),
+    slab: wp.array(dtype=Slab),
     kp: Any,
     nt: Any,
     dist: wp.array(dtype=real),
@@ -248,7 +250,7 @@ def _face_kernel(
         if scan == 0 or rho >= real(0.0) or track == 1:
             d, ff, kk, u, n_d, n_2, n_b = scan_faces(
                 el, m, face_grid, s, w, shared, rho, tie, limit, slack, iterations, tol, o, kp,
-                i, d_max, nt, track, n_reach, n_limit, normals, nlo, nhi,
+                i, d_max, nt, track, n_reach, n_limit, normals, nlo, nhi, slab,
             )  # fmt: skip
             if scan == 0 or rho >= real(0.0):
                 f = ff
@@ -567,6 +569,7 @@ class Plan:
     h_node: wp.array = None
     face_nlo: wp.array = None
     face_nhi: wp.array = None
+    face_slab: wp.array = None  # each face's Slab (self-contact's scan)
     h_face: wp.array = None
     finer: wp.array = None  # [n] int32: the `finer` output (self-contact)
     kept: Kept = None  # [n] between kernels: the chosen face's projection by the face scan
@@ -860,6 +863,7 @@ def plan(
     p.h_node = wp.zeros(n_pts, dtype=real, device=device)
     p.face_nlo = wp.zeros(n_faces, dtype=vec3, device=device)
     p.face_nhi = wp.zeros(n_faces, dtype=vec3, device=device)
+    p.face_slab = wp.zeros(n_faces, dtype=Slab, device=device)
     p.h_face = wp.zeros(n_faces, dtype=real, device=device)
     p.finer = wp.zeros(n_self, dtype=wp.int32, device=device)
     kept = kept_type(_kernel_type(e.name), wp.get_device(device).is_cuda) is Kept
@@ -1092,7 +1096,7 @@ def _master_stages(p: Plan, xm, m_origin, beside=None):
             self_face_geometry,
             p.master.n_faces,
             [0, p.kernel_element, m],
-            [p.face_nlo, p.face_nhi, p.h_face],
+            [p.face_nlo, p.face_nhi, p.h_face, p.face_slab],
             dev,
             first=0,
         )
@@ -1270,6 +1274,7 @@ def _slave_stages(p: Plan, xs, s_origin, record_only=False, nodes_too=True, face
                 o["master_node"],
                 p.face_nlo,
                 p.face_nhi,
+                p.face_slab,
                 p.kept,
                 Nodes() if p.nodes_too else NoNodes(),
             ],

@@ -307,6 +307,29 @@ def holds_own(o: Plain, m: Master, f: int):
     return False
 
 
+#: A straight-edged linear face's slab (tri3, quad4): its unit normal n and the range lo..hi
+#: of n . x over its corners, which holds the face (its points are convex combinations of its
+#: corners). Others: n = 0, the whole range.
+Slab = wp.types.vector(length=5, dtype=real)
+
+
+@wp.func
+def slab_gap(o: Plain, slab: wp.array(dtype=Slab), f: int, s: vec3):
+    """A lower bound of s's distance to face f beyond its box's: none in a two-body scan (the
+    rough scenes' faces lie flat, where their boxes are tight)."""
+    return real(0.0)
+
+
+@wp.func
+def slab_gap(o: Own, slab: wp.array(dtype=Slab), f: int, s: vec3):  # noqa: F811
+    """Self-contact: s's distance to face f's slab (`Slab`), a lower bound of its distance to
+    the face: a box is loose across a tilted face (the crumpled sheet's), whose projection
+    this skips."""
+    b = slab[f]
+    x = b[0] * s[0] + b[1] * s[1] + b[2] * s[2]
+    return wp.max(real(0.0), wp.max(x - b[4], b[3] - x))
+
+
 @wp.func
 def holds_own(o: Own, m: Master, f: int):  # noqa: F811 (a Warp overload)
     return holds(m, f, o.node)
@@ -472,6 +495,7 @@ def scan_faces(
     normals: wp.array(dtype=vec3),
     nlo: wp.array(dtype=vec3),
     nhi: wp.array(dtype=vec3),
+    slab: wp.array(dtype=Slab),
 ):
     """Over the faces whose box is within rho of s: the smallest distance, and the face of the
     tie rule (smallest id within `tie` of it) with its tree item. Its projection goes to kp
@@ -602,6 +626,8 @@ def scan_faces(
             # The second scan skips ids above the best so far.
             if near:
                 near = not holds_own(o, m, f)
+            if near:  # (slack: the slab's rounding, 10 eps of the extent at most)
+                near = slab_gap(o, slab, f, s) <= cut + slack
             if near and (limit < real(0.0) or best < 0 or f < best):
                 xi, feature, local, conv, diff, ok = project_facing(
                     o, el, m, grid, kt, s, f, iterations, tol

@@ -9,7 +9,7 @@ from typing import Any
 import warp as wp
 
 from ._geometry import EDGE, FACE, Triangles, face_nodes, face_tangents
-from ._projection import Master
+from ._projection import Master, Slab
 from ._real import real, vec2, vec3
 
 # Forward only, no loop unrolling (a scan's loops unrolled copy the projection many times into
@@ -198,10 +198,12 @@ def self_face_geometry(
     lo: wp.array(dtype=vec3),
     hi: wp.array(dtype=vec3),
     h_face: wp.array(dtype=real),
+    slab: wp.array(dtype=Slab),
 ):
     """Each face's normal box (arraycontact._surface.normal_boxes: tri3 its normal, quad4 its
     corner normals, tri6 the nine cross products of x_xi and x_eta at its corners, else all
-    unit vectors) and its size (the mean length of its edges). Threads first + t."""
+    unit vectors), its size (the mean length of its edges) and its `Slab`. Threads first +
+    t."""
     f = first + wp.tid()
     nn = m.faces.shape[1]
     k = el.n_corners
@@ -229,3 +231,24 @@ def self_face_geometry(
     for c in range(k):
         h += wp.length(m.points[m.faces[f, (c + 1) % k]] - m.points[m.faces[f, c]])
     h_face[f] = h / real(k)
+    sb = Slab(real(0.0), real(0.0), real(0.0), real(-1.0e30), real(1.0e30))
+    if nn == 3 or nn == 4:
+        c0 = m.points[m.faces[f, 0]]
+        c1 = m.points[m.faces[f, 1]]
+        c2 = m.points[m.faces[f, 2]]
+        c3 = c2
+        n = wp.cross(c1 - c0, c2 - c0)
+        if nn == 4:
+            c3 = m.points[m.faces[f, 3]]
+            n = wp.cross(c2 - c0, c3 - c1)  # (the diagonals': a warped quad's mean normal)
+        ln = wp.length(n)
+        if ln > real(0.0):
+            n = n / ln
+            d0 = wp.dot(n, c0)
+            d1 = wp.dot(n, c1)
+            d2 = wp.dot(n, c2)
+            d3 = wp.dot(n, c3)
+            s_lo = wp.min(wp.min(d0, d1), wp.min(d2, d3))
+            s_hi = wp.max(wp.max(d0, d1), wp.max(d2, d3))
+            sb = Slab(n[0], n[1], n[2], s_lo, s_hi)
+    slab[f] = sb
