@@ -307,6 +307,11 @@ def holds_own(o: Plain, m: Master, f: int):
     return False
 
 
+@wp.func
+def holds_own(o: Own, m: Master, f: int):  # noqa: F811 (a Warp overload)
+    return holds(m, f, o.node)
+
+
 #: A straight-edged linear face's slab (tri3, quad4): its unit normal n and the range lo..hi
 #: of n . x over its corners, which holds the face (its points are convex combinations of its
 #: corners). Others: n = 0, the whole range.
@@ -328,11 +333,6 @@ def slab_gap(o: Own, slab: wp.array(dtype=Slab), f: int, s: vec3):  # noqa: F811
     b = slab[f]
     x = b[0] * s[0] + b[1] * s[1] + b[2] * s[2]
     return wp.max(real(0.0), wp.max(x - b[4], b[3] - x))
-
-
-@wp.func
-def holds_own(o: Own, m: Master, f: int):  # noqa: F811 (a Warp overload)
-    return holds(m, f, o.node)
 
 
 @wp.func
