@@ -447,12 +447,22 @@ def _write(a, rec):
 
 def table(a):
     """Markdown tables of run --run (default: the newest) of results/suite_<machine>.jsonl,
-    one row per scene, times as ratios to the peers of the same run."""
-    recs = _records.run_of(_records.load("suite", a.machine), a.run)
+    one row per scene, times as ratios to the peers of the same run. --run newest: the
+    standing, each scene's newest record at the newest record's size (a column names its run;
+    each row's ratios are still those of its own run)."""
+    recs = _records.load("suite", a.machine)
+    standing = a.run == "newest"
+    if standing:
+        size = recs[-1]["log2"] if recs else None
+        recs = _records.newest([r for r in recs if r.get("log2") == size], "scene")
+    else:
+        recs = _records.run_of(recs, a.run)
     if recs:
         mode = "cpu" if a.machine == "cpu" else "gpu"
         r0 = recs[0]
-        if not a.brief:
+        if standing and not a.brief:
+            print(f"The newest record of each scene at 2^{r0['log2']}, {r0['device']}:\n")
+        elif not a.brief:
             print(
                 f"{mode.upper()} run {r0['run']} ({r0['device']}, {r0['date']}, commit "
                 f"{_records.commit(r0)}): `{r0['command']}`\n"
@@ -461,9 +471,9 @@ def table(a):
             print(
                 "| scene | faces | slaves | ours (Warp, graph) | wp.Mesh refit + query | "
                 "build + query | ours / refit | ours / build | misses | wrong faces | "
-                "gap error / edge |"
+                "gap error / edge |" + " run |" * standing
             )
-            print("|---|---|---|---|---|---|---|---|---|---|---|")
+            print("|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * standing)
             for r in recs:
                 e = r["errors"]
                 print(
@@ -471,7 +481,7 @@ def table(a):
                     f"{1e3 * r['steady_s']:.2f} ms | {1e3 * r['mesh_refit_query_s']:.2f} ms | "
                     f"{1e3 * r['mesh_build_query_s']:.2f} ms | {r['vs_refit']:.2f} | "
                     f"{r['vs_build']:.2f} | {e['miss_rate']:.0%} | {e['wrong_face_rate']:.0%} "
-                    f"| {e['max_gap_error_rel']:.1e} |"
+                    f"| {e['max_gap_error_rel']:.1e} |" + f" {r['run']} |" * standing
                 )
         else:
             fresh = any("warp_cpu_float32_new_s" in r for r in recs)  # runs since cpu-s13
