@@ -4,8 +4,8 @@ sorts, scans and a thread per item, so that a plan does not wait for the host's 
 H100 machine's host).
 
 The tables equal the Surface's, row for row (tests/test_warp.py checks them):
-- face_edges [F, k], edge_faces [E, 2]: the keys min(a, b) n + max(a, b) of every (face, local
-  edge) in the order of a stable sort (a counting sort by min(a, b), each node's few entries
+- face_edges [F, k], edge_faces [E, 2]: the keys min(a, b) 2^32 + max(a, b) of every (face,
+  local edge) in the order of a stable sort (a counting sort by min(a, b), each node's few entries
   then sorted by a thread); an edge's faces come in face order, and its id is the rank of its
   key, the Surface's order. Allocated for F k edges (the count is not known before the sort):
   rows past the last edge are never read.
@@ -43,6 +43,9 @@ wp.set_module_options({"enable_backward": False})
 #: Items a thread reduces before its one atomic update (a float atomic on one address from
 #: every thread serialises).
 CHUNK = 64
+#: The edge keys' halves: two 32-bit fields of an int64, so that each is a shift or a mask
+#: away (an int64 division a key was most of the edge tables' time on the CPU).
+LOW = wp.constant(wp.int64(0xFFFFFFFF))
 
 
 @wp.kernel
@@ -71,17 +74,15 @@ def _scatter_edges(
     pairs: wp.array(dtype=wp.int64),
 ):
     """Face f: each local edge v = f k + le into its smaller corner's segment as the pair
-    (larger corner) m + v, in any order (_edge_segments sorts them)."""
+    (larger corner) 2^32 + v, in any order (_edge_segments sorts them)."""
     f = wp.tid()
     k = ends.shape[0]
-    m = wp.int64(faces.shape[0] * k)
     for le in range(k):
         a = faces[f, ends[le, 0]]
         b = faces[f, ends[le, 1]]
         lo = wp.min(a, b)
-        pairs[offsets[lo] + wp.atomic_add(cursor, lo, 1)] = wp.int64(wp.max(a, b)) * m + wp.int64(
-            f * k + le
-        )
+        pair = (wp.int64(wp.max(a, b)) << wp.int64(32)) | wp.int64(f * k + le)
+        pairs[offsets[lo] + wp.atomic_add(cursor, lo, 1)] = pair
 
 
 @wp.kernel
@@ -114,20 +115,17 @@ def _sort_run(a: wp.array(dtype=Any), lo: int, hi: int):
 def _edge_segments(
     offsets: wp.array(dtype=int),
     keys: wp.array(dtype=wp.int64),
-    n: wp.int64,
-    m: wp.int64,
     vals: wp.array(dtype=int),
 ):
     """Node i's edges, given as _scatter_edges' pairs, sorted by (larger corner, face, local
-    edge) and written over them as the keys i n + larger corner, with the values f k + le:
+    edge) and written over them as the keys i 2^32 + larger corner, with the values f k + le:
     the order of a stable sort of every edge's key."""
     i = wp.tid()
     _sort_run(keys, offsets[i], offsets[i + 1])
     for j in range(offsets[i], offsets[i + 1]):
         p = keys[j]
-        b = p // m
-        keys[j] = wp.int64(i) * n + b
-        vals[j] = int(p - b * m)
+        keys[j] = (wp.int64(i) << wp.int64(32)) | (p >> wp.int64(32))
+        vals[j] = int(p & LOW)
 
 
 @wp.kernel
@@ -155,7 +153,6 @@ def _edge_tables(
     vals: wp.array(dtype=int),
     ranks: wp.array(dtype=int),
     count: int,
-    n: wp.int64,
     face_edges: wp.array2d(dtype=int),
     edge_faces: wp.array2d(dtype=int),
     starts: wp.array(dtype=int),
@@ -185,9 +182,9 @@ def _edge_tables(
         if t + 2 < count:
             three = keys[t + 2] == keys[t]
         starts[e] = t
-        lo = keys[t] // n  # the key is lo n + hi: no read of the (scattered) faces
-        edges[e, 0] = int(lo)
-        edges[e, 1] = int(keys[t] - lo * n)
+        # (the key is lo 2^32 + hi: no read of the (scattered) faces)
+        edges[e, 0] = int(keys[t] >> wp.int64(32))
+        edges[e, 1] = int(keys[t] & LOW)
         edge_faces[e, 0] = f
         edge_faces[e, 1] = -1
         if two:
@@ -273,6 +270,29 @@ def _ball(points: wp.array(dtype=wp.vec3d), faces: wp.array2d(dtype=int), f: int
     return c, r2
 
 
+@wp.func
+def _ball_corners(points: wp.array(dtype=wp.vec3d), faces: wp.array2d(dtype=int), f: int):
+    """A tri3 or quad4 face's `_ball` (the same sums) and the largest squared distance between
+    two of its nodes, each node read once (the loops read each three to seven times: the
+    plan's scalar chain on the CPU)."""
+    nn = faces.shape[1]
+    x0 = points[faces[f, 0]]
+    x1 = points[faces[f, 1]]
+    x2 = points[faces[f, 2]]
+    x3 = x2
+    c = x0 + x1 + x2
+    e2 = wp.max(wp.length_sq(x0 - x1), wp.max(wp.length_sq(x0 - x2), wp.length_sq(x1 - x2)))
+    if nn == 4:
+        x3 = points[faces[f, 3]]
+        c = c + x3
+        e2 = wp.max(e2, wp.max(wp.length_sq(x0 - x3), wp.length_sq(x1 - x3)))
+        e2 = wp.max(e2, wp.length_sq(x2 - x3))
+    c = c / wp.float64(nn)
+    r2 = wp.max(wp.length_sq(x0 - c), wp.length_sq(x1 - c))
+    r2 = wp.max(r2, wp.max(wp.length_sq(x2 - c), wp.length_sq(x3 - c)))
+    return c, r2, e2
+
+
 @wp.kernel
 def _face_scalars(
     points: wp.array(dtype=wp.vec3d),
@@ -298,10 +318,16 @@ def _face_scalars(
     for j in range(CHUNK):
         f = wp.where(contiguous == 1, t * CHUNK + j, t + j * n_threads)
         if f < faces.shape[0]:
-            c, r2 = _ball(points, faces, f)
-            for a in range(nn):
-                for b in range(a + 1, nn):
-                    l2 = wp.max(l2, wp.length_sq(points[faces[f, a]] - points[faces[f, b]]))
+            c = wp.vec3d()
+            r2 = wp.float64(0.0)
+            if nn == 3 or nn == 4:
+                c, r2, e2 = _ball_corners(points, faces, f)
+                l2 = wp.max(l2, e2)
+            else:
+                c, r2 = _ball(points, faces, f)
+                for a in range(nn):
+                    for b in range(a + 1, nn):
+                        l2 = wp.max(l2, wp.length_sq(points[faces[f, a]] - points[faces[f, b]]))
             r = lebesgue * wp.sqrt(r2)
             radii[f] = wp.float32(r)
             if f < ids.shape[0]:
@@ -483,7 +509,6 @@ def _topology(master: Surface, device) -> Topology:
         # A counting sort of each (face, local edge) into its smaller corner's segment, each
         # segment then sorted by a thread (no radix sort: two were a third of the CPU's
         # topology); the ranks of the distinct keys; the tables.
-        n64 = wp.int64(max(n, 1))
         uses, offsets = zeros(n + 1), empty(n + 1)
         run(_count_edges, nf, faces, ends, uses)
         wp.utils.array_scan(uses, offsets, inclusive=False)
@@ -491,7 +516,7 @@ def _topology(master: Surface, device) -> Topology:
         # the plan of a Surface on memory new to the process pays about 1 us a 4 KB page)
         keys, vals = wp.empty(m, dtype=wp.int64, device=device), empty(m)
         run(_scatter_edges, nf, faces, ends, offsets, zeros(n), keys)
-        run(_edge_segments, n, offsets, keys, n64, wp.int64(m), vals)
+        run(_edge_segments, n, offsets, keys, vals)
         ranks = t["ranks"] = empty(m)
         run(_heads, m, keys, ranks)
         wp.utils.array_scan(ranks, ranks, inclusive=True)
@@ -500,7 +525,7 @@ def _topology(master: Surface, device) -> Topology:
         win_next = wp.full(n, -1, dtype=int, device=device)
         win_prev = wp.full(n, -1, dtype=int, device=device)
         tables = [t[a] for a in ("face_edges", "edge_faces", "edge_starts", "edges", "odd")]
-        run(_edge_tables, m, faces, ends, keys, vals, ranks, m, n64, *tables, win_next, win_prev)
+        run(_edge_tables, m, faces, ends, keys, vals, ranks, m, *tables, win_next, win_prev)
         for a in ("prev_node", "next_node", "prev_face", "next_face"):
             t[a] = empty(n)
         neighbours = [t[a] for a in ("next_node", "next_face", "prev_node", "prev_face")]
