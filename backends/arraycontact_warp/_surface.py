@@ -43,8 +43,9 @@ wp.set_module_options({"enable_backward": False})
 #: Items a thread reduces before its one atomic update (a float atomic on one address from
 #: every thread serialises).
 CHUNK = 64
-#: The edge keys' halves: two 32-bit fields of an int64, so that each is a shift or a mask
-#: away (an int64 division a key was most of the edge tables' time on the CPU).
+#: The edge keys' halves: two 32-bit fields of an int64 (node and face ids are int32), each a
+#: shift or a mask away (an int64 division a key before: `_edge_segments` 1.75 -> 1.45 ms at
+#: 2^16 on the CPU).
 LOW = wp.constant(wp.int64(0xFFFFFFFF))
 
 
