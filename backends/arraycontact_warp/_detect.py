@@ -657,7 +657,10 @@ def plan(
     order (their boxes recomputed: exact for any motion) while every face centre and node
     stays within that margin of where it was sorted, and are sorted again when one does not;
     `rebuild[0]` says which the last call did. The results are the same either way; a refit
-    skips the keys and the sorts. False: sorts in every call.
+    skips the keys and the sorts. False: sorts in every call. In a graph (a GPU, exact mode)
+    the node tree's refit and the closest-node scan run on a stream of the plan's own
+    (`Plan.side`), forked from the capturing stream and joined back before detect returns,
+    and a stale node tree is sorted again after its scan.
     self_contact: the slaves are the master's own nodes, slave_points = the master's points
     at master.nodes (use `plan_self` / `detect_self`).
     frame: the origin of the local frame the kernels compute in (default: the corner of the
