@@ -899,10 +899,14 @@ def plan(
 _ELEMENTS = {}
 
 
+#: The struct types a plan's detection kernels specialise on, with their data: Triangles for
+#: tri3 (closed form), Quads for quad4 (no curved-face code); other elements the Element.
+_SPECIALISED = {"tri3": (Triangles, triangle_data), "quad4": (Quads, quad_data)}
+
+
 def _kernel_type(name: str):
-    """The struct type a plan's detection kernels specialise on: Triangles for tri3 (closed
-    form), Quads for quad4 (no curved-face code), else the Element."""
-    return {"tri3": Triangles, "quad4": Quads}.get(name, Element)
+    """The struct type a plan's detection kernels specialise on (`_SPECIALISED`)."""
+    return _SPECIALISED.get(name, (Element, None))[0]
 
 
 def _element_structs(name: str, device):
@@ -912,8 +916,8 @@ def _element_structs(name: str, device):
     key = (name, device.alias)
     if key not in _ELEMENTS:
         el = element_data(name, device)
-        kernel = {Triangles: triangle_data, Quads: quad_data}.get(_kernel_type(name))
-        _ELEMENTS[key] = (el, kernel(device) if kernel else el)
+        data = _SPECIALISED.get(name, (Element, None))[1]
+        _ELEMENTS[key] = (el, data(device) if data else el)
     return _ELEMENTS[key]
 
 

@@ -51,6 +51,7 @@ LOW = wp.constant(wp.int64(0xFFFFFFFF))
 #: edge a shift and a mask away, in the order of (f, le) as f k + le was (a division by k an
 #: entry before: `_edge_tables` 3.4-3.7 -> 2.6-2.7 ms at 2^16 on the CPU).
 EDGE_BITS = 2
+EDGE_MASK = (1 << EDGE_BITS) - 1
 
 
 @wp.kernel
@@ -174,7 +175,7 @@ def _edge_tables(
     v = vals[t]
     f = v >> EDGE_BITS
     e = ranks[t] - 1
-    face_edges[f, v & 3] = e
+    face_edges[f, v & EDGE_MASK] = e
     head = t == 0
     if t > 0:
         head = keys[t] != keys[t - 1]
@@ -196,7 +197,7 @@ def _edge_tables(
         if three or not two:
             wp.atomic_add(odd, 0, 1)
         if not two:
-            le = v & 3
+            le = v & EDGE_MASK
             a = faces[f, ends[le, 0]]
             b = faces[f, ends[le, 1]]
             wp.atomic_max(win_next, a, v)
@@ -216,7 +217,7 @@ def _neighbour(faces: wp.array2d(dtype=int), ends: wp.array2d(dtype=int), v: int
     face = int(-1)
     if v >= 0:
         face = v >> EDGE_BITS
-        le = v & 3
+        le = v & EDGE_MASK
         node = faces[face, ends[le, far]]
         if ends.shape[1] == 3 and i == faces[face, ends[le, 1 - far]]:
             node = faces[face, ends[le, 2]]
