@@ -1,6 +1,8 @@
 """The Warp back end against the NumPy back end and the reference (Warp's CPU device in CI; the
 same tests capture and replay CUDA graphs where a GPU is present)."""
 
+from typing import Any
+
 import arraycontact_warp as acw
 import numpy as np
 import pytest
@@ -786,6 +788,51 @@ def _launch_flags(kernel, n, inputs):
     out = wp.zeros(n, dtype=int, device=DEVICE)
     wp.launch(kernel, n, inputs=inputs, outputs=[out], device=DEVICE)
     return out.numpy().astype(bool)
+
+
+def test_quads_constants_equal_the_element_table():
+    """Quads' domain and nodes (constants in the kernels) equal quad4's table
+    (arraycontact._elements), as Element's arrays give them."""
+    from arraycontact._elements import get_element
+
+    g = acw.geometry("float64")
+
+    # fmt: off
+    @wp.func
+    def put(el: Any, j: int, k: int, out: wp.array2d(dtype=wp.float64)):
+        a = g.cons_a(el, j)
+        x = g.node_xi(el, j)
+        nxt = g.edge_xi(el, j, wp.float64(1.0))
+        out[k, 0] = a[0]
+        out[k, 1] = a[1]
+        out[k, 2] = g.cons_b(el, j)
+        out[k, 3] = wp.float64(g.cons_edge(el, j))
+        out[k, 4] = x[0]
+        out[k, 5] = x[1]
+        out[k, 6] = wp.float64(g.n_cons(el))
+        out[k, 7] = wp.float64(g.corners(el))
+        out[k, 8] = nxt[0]
+        out[k, 9] = nxt[1]
+        return 0
+
+    @wp.kernel(module="unique")
+    def read(el: g.Quads, gen: g.Element, out: wp.array2d(dtype=wp.float64)):
+        j = wp.tid()
+        put(el, j, j, out)
+        put(gen, j, 4 + j, out)  # the same functions on the generic struct: its arrays
+    # fmt: on
+
+    e = get_element("quad4")
+    out = wp.zeros((8, 10), dtype=wp.float64, device=DEVICE)
+    wp.launch(read, 4, inputs=[g.quad_data(DEVICE), g.element_data("quad4", DEVICE)],
+              outputs=[out], device=DEVICE)  # fmt: skip
+    got = out.numpy()
+    want = np.column_stack(
+        [e.constraints_a, e.constraints_b, e.constraint_edge, e.nodes, np.full(4, 4),
+         np.full(4, e.n_corners), np.roll(e.nodes, -1, axis=0)]
+    )  # fmt: skip
+    np.testing.assert_array_equal(got[:4], want)  # Quads
+    np.testing.assert_array_equal(got[4:], want)  # Element
 
 
 def test_surely_convex_bilinear_faces():

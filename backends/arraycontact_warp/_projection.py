@@ -19,10 +19,12 @@ from ._geometry import (
     VERTEX,
     FaceNodes,
     Triangles,
+    _sdiv,
     beyond_an_edge,
     closest_point_edge,
     closest_point_face,
     closest_point_triangle,
+    corners,
     edge_xi,
     face_nodes,
     face_point,
@@ -75,32 +77,56 @@ class Master:
 
 
 @wp.func
+def _segment(r: vec3, x0: vec3, x1: vec3):
+    """closest_point_edge on a straight edge x0 -> x1, its arithmetic as there: (t, squared
+    distance)."""
+    u = x1 - x0
+    t = wp.clamp(_sdiv(wp.dot(r - x0, u), wp.dot(u, u)), real(0.0), real(1.0))
+    return t, wp.length_sq(r - x0 - t * u)
+
+
+@wp.func
+def _nearer(e: int, t: real, d: real, b_e: int, b_t: real, b_d: real):
+    if d < b_d:
+        return e, t, d
+    return b_e, b_t, b_d
+
+
+@wp.func
 def exact_edges(
     el: Any, r: vec3, xe: FaceNodes, xi: vec2, feature: int, local: int, conv: int, best: real
 ):
     """The exact closest point over the face's edges (closest_point_edge) replaces Newton's
     answer xi (at squared distance `best`) when at most as far: no start can miss a minimum
     on an edge, and on a degenerate quad4 Newton can stop at a stationary corner. The first
-    edge wins a tie."""
+    edge wins a tie. quad4's four edges are written out on the node fields (a loop picks each
+    edge's nodes at run time, which a GPU thread pays in selects)."""
+    e_e = int(-1)
+    e_t = real(0.0)
     e_d = real(3.0e38)
-    e_xi = xi
-    e_f = feature
-    e_l = local
-    for e in range(el.n_corners):
-        t, d = closest_point_edge(el, r, xe, e)
-        if d < e_d:
-            e_d = d
-            e_xi = edge_xi(el, e, t)
-            e_f = EDGE
-            e_l = e
-            if t <= 0.0:
-                e_f = VERTEX
-            elif t >= 1.0:
-                e_f = VERTEX
-                e_l = (e + 1) % el.n_corners
-    if e_d <= best:
-        return e_xi, e_f, e_l, 1
-    return xi, feature, local, conv
+    if is_bilinear(el):
+        t, d = _segment(r, xe.x0, xe.x1)
+        e_e, e_t, e_d = _nearer(0, t, d, e_e, e_t, e_d)
+        t, d = _segment(r, xe.x1, xe.x2)
+        e_e, e_t, e_d = _nearer(1, t, d, e_e, e_t, e_d)
+        t, d = _segment(r, xe.x2, xe.x3)
+        e_e, e_t, e_d = _nearer(2, t, d, e_e, e_t, e_d)
+        t, d = _segment(r, xe.x3, xe.x0)
+        e_e, e_t, e_d = _nearer(3, t, d, e_e, e_t, e_d)
+    else:
+        for e in range(corners(el)):
+            t, d = closest_point_edge(el, r, xe, e)
+            e_e, e_t, e_d = _nearer(e, t, d, e_e, e_t, e_d)
+    if e_e < 0 or not (e_d <= best):
+        return xi, feature, local, conv
+    e_f = EDGE
+    e_l = e_e
+    if e_t <= 0.0:
+        e_f = VERTEX
+    elif e_t >= 1.0:
+        e_f = VERTEX
+        e_l = (e_e + 1) % corners(el)
+    return edge_xi(el, e_e, e_t), e_f, e_l, 1
 
 
 @wp.func
