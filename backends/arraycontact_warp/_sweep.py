@@ -75,7 +75,12 @@ def _natural(el: Triangles, s: real, w: real):
 
 
 @wp.func
-def _natural(el: Any, s: real, w: real):  # noqa: F811 (a Warp overload)
+def _natural(el: Quads, s: real, w: real):  # noqa: F811 (a Warp overload)
+    return vec2(real(2.0) * s - real(1.0), real(2.0) * w - real(1.0))
+
+
+@wp.func
+def _natural(el: Any, s: real, w: real):  # noqa: F811
     if el.n_corners == 3:
         return vec2(s, w)
     return vec2(real(2.0) * s - real(1.0), real(2.0) * w - real(1.0))
@@ -286,6 +291,58 @@ def _pair(
     return q
 
 
+# quad4's pair set-up and box test written out on the node fields, in the generic code's
+# arithmetic and order (the same answers bit for bit): the generic loops pick each node's
+# field at run time, which a GPU thread pays in selects (as the static scans' quad4 code).
+@wp.func
+def _pair(  # noqa: F811 (a Warp overload)
+    el: Quads,
+    x0: wp.array(dtype=vec3),
+    x1: wp.array(dtype=vec3),
+    faces: wp.array2d(dtype=int),
+    f: int,
+    s0: vec3,
+    s1: vec3,
+    space_rtol: real,
+):
+    i0, i1, i2, i3 = faces[f, 0], faces[f, 1], faces[f, 2], faces[f, 3]
+    o = x0[i0]
+    a0, a1, a2, a3 = x0[i0] - o, x0[i1] - o, x0[i2] - o, x0[i3] - o
+    b0, b1, b2, b3 = x1[i0] - o, x1[i1] - o, x1[i2] - o, x1[i3] - o
+    sc = _scale(a0, _scale(b0, real(0.0)))
+    sc = _scale(a1, _scale(b1, sc))
+    sc = _scale(a2, _scale(b2, sc))
+    sc = _scale(a3, _scale(b3, sc))
+    xa = FaceNodes()
+    xa.x0 = a0
+    xa.x1 = a1
+    xa.x2 = a2
+    xa.x3 = a3
+    va = FaceNodes()
+    va.x0 = b0 - a0
+    va.x1 = b1 - a1
+    va.x2 = b2 - a2
+    va.x3 = b3 - a3
+    xb = FaceNodes()
+    xb.x0 = b0
+    xb.x1 = b1
+    xb.x2 = b2
+    xb.x3 = b3
+    q = QuadPair()
+    q.el = el
+    q.r = 0
+    q.xa = xa
+    q.va = va
+    q.p = s0 - o
+    q.v = s1 - s0
+    sc = _scale(q.p, _scale(q.p + q.v, sc))
+    q.n0 = _normal(el, q.xa, el.centre)
+    q.n1 = _normal(el, xb, el.centre)
+    q.margin = real(ROUND) * EPS * sc
+    q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    return _band(q, xb)
+
+
 @wp.func
 def _pair(  # noqa: F811 (a Warp overload)
     el: Any,
@@ -467,6 +524,66 @@ def _examine(q: TriPair, box: Box6):
 
 
 @wp.func
+def _quad_rows(h: Hull, j: Jac, f00: vec3, f01: vec3, f10: vec3, f11: vec3, q: QuadPair, box: Box6):
+    """One time end of _examine(QuadPair): F's control points at the box's four (s, w)
+    corners (f_ij: s's i-th, w's j-th) into the hull, their differences into the Jacobian's
+    bounds (as the generic loop takes them)."""
+    h = _take(h, f00, q.n0, q.n1)
+    h = _take(h, f01, q.n0, q.n1)
+    h = _take(h, f10, q.n0, q.n1)
+    h = _take(h, f11, q.n0, q.n1)
+    ws = box[1] - box[0]
+    ww = box[3] - box[2]
+    d0 = f10 - f00
+    d1 = f11 - f01
+    ds = wp.max(_inf(d0), _inf(d1))
+    j.s_lo = wp.min(j.s_lo, wp.min(real(1.0) * d0 / ws, real(1.0) * d1 / ws))
+    j.s_hi = wp.max(j.s_hi, wp.max(real(1.0) * d0 / ws, real(1.0) * d1 / ws))
+    d0 = f01 - f00
+    d1 = f11 - f10
+    dw = wp.max(_inf(d0), _inf(d1))
+    j.w_lo = wp.min(j.w_lo, wp.min(real(1.0) * d0 / ww, real(1.0) * d1 / ww))
+    j.w_hi = wp.max(j.w_hi, wp.max(real(1.0) * d0 / ww, real(1.0) * d1 / ww))
+    return h, j, ds, dw
+
+
+@wp.func
+def _examine(q: QuadPair, box: Box6):  # noqa: F811 (a Warp overload)
+    """_examine of a bilinear quad: its control points over a box are F at the box's four
+    (s, w) corners, at both ends of its time (the generic code's 2 x 2 loop written out)."""
+    el = q.el
+    s1 = box[0] + (box[1] - box[0]) * real(1.0) * real(1.0)
+    w1 = box[2] + (box[3] - box[2]) * real(1.0) * real(1.0)
+    s0 = box[0] + (box[1] - box[0]) * real(0.0) * real(1.0)
+    w0 = box[2] + (box[3] - box[2]) * real(0.0) * real(1.0)
+    a00, b00 = _ab(el, q.xa, q.va, q.p, q.v, _natural(el, s0, w0))
+    a01, b01 = _ab(el, q.xa, q.va, q.p, q.v, _natural(el, s0, w1))
+    a10, b10 = _ab(el, q.xa, q.va, q.p, q.v, _natural(el, s1, w0))
+    a11, b11 = _ab(el, q.xa, q.va, q.p, q.v, _natural(el, s1, w1))
+    j = Jac()
+    j.s_lo = vec3(real(3.0e38))
+    j.s_hi = vec3(real(-3.0e38))
+    j.w_lo = vec3(real(3.0e38))
+    j.w_hi = vec3(real(-3.0e38))
+    h = _hull_start()
+    t = box[4]
+    h, j, ds, dw = _quad_rows(
+        h, j, a00 + t * b00, a01 + t * b01, a10 + t * b10, a11 + t * b11, q, box
+    )
+    t = box[5]
+    h, j, ds2, dw2 = _quad_rows(
+        h, j, a00 + t * b00, a01 + t * b01, a10 + t * b10, a11 + t * b11, q, box
+    )
+    ds = wp.max(ds, ds2)
+    dw = wp.max(dw, dw2)
+    dt = (box[5] - box[4]) * wp.max(wp.max(_inf(b00), _inf(b01)), wp.max(_inf(b10), _inf(b11)))
+    j.t_lo = wp.min(wp.min(b00, b01), wp.min(b10, b11))
+    j.t_hi = wp.max(wp.max(b00, b01), wp.max(b10, b11))
+    out, extent, axis = _verdict(h, q.margin, ds, dw, dt)
+    return out, extent, axis, j
+
+
+@wp.func
 def _examine(q: Any, box: Box6):  # noqa: F811 (a Warp overload)
     """arraycontact._sweep.examine for one box (and the Jacobian's bounds: the hull of the
     derivatives' Bernstein coefficients, differences of the control points)."""
@@ -604,7 +721,31 @@ def _krawczyk(q: Any, box: Box6, j: Jac):
 
 
 @wp.func
-def _normal(el: Any, x: FaceNodes, xi: vec2):
+def _normal(el: Quads, x: FaceNodes, xi: vec2):
+    """_normal of a quad4, its loop over the nodes written out (the same arithmetic)."""
+    t0 = vec3(0.0)
+    t1 = vec3(0.0)
+    sf, d0, d1, h00, h01, h11 = shape(el, xi, 0)
+    t0 += d0 * x.x0
+    t1 += d1 * x.x0
+    sf, d0, d1, h00, h01, h11 = shape(el, xi, 1)
+    t0 += d0 * x.x1
+    t1 += d1 * x.x1
+    sf, d0, d1, h00, h01, h11 = shape(el, xi, 2)
+    t0 += d0 * x.x2
+    t1 += d1 * x.x2
+    sf, d0, d1, h00, h01, h11 = shape(el, xi, 3)
+    t0 += d0 * x.x3
+    t1 += d1 * x.x3
+    nv = wp.cross(t0, t1)
+    ln = wp.length(nv)
+    if ln > real(0.0):
+        nv = nv / ln
+    return nv
+
+
+@wp.func
+def _normal(el: Any, x: FaceNodes, xi: vec2):  # noqa: F811
     """The unit normal x_xi x x_eta at xi (zero where degenerate)."""
     t0 = vec3(0.0)
     t1 = vec3(0.0)
@@ -1108,6 +1249,11 @@ def _pair_tri(q: Any):  # noqa: F811
 @wp.func
 def _is_tri(el: Triangles):
     return True
+
+
+@wp.func
+def _is_tri(el: Quads):  # noqa: F811
+    return False
 
 
 @wp.func
