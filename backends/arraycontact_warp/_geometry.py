@@ -442,9 +442,79 @@ def closest_point_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
     return vec2(_sdiv(vb, den), _sdiv(vc, den)), FACE, -1
 
 
+# A curved face's projection evaluates x(xi) and its derivatives hundreds of times (starts,
+# Newton steps, line searches); through the shape functions each evaluation costs nn of them
+# of n_mono terms each (quad8: 64 terms). On the monomials' coefficients of the face (A_j =
+# sum_i coef[i, j] x_i, so x(xi) = sum_j m_j(xi) A_j), made once a projection, it costs
+# n_mono (Warp's CPU device, rough surfaces 2^14, a steady detection: tri6 608 -> 187 ms,
+# quad8 1361 -> 280 ms, quad9 686 -> 143 ms). Bilinear faces keep their closed forms
+# on the nodes. `pe` below: those coefficients (`coefficients`), or the nodes of a bilinear
+# face (unread).
 @wp.func
-def _objective(el: Any, xe: FaceNodes, r: vec3, xi: vec2):
-    return wp.length_sq(r - face_point(el, xe, xi))
+def monomials_of(el: Any, xe: FaceNodes):
+    """The coefficients A_j of the face's monomials (rows j < n_mono of a FaceNodes)."""
+    pe = FaceNodes()
+    for j in range(el.n_mono):
+        a = vec3(0.0)
+        for i in range(el.nn):
+            a += el.coef[i, j] * _row(xe, i)
+        pe = set_node(pe, j, a)
+    return pe
+
+
+@wp.func
+def coefficients(el: Any, xe: FaceNodes):
+    """What `_at` and `_jet` read: a bilinear face's nodes, else its monomials' coefficients."""
+    if is_bilinear(el):
+        return xe
+    return monomials_of(el, xe)
+
+
+@wp.func
+def _at(el: Any, xe: FaceNodes, pe: FaceNodes, xi: vec2):
+    """x(xi) (face_point) from the nodes xe and `coefficients` pe."""
+    if is_bilinear(el):
+        return face_point(el, xe, xi)
+    x = vec3(0.0)
+    for j in range(el.n_mono):
+        x += (_pw(xi[0], el.px[j]) * _pw(xi[1], el.py[j])) * _row(pe, j)
+    return x
+
+
+@wp.func
+def _jet(el: Any, xe: FaceNodes, pe: FaceNodes, xi: vec2):
+    """x(xi), x_xi, x_eta, x_xixi, x_xieta, x_etaeta (as _at)."""
+    x = vec3(0.0)
+    t0 = vec3(0.0)
+    t1 = vec3(0.0)
+    s00 = vec3(0.0)
+    s01 = vec3(0.0)
+    s11 = vec3(0.0)
+    if is_bilinear(el):
+        x = face_point(el, xe, xi)
+        t0, t1 = _bilinear_tangents(xe, xi)
+        bl0, bl1, bl2, s01 = _bilinear(xe)  # (s01: a3, the others unused)
+        return x, t0, t1, s00, s01, s11
+    for j in range(el.n_mono):
+        p = el.px[j]
+        q = el.py[j]
+        a = _row(pe, j)
+        u = _pw(xi[0], p)
+        v = _pw(xi[1], q)
+        du = _dpw(xi[0], p)
+        dv = _dpw(xi[1], q)
+        x += (u * v) * a
+        t0 += (du * v) * a
+        t1 += (u * dv) * a
+        s00 += (_ddpw(p) * v) * a
+        s01 += (du * dv) * a
+        s11 += (u * _ddpw(q)) * a
+    return x, t0, t1, s00, s01, s11
+
+
+@wp.func
+def _objective(el: Any, xe: FaceNodes, pe: FaceNodes, r: vec3, xi: vec2):
+    return wp.length_sq(r - _at(el, xe, pe, xi))
 
 
 @wp.func
@@ -484,9 +554,12 @@ def closest_point_edge(el: Any, r: vec3, xe: FaceNodes, e: int):
         u = _row(xe, (e + 1) % corners(el)) - x0
         t = wp.clamp(_sdiv(wp.dot(r - x0, u), wp.dot(u, u)), real(0.0), real(1.0))
         return t, wp.length_sq(r - x0 - t * u)
-    x0 = face_point(el, xe, edge_xi(el, e, real(0.0)))
-    xm = face_point(el, xe, edge_xi(el, e, real(0.5)))
-    x1 = face_point(el, xe, edge_xi(el, e, real(1.0)))
+    # The edge's corners and its mid-edge node (node n_corners + e) are x at t = 0, 1 and
+    # 1/2: read, not evaluated (exact, so a slave on a corner gets t = 0 or 1).
+    nc = corners(el)
+    x0 = _row(xe, e)
+    xm = _row(xe, nc + e)
+    x1 = _row(xe, (e + 1) % nc)
     p0 = x0 - r
     p1 = real(4.0) * xm - real(3.0) * x0 - x1
     p2 = real(2.0) * (x0 + x1) - real(4.0) * xm
@@ -551,6 +624,7 @@ def _step(
     el: Any,
     r: vec3,
     xe: FaceNodes,
+    pe: FaceNodes,
     xi: vec2,
     h: mat22,
     g: vec2,
@@ -579,7 +653,7 @@ def _step(
             real(2.0) * wp.dot(m1, jp) + wp.dot(t1, xpp),
         )
         pc = p - _solve2(h, real(0.5) * c)
-        if _objective(el, xe, r, xi + pc) < _objective(el, xe, r, xi + p):
+        if _objective(el, xe, pe, r, xi + pc) < _objective(el, xe, pe, r, xi + p):
             return pc
         return p
     if w2 < 0:
@@ -591,6 +665,14 @@ def _step(
 
 @wp.func
 def closest_point_face(el: Any, r: vec3, xe: FaceNodes, xi0: vec2, iterations: int, tol: real):
+    """The closest point to r on the face of nodes xe from xi0 (_active_set)."""
+    return _active_set(el, r, xe, coefficients(el, xe), xi0, iterations, tol)
+
+
+@wp.func
+def _active_set(
+    el: Any, r: vec3, xe: FaceNodes, pe: FaceNodes, xi0: vec2, iterations: int, tol: real
+):
     """Active-set method on min |r - x(xi)|^2 s.t. A xi >= b from xi0 (seed 003 eq. 8), the
     twin of the NumPy "active_set" method: exact Hessian (Gauss-Newton where it is not
     positive definite), steps from `_step`; the working set holds at most two constraints
@@ -606,27 +688,7 @@ def closest_point_face(el: Any, r: vec3, xe: FaceNodes, xi0: vec2, iterations: i
                 w2 = j
     converged = int(0)
     for it in range(iterations + 1):
-        # derivatives
-        x = vec3(0.0)
-        t0 = vec3(0.0)
-        t1 = vec3(0.0)
-        s00 = vec3(0.0)
-        s01 = vec3(0.0)
-        s11 = vec3(0.0)
-        if is_bilinear(el):
-            x = face_point(el, xe, xi)
-            t0, t1 = _bilinear_tangents(xe, xi)
-            bl0, bl1, bl2, s01 = _bilinear(xe)  # (s01: a3, the others unused)
-        else:
-            for i in range(el.nn):
-                n, d0, d1, h00, h01, h11 = shape(el, xi, i)
-                xr = _row(xe, i)
-                x += n * xr
-                t0 += d0 * xr
-                t1 += d1 * xr
-                s00 += h00 * xr
-                s01 += h01 * xr
-                s11 += h11 * xr
+        x, t0, t1, s00, s01, s11 = _jet(el, xe, pe, xi)
         d = r - x
         g = vec2(-wp.dot(t0, d), -wp.dot(t1, d))
         gn = mat22(wp.dot(t0, t0), wp.dot(t0, t1), wp.dot(t0, t1), wp.dot(t1, t1))
@@ -675,12 +737,12 @@ def closest_point_face(el: Any, r: vec3, xe: FaceNodes, xi0: vec2, iterations: i
                 v2 = -1
             else:
                 v2 = -1
-        p = _step(el, r, xe, xi, h, g, t0, t1, s00, s01, s11, v1, v2)
+        p = _step(el, r, xe, pe, xi, h, g, t0, t1, s00, s01, s11, v1, v2)
         if jmin >= 0 and wp.dot(cons_a(el, jmin), p) >= 0.0:
             w1 = v1
             w2 = v2
         else:
-            p = _step(el, r, xe, xi, h, g, t0, t1, s00, s01, s11, w1, w2)
+            p = _step(el, r, xe, pe, xi, h, g, t0, t1, s00, s01, s11, w1, w2)
         # ratio test
         amin = real(1.0e30)
         jb = int(-1)
@@ -696,7 +758,7 @@ def closest_point_face(el: Any, r: vec3, xe: FaceNodes, xi0: vec2, iterations: i
         f0 = wp.length_sq(d)  # (_objective at xi: d is r - x(xi))
         ftol = real(16.0) * EPS * (f0 + scale)
         for _ in range(4):
-            if _objective(el, xe, r, xi + alpha * p) > f0 + ftol:
+            if _objective(el, xe, pe, r, xi + alpha * p) > f0 + ftol:
                 alpha = real(0.5) * alpha
             else:
                 break  # (accepted: the rounds left test the same point; H100 quad4 2^20 face
@@ -843,6 +905,12 @@ def beyond_an_edge(r: vec3, xe: FaceNodes):
 @wp.func
 def start_option_one(el: Any, r: vec3, xe: FaceNodes):
     """Seed 003 start (I): the closest of the corners and the centre."""
+    return _start_one(el, r, xe, coefficients(el, xe))
+
+
+@wp.func
+def _start_one(el: Any, r: vec3, xe: FaceNodes, pe: FaceNodes):
+    """start_option_one (pe: `coefficients`)."""
     if is_bilinear(el):  # the corners are the nodes (face_point there is exact)
         best = vec2(-1.0, -1.0)
         best_d = wp.length_sq(r - xe.x0)
@@ -858,16 +926,16 @@ def start_option_one(el: Any, r: vec3, xe: FaceNodes):
         if d < best_d:
             best_d = d
             best = vec2(-1.0, 1.0)
-        if _objective(el, xe, r, el.centre) < best_d:
+        if _objective(el, xe, pe, r, el.centre) < best_d:
             best = el.centre
         return best
     best = el.nodes[0]
-    best_d = _objective(el, xe, r, best)
+    best_d = _objective(el, xe, pe, r, best)
     for c in range(1, el.n_corners):
-        d = _objective(el, xe, r, el.nodes[c])
+        d = _objective(el, xe, pe, r, el.nodes[c])
         if d < best_d:
             best_d = d
             best = el.nodes[c]
-    if _objective(el, xe, r, el.centre) < best_d:
+    if _objective(el, xe, pe, r, el.centre) < best_d:
         best = el.centre
     return best

@@ -19,18 +19,20 @@ from ._geometry import (
     VERTEX,
     FaceNodes,
     Triangles,
+    _active_set,
+    _at,
     _sdiv,
+    _start_one,
     beyond_an_edge,
     closest_point_edge,
-    closest_point_face,
     closest_point_triangle,
+    coefficients,
     corners,
     edge_xi,
     face_nodes,
     face_point,
     face_tangents,
     is_bilinear,
-    start_option_one,
     straight,
     surely_convex,
 )
@@ -130,7 +132,7 @@ def exact_edges(
 
 
 @wp.func
-def lattice_start(el: Any, r: vec3, xe: FaceNodes):
+def lattice_start(el: Any, r: vec3, xe: FaceNodes, pe: FaceNodes):
     """The closest of a 5 x 5 lattice of interior points (15 on triangles), as in NumPy."""
     best = el.centre
     best_d = real(3.0e38)
@@ -140,7 +142,7 @@ def lattice_start(el: Any, r: vec3, xe: FaceNodes):
             if el.n_corners == 3:
                 xi = vec2(real(0.1) + real(0.175) * real(i), real(0.1) + real(0.175) * real(j))
             if el.n_corners != 3 or i + j <= 4:
-                d = wp.length_sq(r - face_point(el, xe, xi))
+                d = wp.length_sq(r - _at(el, xe, pe, xi))
                 if d < best_d:
                     best_d = d
                     best = xi
@@ -218,16 +220,17 @@ def _project_nodes(el: Any, r: vec3, xe: FaceNodes, iterations: int, tol: real):
         elif not surely_convex(el, r, xe):
             n_starts = 2
     best = real(3.0e38)
+    pe = coefficients(el, xe)
     for k in range(n_starts):
         start = el.centre
         if k == 0:
-            start = start_option_one(el, r, xe)
+            start = _start_one(el, r, xe, pe)
         elif k == el.n_corners + 2 or straight(el):
-            start = lattice_start(el, r, xe)
+            start = lattice_start(el, r, xe, pe)
         elif k > 1:
             start = el.nodes[el.n_corners + k - 2]
-        xi2, f2, l2, c2 = closest_point_face(el, r, xe, start, iterations, tol)
-        d2 = wp.length_sq(r - face_point(el, xe, xi2))
+        xi2, f2, l2, c2 = _active_set(el, r, xe, pe, start, iterations, tol)
+        d2 = wp.length_sq(r - _at(el, xe, pe, xi2))
         if d2 < best:
             best = d2
             xi = xi2
