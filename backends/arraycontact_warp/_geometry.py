@@ -444,21 +444,23 @@ def closest_point_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
 
 # A curved face's projection evaluates x(xi) and its derivatives hundreds of times (starts,
 # Newton steps, line searches); through the shape functions each evaluation costs nn of them
-# of n_mono terms each (quad8: 64 terms). On the monomials' coefficients of the face (A_j =
-# sum_i coef[i, j] x_i, so x(xi) = sum_j m_j(xi) A_j), made once a projection, it costs
-# n_mono (Warp's CPU device, rough surfaces 2^14, a steady detection: tri6 608 -> 187 ms,
-# quad8 1361 -> 280 ms, quad9 686 -> 143 ms). Bilinear faces keep their closed forms
-# on the nodes. `pe` below: those coefficients (`coefficients`), or the nodes of a bilinear
-# face (unread).
+# of n_mono terms each (quad8: 64 terms, each with its exponents read and a node picked at run
+# time). On the face's monomial coefficients (A_pq = sum_i coef[i, j] x_i for monomial j =
+# xi^p eta^q, so x(xi) = sum A_pq xi^p eta^q), made once a projection and kept in the fields
+# of a FaceNodes by (p, q) (slot 3 p + q; p, q <= 2 for every element, absent ones zero), an
+# evaluation is a fixed polynomial written out (Warp's CPU device, rough surfaces 2^14, a
+# steady detection: tri6 608 -> 135 ms, quad8 1361 -> 167 ms, quad9 686 -> 86 ms). Bilinear
+# faces keep their closed forms on the nodes. `pe` below: those coefficients (`coefficients`),
+# or the nodes of a bilinear face (unread).
 @wp.func
 def monomials_of(el: Any, xe: FaceNodes):
-    """The coefficients A_j of the face's monomials (rows j < n_mono of a FaceNodes)."""
+    """The coefficients A_pq of the face's monomials xi^p eta^q, in slot 3 p + q."""
     pe = FaceNodes()
     for j in range(el.n_mono):
         a = vec3(0.0)
         for i in range(el.nn):
             a += el.coef[i, j] * _row(xe, i)
-        pe = set_node(pe, j, a)
+        pe = set_node(pe, 3 * el.px[j] + el.py[j], a)
     return pe
 
 
@@ -475,40 +477,36 @@ def _at(el: Any, xe: FaceNodes, pe: FaceNodes, xi: vec2):
     """x(xi) (face_point) from the nodes xe and `coefficients` pe."""
     if is_bilinear(el):
         return face_point(el, xe, xi)
-    x = vec3(0.0)
-    for j in range(el.n_mono):
-        x += (_pw(xi[0], el.px[j]) * _pw(xi[1], el.py[j])) * _row(pe, j)
-    return x
+    y = xi[1]
+    r0 = pe.x0 + y * (pe.x1 + y * pe.x2)  # the terms of xi^0, xi^1, xi^2
+    r1 = pe.x3 + y * (pe.x4 + y * pe.x5)
+    r2 = pe.x6 + y * (pe.x7 + y * pe.x8)
+    return r0 + xi[0] * (r1 + xi[0] * r2)
 
 
 @wp.func
 def _jet(el: Any, xe: FaceNodes, pe: FaceNodes, xi: vec2):
     """x(xi), x_xi, x_eta, x_xixi, x_xieta, x_etaeta (as _at)."""
-    x = vec3(0.0)
-    t0 = vec3(0.0)
-    t1 = vec3(0.0)
-    s00 = vec3(0.0)
-    s01 = vec3(0.0)
-    s11 = vec3(0.0)
     if is_bilinear(el):
         x = face_point(el, xe, xi)
         t0, t1 = _bilinear_tangents(xe, xi)
-        bl0, bl1, bl2, s01 = _bilinear(xe)  # (s01: a3, the others unused)
-        return x, t0, t1, s00, s01, s11
-    for j in range(el.n_mono):
-        p = el.px[j]
-        q = el.py[j]
-        a = _row(pe, j)
-        u = _pw(xi[0], p)
-        v = _pw(xi[1], q)
-        du = _dpw(xi[0], p)
-        dv = _dpw(xi[1], q)
-        x += (u * v) * a
-        t0 += (du * v) * a
-        t1 += (u * dv) * a
-        s00 += (_ddpw(p) * v) * a
-        s01 += (du * dv) * a
-        s11 += (u * _ddpw(q)) * a
+        bl0, bl1, bl2, a3 = _bilinear(xe)
+        return x, t0, t1, vec3(0.0), a3, vec3(0.0)
+    u = xi[0]
+    y = xi[1]
+    two = real(2.0)
+    r0 = pe.x0 + y * (pe.x1 + y * pe.x2)
+    r1 = pe.x3 + y * (pe.x4 + y * pe.x5)
+    r2 = pe.x6 + y * (pe.x7 + y * pe.x8)
+    d0 = pe.x1 + two * y * pe.x2  # d/deta of r0, r1, r2
+    d1 = pe.x4 + two * y * pe.x5
+    d2 = pe.x7 + two * y * pe.x8
+    x = r0 + u * (r1 + u * r2)
+    t0 = r1 + two * u * r2
+    t1 = d0 + u * (d1 + u * d2)
+    s00 = two * r2
+    s01 = d1 + two * u * d2
+    s11 = two * (pe.x2 + u * (pe.x5 + u * pe.x8))
     return x, t0, t1, s00, s01, s11
 
 
