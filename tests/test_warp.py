@@ -835,6 +835,20 @@ def test_quads_constants_equal_the_element_table():
     np.testing.assert_array_equal(got[4:], want)  # Element
 
 
+def test_curved_edges_mid_nodes_follow_the_corners():
+    """A curved edge's closest point reads its corners and its mid-edge node as x at t = 0,
+    1 and 1/2 (`closest_point_edge`): edge e (corner e to e + 1) has its middle node at
+    n_corners + e, halfway along it, on every curved element."""
+    from arraycontact._elements import get_element
+
+    for name in ("tri6", "quad8", "quad9"):
+        e = get_element(name)
+        c = e.n_corners
+        for k in range(c):
+            mid = 0.5 * (e.nodes[k] + e.nodes[(k + 1) % c])
+            np.testing.assert_array_equal(e.nodes[c + k], mid, err_msg=f"{name} edge {k}")
+
+
 def test_surely_convex_bilinear_faces():
     """`surely_convex` (one Newton start suffices on a bilinear face) only where the Hessian
     of |x(xi) - r|^2 is positive definite over the whole square (checked on a 41 x 41 grid

@@ -541,6 +541,14 @@ def edge_xi(el: Any, e: int, t: real):
 
 
 @wp.func
+def _segment(r: vec3, x0: vec3, x1: vec3):
+    """The closest point to r on the segment x0 -> x1: (t, squared distance)."""
+    u = x1 - x0
+    t = wp.clamp(_sdiv(wp.dot(r - x0, u), wp.dot(u, u)), real(0.0), real(1.0))
+    return t, wp.length_sq(r - x0 - t * u)
+
+
+@wp.func
 def closest_point_edge(el: Any, r: vec3, xe: FaceNodes, e: int):
     """The closest point to r on the whole edge e: (t, squared distance). The twin of
     arraycontact._geometry.closest_point_edge: the derivative of the squared distance along
@@ -548,10 +556,7 @@ def closest_point_edge(el: Any, r: vec3, xe: FaceNodes, e: int):
     piece where it rises through zero holds one minimum, found by Newton kept inside the
     sign-change bracket; the smallest of those and the ends wins."""
     if straight(el):  # a straight edge: the cubic is linear (as NumPy's)
-        x0 = _row(xe, e)
-        u = _row(xe, (e + 1) % corners(el)) - x0
-        t = wp.clamp(_sdiv(wp.dot(r - x0, u), wp.dot(u, u)), real(0.0), real(1.0))
-        return t, wp.length_sq(r - x0 - t * u)
+        return _segment(r, _row(xe, e), _row(xe, (e + 1) % corners(el)))
     # The edge's corners and its mid-edge node (node n_corners + e) are x at t = 0, 1 and
     # 1/2: read, not evaluated (exact, so a slave on a corner gets t = 0 or 1).
     nc = corners(el)

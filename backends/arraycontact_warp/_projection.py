@@ -21,7 +21,7 @@ from ._geometry import (
     Triangles,
     _active_set,
     _at,
-    _sdiv,
+    _segment,
     _start_one,
     beyond_an_edge,
     closest_point_edge,
@@ -76,15 +76,6 @@ class Master:
     next_node: wp.array(dtype=int)
     prev_face: wp.array(dtype=int)
     next_face: wp.array(dtype=int)
-
-
-@wp.func
-def _segment(r: vec3, x0: vec3, x1: vec3):
-    """closest_point_edge on a straight edge x0 -> x1, its arithmetic as there: (t, squared
-    distance)."""
-    u = x1 - x0
-    t = wp.clamp(_sdiv(wp.dot(r - x0, u), wp.dot(u, u)), real(0.0), real(1.0))
-    return t, wp.length_sq(r - x0 - t * u)
 
 
 @wp.func
