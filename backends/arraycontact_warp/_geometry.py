@@ -477,6 +477,12 @@ def _at(el: Any, xe: FaceNodes, pe: FaceNodes, xi: vec2):
     """x(xi) (face_point) from the nodes xe and `coefficients` pe."""
     if is_bilinear(el):
         return face_point(el, xe, xi)
+    return polynomial(pe, xi)
+
+
+@wp.func
+def polynomial(pe: FaceNodes, xi: vec2):
+    """sum A_pq xi^p eta^q over the coefficients pe of `monomials_of`."""
     y = xi[1]
     r0 = pe.x0 + y * (pe.x1 + y * pe.x2)  # the terms of xi^0, xi^1, xi^2
     r1 = pe.x3 + y * (pe.x4 + y * pe.x5)
