@@ -547,6 +547,16 @@ def edge_xi(el: Any, e: int, t: real):
 
 
 @wp.func
+def unit_cross(a: vec3, b: vec3):
+    """a x b normalised (zero where it vanishes)."""
+    v = wp.cross(a, b)
+    length = wp.length(v)
+    if length > real(0.0):
+        v = v / length
+    return v
+
+
+@wp.func
 def _segment(r: vec3, x0: vec3, x1: vec3):
     """The closest point to r on the segment x0 -> x1: (t, squared distance)."""
     u = x1 - x0

@@ -35,6 +35,7 @@ from ._geometry import (
     is_bilinear,
     straight,
     surely_convex,
+    unit_cross,
 )
 from ._grid import (
     Grid,
@@ -314,15 +315,6 @@ def holds(m: Master, f: int, node: int):
 
 
 @wp.func
-def _unit_cross(a: vec3, b: vec3):
-    v = wp.cross(a, b)
-    length = wp.length(v)
-    if length > real(0.0):
-        v = v / length
-    return v
-
-
-@wp.func
 def holds_own(o: Plain, m: Master, f: int):
     return False
 
@@ -380,7 +372,7 @@ def project_facing(  # noqa: F811 (a Warp overload)
 ):
     xi, feature, local, conv, diff = project(el, m, grid, k, s, f, iterations, tol)
     c0 = grid.corners[k, 0]
-    n = _unit_cross(grid.corners[k, 1] - c0, grid.corners[k, 2] - c0)
+    n = unit_cross(grid.corners[k, 1] - c0, grid.corners[k, 2] - c0)
     return xi, feature, local, conv, diff, wp.dot(o.normal, n) < -real(FACING_TOL)
 
 
@@ -394,7 +386,7 @@ def project_facing(  # noqa: F811 (a Warp overload)
     xe = face_nodes(m.points, m.faces, f, x0)
     xi, feature, local, conv, diff = _project_nodes(el, s - x0, xe, iterations, tol)
     t0, t1 = face_tangents(el, xe, xi)
-    facing = wp.dot(o.normal, _unit_cross(t0, t1)) < -real(FACING_TOL)
+    facing = wp.dot(o.normal, unit_cross(t0, t1)) < -real(FACING_TOL)
     return xi, feature, local, conv, diff, facing
 
 

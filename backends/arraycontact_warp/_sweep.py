@@ -36,6 +36,7 @@ from ._geometry import (
     set_node,
     shape,
     straight,
+    unit_cross,
 )
 from ._grid import (
     Grid,
@@ -293,6 +294,20 @@ def _pair(
     return q
 
 
+@wp.func
+def _motion(q: Any, xb: FaceNodes, o: vec3, s0: vec3, s1: vec3, sc: real, space_rtol: real):
+    """A pair's node in the frame at o, its face's end normals (xa in q, xb at t = 1), its
+    rounding margin and contact tolerance (sc: the face nodes' largest coordinate so far)."""
+    q.p = s0 - o
+    q.v = s1 - s0
+    sc = _scale(q.p, _scale(q.p + q.v, sc))
+    q.n0 = _normal(q.el, q.xa, q.el.centre)
+    q.n1 = _normal(q.el, xb, q.el.centre)
+    q.margin = real(ROUND) * EPS * sc
+    q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    return q
+
+
 # quad4's pair set-up and box test written out on the node fields, in the generic code's
 # arithmetic and order (the same answers bit for bit): the generic loops pick each node's
 # field at run time, which a GPU thread pays in selects (as the static scans' quad4 code).
@@ -335,14 +350,7 @@ def _pair(  # noqa: F811 (a Warp overload)
     q.r = 0
     q.xa = xa
     q.va = va
-    q.p = s0 - o
-    q.v = s1 - s0
-    sc = _scale(q.p, _scale(q.p + q.v, sc))
-    q.n0 = _normal(el, q.xa, el.centre)
-    q.n1 = _normal(el, xb, el.centre)
-    q.margin = real(ROUND) * EPS * sc
-    q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
-    return _band(q, xb)
+    return _band(_motion(q, xb, o, s0, s1, sc, space_rtol), xb)
 
 
 @wp.func
@@ -372,13 +380,7 @@ def _pair(  # noqa: F811 (a Warp overload)
         q.va = set_node(q.va, i, b - a)
         xb = set_node(xb, i, b)
         sc = _scale(a, _scale(b, sc))
-    q.p = s0 - o
-    q.v = s1 - s0
-    sc = _scale(q.p, _scale(q.p + q.v, sc))
-    q.n0 = _normal(el, q.xa, el.centre)
-    q.n1 = _normal(el, xb, el.centre)
-    q.margin = real(ROUND) * EPS * sc
-    q.delta = wp.max(space_rtol * sc, real(4.0) * q.margin)
+    q = _motion(q, xb, o, s0, s1, sc, space_rtol)
     q.band = 0
     if is_bilinear(el):
         q = _band(q, xb)
@@ -741,11 +743,7 @@ def _normal(el: Quads, x: FaceNodes, xi: vec2):
     sf, d0, d1, h00, h01, h11 = shape(el, xi, 3)
     t0 += d0 * x.x3
     t1 += d1 * x.x3
-    nv = wp.cross(t0, t1)
-    ln = wp.length(nv)
-    if ln > real(0.0):
-        nv = nv / ln
-    return nv
+    return unit_cross(t0, t1)
 
 
 @wp.func
@@ -757,11 +755,7 @@ def _normal(el: Any, x: FaceNodes, xi: vec2):  # noqa: F811
         sf, d0, d1, h00, h01, h11 = _shape(el, xi, i)
         t0 += d0 * _row(x, i)
         t1 += d1 * _row(x, i)
-    nv = wp.cross(t0, t1)
-    ln = wp.length(nv)
-    if ln > real(0.0):
-        nv = nv / ln
-    return nv
+    return unit_cross(t0, t1)
 
 
 @wp.func
