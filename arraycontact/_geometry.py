@@ -209,6 +209,67 @@ def surely_convex(element, r, xe, xp=np):
     return _bilinear_surely_convex(*_bilinear_parts(r, xe), xp)
 
 
+def _norm(v, xp):
+    return xp.sqrt(_dot(v, v, xp))
+
+
+def curved_convex(element, r, xe, xp=np):
+    """Whether |x(xi) - r|^2 is strictly convex over each curved face xe [..., nn, 3] (tri6,
+    quad8, quad9; r [..., 3]): then Newton from start I finds its closest point and the other
+    starts are not needed. The bounds of the Warp kernels' twin
+    (arraycontact_warp._geometry.curved_convex, whose docstring derives them), in the same
+    frame (the face's first node) and order, so that the back ends decide alike."""
+    c, two = element.coefficients, 2.0
+    x0 = xe[..., 0, :]
+    rows = [xe[..., i, :] - x0 for i in range(xe.shape[-2])]
+    a = {}
+    for j, pq in enumerate(element.monomials):
+        a[pq] = sum(float(c[i, j]) * rows[i] for i in range(len(rows)) if c[i, j] != 0)
+    zero = 0 * x0
+    A = {(p, q): a.get((p, q), zero) for p in range(3) for q in range(3)}
+    r = r - x0
+
+    def spread(u, v):  # tri6: |J(c + (u, v)) - J(c)|_F
+        return xp.sqrt(
+            _dot(two * u * A[2, 0] + v * A[1, 1], two * u * A[2, 0] + v * A[1, 1], xp)
+            + _dot(u * A[1, 1] + two * v * A[0, 2], u * A[1, 1] + two * v * A[0, 2], xp)
+        )
+
+    if element.n_corners == 3:
+        t = 1.0 / 3.0
+        b00 = A[0, 0] + t * (A[1, 0] + A[0, 1]) + t * t * (A[2, 0] + A[1, 1] + A[0, 2]) - r
+        b10 = A[1, 0] + two * t * A[2, 0] + t * A[1, 1]
+        b01 = A[0, 1] + two * t * A[0, 2] + t * A[1, 1]
+        corners = [(-t, -t), (2 * t, -t), (-t, 2 * t)]
+        delta = xp.maximum(
+            xp.maximum(spread(*corners[0]), spread(*corners[1])), spread(*corners[2])
+        )
+        k11, k12, k22 = two * _norm(A[2, 0], xp), _norm(A[1, 1], xp), two * _norm(A[0, 2], xp)
+        tail = (4.0 * (k11 + k22) / two + 2.0 * k12) / 9.0
+    else:
+        b00, b10, b01 = A[0, 0] - r, A[1, 0], A[0, 1]
+        n = {pq: _norm(A[pq], xp) for pq in ((0, 2), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2))}
+        d1 = n[1, 1] + n[1, 2] + two * (n[2, 0] + n[2, 1] + n[2, 2])
+        d2 = two * (n[0, 2] + n[1, 2] + n[2, 2]) + n[1, 1] + n[2, 1]
+        delta = xp.sqrt(d1 * d1 + d2 * d2)
+        k11 = two * (n[2, 0] + n[2, 1] + n[2, 2])
+        k12 = n[1, 1] + two * (n[1, 2] + n[2, 1]) + 4.0 * n[2, 2]
+        k22 = two * (n[0, 2] + n[1, 2] + n[2, 2])
+        corners = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)]
+        tail = n[2, 0] + n[1, 1] + n[0, 2] + n[2, 1] + n[1, 2] + n[2, 2]
+    far = None
+    for u, v in corners:
+        d = _norm(b00 + u * b10 + v * b01, xp)
+        far = d if far is None else xp.maximum(far, d)
+    far = far + tail
+    kappa = xp.sqrt(k11 * k11 + two * k12 * k12 + k22 * k22)
+    p, q, s = _dot(b10, b10, xp), _dot(b01, b01, xp), _dot(b10, b01, xp)
+    least = 0.5 * (p + q - xp.sqrt((p - q) * (p - q) + 4.0 * s * s))
+    sigma = xp.sqrt(xp.maximum(least, 0.0))
+    spare = sigma - delta
+    return (delta < 0.9 * sigma) & (spare * spare > 1.02 * far * kappa)
+
+
 def start_option_one(element, r, xe, xp=np):
     """Seed 003 start (I): the closest of the corners and the centre, in natural coordinates."""
     cand = np.concatenate([element.corners, element.centre[None]], 0)  # [k+1, 2]

@@ -24,6 +24,7 @@ from ._geometry import (
     closest_point_edges,
     closest_point_face,
     closest_point_triangle,
+    curved_convex,
     start_option_one,
     start_option_two,
     surely_convex,
@@ -132,7 +133,8 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
 
     The distance to a curved face can have several local minima; these starts sit in the
     basins that matter for points within an element size of the face (see
-    benchmarks/seed003_study.py for how often one start alone is not enough). A warped
+    benchmarks/seed003_study.py for how often one start alone is not enough); they count only
+    where `curved_convex` does not prove the distance strictly convex over the face. A warped
     bilinear quad can have two (tests/test_self_contact.py's crumpled quad4 sheet): its
     lattice start counts only where `surely_convex` does not prove one minimum (the Warp
     kernels skip it there, and every back end gives the same answer)."""
@@ -140,19 +142,36 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
         return bilinear_best_of_starts(r, xe, iterations=iterations, tol=tol, xp=xp)
     kw = dict(iterations=iterations, tol=tol)
     first = start_option_one(element, r, xe, xp)
-    if not element.linear:
-        k = element.n_corners
-        starts = [first, start_option_two(element, r, xe, xp)]
-        starts += [
-            xp.zeros_like(first) + lead(xp, xp.asarray(element.nodes[i], xe.dtype), r.ndim)
-            for i in range(k, 2 * k)
-        ]
-        starts.append(_lattice_start(xp, element, r, xe))
-        return _edges(xp, element, r, xe, *_closest_start(xp, element, r, xe, starts, **kw))
-    convex = surely_convex(element, r, xe, xp)
 
     def one():
         return closest_point_face(element, r, xe, first, xp=xp, **kw)[:4]
+
+    if not element.linear:
+        # The other starts only where one is not proven enough (as Warp).
+        convex = curved_convex(element, r, xe, xp)
+
+        def more(r, xe, first, convex):
+            k = element.n_corners
+            starts = [first, start_option_two(element, r, xe, xp)]
+            starts += [
+                xp.zeros_like(first) + lead(xp, xp.asarray(element.nodes[i], xe.dtype), r.ndim)
+                for i in range(k, 2 * k)
+            ]
+            starts.append(_lattice_start(xp, element, r, xe))
+            return _closest_start(xp, element, r, xe, starts, ~convex, **kw)
+
+        if is_numpy(xp):  # (the other starts' Newton runs on the rows that need them)
+            res = one()
+            if not convex.all():
+                rows = np.flatnonzero(~convex)
+                for v, w in zip(res, more(r[rows], xe[rows], first[rows], convex[rows])):
+                    v[rows] = w
+        else:  # (both branches run under vmap)
+            import jax
+
+            res = jax.lax.cond(xp.all(convex), one, lambda: more(r, xe, first, convex))
+        return _edges(xp, element, r, xe, *res)
+    convex = surely_convex(element, r, xe, xp)
 
     def two():
         # The lattice start only where one start is not proven enough (as Warp).
@@ -168,9 +187,9 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
     return _edges(xp, element, r, xe, *res)
 
 
-def _closest_start(xp, element, r, xe, starts, last=None, **kw):
+def _closest_start(xp, element, r, xe, starts, more=None, **kw):
     """closest_point_face's first four outputs from the closest of `starts` (the first on a
-    tie; the last start only where `last`, when given)."""
+    tie; the starts after the first only where `more`, when given)."""
     # All starts as one batch: one traced iteration loop on JAX, not one per start.
     n_s, n_p = len(starts), r.shape[0]
     rs = xp.reshape(xp.broadcast_to(r, (n_s,) + r.shape), (-1, 3))
@@ -178,8 +197,8 @@ def _closest_start(xp, element, r, xe, starts, last=None, **kw):
     res = closest_point_face(element, rs, xes, xp.concatenate(starts), xp=xp, **kw)
     x = einsum(xp, "pn,pnk->pk", shape_functions(element, res[0], xp), xes)
     d = xp.reshape(xp.sum((x - rs) ** 2, -1), (n_s, n_p))
-    if last is not None:
-        d = xp.concatenate([d[:-1], xp.where(last, d[-1], xp.inf)[None]])
+    if more is not None:
+        d = xp.concatenate([d[:1], xp.where(more, d[1:], xp.inf)])
     best = xp.argmin(d, axis=0) * n_p + xp.arange(n_p)
     return tuple(v[best] for v in res[:4])
 

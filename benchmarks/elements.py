@@ -24,16 +24,18 @@ sys.path.insert(0, str(Path(__file__).parent))
 import _records  # noqa: E402
 
 ELEMENTS = ("tri3", "quad4", "tri6", "quad8", "quad9")
+#: The scenes' RMS roughness, in element sizes.
+RMS = {"rough": 0.5, "gentle": 0.1}
 
 
-def run(element, n, device, repeats, n_check):
+def run(element, scene, n, device, repeats, n_check):
     import arraycontact_warp as acw
     import warp as wp
     from gpu import warp_plan
 
     import arraycontact as ac
 
-    sc = ac.scenes.rough_surfaces(n, element=element)
+    sc = ac.scenes.rough_surfaces(n, element=element, rms=RMS[scene])
     d_max = sc.master.longest_edge  # (the default: seed 000 eq. 2)
     p, xs, xm = warp_plan(sc, device=device, d_max=d_max)
     for _ in range(3):
@@ -47,6 +49,7 @@ def run(element, n, device, repeats, n_check):
         times.append(time.perf_counter() - t0)
     rec = dict(
         element=element,
+        scene=scene,
         log2=int(np.log2(n)),
         n_slaves=len(sc.slave),
         n_faces=sc.master.n_faces,
@@ -78,13 +81,15 @@ def _host(v):
 def table(machines):
     recs = [r for m in machines for r in _records.load("elements", m)]
     print(
-        "| run | commit | device | element | nodes a surface | faces | steady | per slave |"
+        "| run | commit | device | scene | element | nodes a surface | faces | steady | per slave |"
         " checked | misses | distance error / edge |"
     )
-    print("|" + "---|" * 11)
-    for r in _records.newest(recs, "device", "element", "log2"):
+    print("|" + "---|" * 12)
+    for r in recs:
+        r.setdefault("scene", "rough")  # (the records before the gentle scene)
+    for r in _records.newest(recs, "device", "scene", "element", "log2"):
         print(
-            f"| {r['run']} | {_records.commit(r)} | {r['device']} | {r['element']} |"
+            f"| {r['run']} | {_records.commit(r)} | {r['device']} | {r['scene']} | {r['element']} |"
             f" 2^{r['log2']} | {r['n_faces']} | {r['steady_s'] * 1e3:.2f} ms |"
             f" {r['steady_s'] / r['n_slaves'] * 1e9:.0f} ns | {r.get('checked', 0)} |"
             f" {r.get('misses', '-')} | {r.get('max_distance_err_rel', 0):.1e} |"
@@ -95,6 +100,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--log2", type=int, default=14)
     ap.add_argument("--only", nargs="*", default=list(ELEMENTS))
+    ap.add_argument("--scenes", nargs="*", default=list(RMS), choices=list(RMS))
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--check", type=int, default=32)
@@ -111,11 +117,12 @@ def main():
 
     device = wp.get_device(a.device)
     meta = _records.meta(a.run)
-    for element in a.only:
-        r = run(element, 2**a.log2, device, a.repeats, a.check)
-        r["device"] = device.name if device.is_cuda else "CPU"
-        print(json.dumps(r), flush=True)
-        _records.append("elements", r, meta, out=a.out)
+    for scene in a.scenes:
+        for element in a.only:
+            r = run(element, scene, 2**a.log2, device, a.repeats, a.check)
+            r["device"] = device.name if device.is_cuda else "CPU"
+            print(json.dumps(r), flush=True)
+            _records.append("elements", r, meta, out=a.out)
 
 
 if __name__ == "__main__":

@@ -880,6 +880,87 @@ def surely_convex(el: Any, r: vec3, xe: FaceNodes):
 
 
 @wp.func
+def _corner_dist(b00: vec3, b10: vec3, b01: vec3, u: real, v: real):
+    return wp.length(b00 + u * b10 + v * b01)
+
+
+@wp.func
+def _tri6_spread(a20: vec3, a11: vec3, a02: vec3, u: real, v: real):
+    """|J(c + (u, v)) - J(c)|_F on a tri6: the columns 2 a20 u + a11 v and a11 u + 2 a02 v."""
+    return wp.sqrt(
+        wp.length_sq(real(2.0) * u * a20 + v * a11) + wp.length_sq(u * a11 + real(2.0) * v * a02)
+    )
+
+
+@wp.func
+def curved_convex(el: Any, r: vec3, pe: FaceNodes):
+    """Whether |x(xi) - r|^2 is strictly convex over a curved face (tri6, quad8, quad9; pe:
+    its monomial coefficients A_pq, `monomials_of`): then its closest point is the one
+    stationary point there, which Newton from start I finds (`_project_nodes` skips the other
+    starts; NumPy and JAX take the same rule, arraycontact._geometry.curved_convex).
+
+    H = J^T J + C, C_ab = (x - r) . x_ab. About the domain's centre c, with J_c = J(c):
+    sigma_min(J) >= sigma_min(J_c) - delta (Weyl), delta >= max |J - J_c|_F over the face,
+    and |C|_2 <= |x - r| kappa, kappa >= max sqrt(|x_11|^2 + 2 |x_12|^2 + |x_22|^2); so H is
+    positive definite wherever (sigma_min(J_c) - delta)^2 > max |x - r| kappa. On quads
+    (centre 0, |xi|, |eta| <= 1) each bound sums its polynomial's coefficients' lengths, the
+    affine part of x - r taken at the corners (its exact maximum); on tri6 (c = (1/3, 1/3))
+    J - J_c and the affine part of x - r are affine, their maxima at the corners, and the
+    quadratic part A20 u^2 + A11 u v + A02 v^2 is at most 4/9, 2/9, 4/9 of its
+    coefficients' lengths. 2 % spare (10 % on delta) covers the rounding."""
+    two = real(2.0)
+    if corners(el) == 3:
+        c = real(1.0) / real(3.0)
+        a20 = pe.x6
+        a11 = pe.x4
+        a02 = pe.x2
+        b00 = pe.x0 + c * (pe.x3 + pe.x1) + c * c * (a20 + a11 + a02) - r
+        b10 = pe.x3 + two * c * a20 + c * a11
+        b01 = pe.x1 + two * c * a02 + c * a11
+        m = real(-1.0) / real(3.0)
+        p = real(2.0) / real(3.0)
+        delta = wp.max(_tri6_spread(a20, a11, a02, m, m), _tri6_spread(a20, a11, a02, p, m))
+        delta = wp.max(delta, _tri6_spread(a20, a11, a02, m, p))
+        k11 = two * wp.length(a20)
+        k12 = wp.length(a11)
+        k22 = two * wp.length(a02)
+        far = wp.max(_corner_dist(b00, b10, b01, m, m), _corner_dist(b00, b10, b01, p, m))
+        far = wp.max(far, _corner_dist(b00, b10, b01, m, p))
+        far += (real(4.0) * (k11 + k22) / two + real(2.0) * k12) / real(9.0)
+    else:
+        b10 = pe.x3
+        b01 = pe.x1
+        l02 = wp.length(pe.x2)
+        l11 = wp.length(pe.x4)
+        l12 = wp.length(pe.x5)
+        l20 = wp.length(pe.x6)
+        l21 = wp.length(pe.x7)
+        l22 = wp.length(pe.x8)
+        d1 = l11 + l12 + two * (l20 + l21 + l22)
+        d2 = two * (l02 + l12 + l22) + l11 + l21
+        delta = wp.sqrt(d1 * d1 + d2 * d2)
+        k11 = two * (l20 + l21 + l22)
+        k12 = l11 + two * (l12 + l21) + real(4.0) * l22
+        k22 = two * (l02 + l12 + l22)
+        b00 = pe.x0 - r
+        one = real(1.0)
+        far = wp.max(_corner_dist(b00, b10, b01, one, one), _corner_dist(b00, b10, b01, one, -one))
+        far = wp.max(far, _corner_dist(b00, b10, b01, -one, one))
+        far = wp.max(far, _corner_dist(b00, b10, b01, -one, -one))
+        far += l20 + l11 + l02 + l21 + l12 + l22
+    kappa = wp.sqrt(k11 * k11 + two * k12 * k12 + k22 * k22)
+    a = wp.length_sq(b10)
+    d = wp.length_sq(b01)
+    b = wp.dot(b10, b01)
+    sigma = wp.sqrt(
+        wp.max(real(0.5) * (a + d - wp.sqrt((a - d) * (a - d) + real(4.0) * b * b)), real(0.0))
+    )
+    return (
+        delta < real(0.9) * sigma and (sigma - delta) * (sigma - delta) > real(1.02) * far * kappa
+    )
+
+
+@wp.func
 def _range_on_edge(p: vec3, q: vec3, u: vec3, w: vec3):
     """The least and greatest of (p + q t) . (u + w t) over t in [-1, 1] (a quadratic)."""
     a = wp.dot(p, u)

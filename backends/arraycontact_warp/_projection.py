@@ -28,6 +28,7 @@ from ._geometry import (
     closest_point_triangle,
     coefficients,
     corners,
+    curved_convex,
     edge_xi,
     face_nodes,
     face_point,
@@ -204,15 +205,16 @@ def _project_nodes(el: Any, r: vec3, xe: FaceNodes, iterations: int, tol: real):
     # a bilinear face the lattice start unless one start surely suffices; the closest result
     # wins, the first on a tie. One call site keeps the generated code small.
     n_starts = 1
+    pe = coefficients(el, xe)
     if not straight(el):
-        n_starts = el.n_corners + 3
+        if not curved_convex(el, r, pe):
+            n_starts = el.n_corners + 3
     elif is_bilinear(el):
         if beyond_an_edge(r, xe):
             n_starts = 0  # the closest point is on the edges
         elif not surely_convex(el, r, xe):
             n_starts = 2
     best = real(3.0e38)
-    pe = coefficients(el, xe)
     for k in range(n_starts):
         start = el.centre
         if k == 0:
