@@ -54,17 +54,44 @@ def face_bounds(element, xe, xp=np):
     return c, element.lebesgue * xp.sqrt(xp.where(d2 > 0, d2, 0 * d2))
 
 
+def control_points(element, xe):
+    """The Bernstein control points (a list of [F, 3]) of quadratic faces with nodes xe
+    [F, nn, 3] (tri6, quad8, quad9), whose convex hull holds the face: the corners; for each
+    edge a - m - b (its mid node m: node n_corners + e), 2 m - (a + b) / 2; on quads the centre's,
+    4 x_c - (sum of the mid nodes) + (sum of the corners) / 4 (the tensor product of the 1-D
+    transform (a, m, b) -> (a, 2 m - (a + b) / 2, b)), where quad8's x_c is its value at the
+    centre, (sum of the mid nodes) / 2 - (sum of the corners) / 4 (its shape space lies in
+    quad9's)."""
+    k = element.n_corners
+    ends = [xe[:, e] for e in range(k)]
+    edges = [2.0 * xe[:, k + e] - 0.5 * (ends[e] + ends[(e + 1) % k]) for e in range(k)]
+    out = ends + edges
+    if k == 4:
+        mids, corners = sum(xe[:, k + e] for e in range(k)), sum(ends)
+        if element.nodes_per_face == 9:
+            out.append(4.0 * xe[:, 8] - mids + 0.25 * corners)
+        else:
+            out.append(mids - 0.75 * corners)
+    return out
+
+
 def face_boxes(element, xe, xp=np):
     """A box [lo, hi] holding each face with nodes xe [F, nn, 3]. Per axis, with m and w the
     middle and half-width of the nodes' range, x(xi) - m = sum_i N_i (x_i - m), so
-    |x(xi) - m| <= lebesgue w: the nodes' box itself for linear faces (lebesgue 1), cut by the
-    ball's cube for curved ones."""
+    |x(xi) - m| <= lebesgue w: the nodes' box itself for linear faces (lebesgue 1), for curved
+    ones cut by the ball's cube and the box of the Bernstein control points (`control_points`:
+    the tightest of the three, as the Warp kernels' face_bounds)."""
     a, b = xp.min(xe, 1), xp.max(xe, 1)
     if element.linear:
         return a, b
     m, w = 0.5 * (a + b), 0.5 * element.lebesgue * (b - a)
     c, r = face_bounds(element, xe, xp)
-    return xp.maximum(m - w, c - r[:, None]), xp.minimum(m + w, c + r[:, None])
+    lo, hi = xp.maximum(m - w, c - r[:, None]), xp.minimum(m + w, c + r[:, None])
+    cp = control_points(element, xe)
+    clo, chi = cp[0], cp[0]
+    for p in cp[1:]:
+        clo, chi = xp.minimum(clo, p), xp.maximum(chi, p)
+    return xp.maximum(lo, clo), xp.minimum(hi, chi)
 
 
 def normal_boxes(element, xe, xp=np):

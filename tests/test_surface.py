@@ -62,6 +62,32 @@ def test_face_ball_holds_the_face(element):
     assert np.linalg.norm(x - c[0], axis=1).max() <= r[0]
 
 
+@pytest.mark.parametrize("element", ["tri6", "quad8", "quad9"])
+def test_face_box_holds_the_face_and_fits_a_flat_one(element):
+    """face_boxes of curved faces (the Bernstein control points' box cut by the Lebesgue box
+    and the ball's cube) hold every point of the face, and on a flat face with its mid nodes
+    halfway along the edges equal the corners' box (the Lebesgue box alone was up to 3x it)."""
+    from arraycontact._surface import face_boxes
+
+    rng = np.random.default_rng(1)
+    e = get_element(element)
+    nn = e.nodes_per_face
+    g = np.linspace(0, 1, 101) if e.kind == "tri" else np.linspace(-1, 1, 101)
+    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    if e.kind == "tri":
+        xi = xi[xi.sum(1) <= 1]
+    xe = np.c_[e.nodes, np.zeros(nn)][None] + 0.4 * rng.normal(size=(200, nn, 3))
+    lo, hi = face_boxes(e, xe)
+    x = np.einsum("gn,fnk->fgk", shape_functions(e, xi), xe)
+    assert (x >= lo[:, None] - 1e-12).all() and (x <= hi[:, None] + 1e-12).all()
+    # Near the face's own extent (the Lebesgue box and ball alone: 1.55-2.96x on average).
+    assert ((hi - lo) / (x.max(1) - x.min(1))).mean() < 1.4
+    flat = np.c_[3 * e.nodes, np.zeros(nn)][None]
+    lo, hi = face_boxes(e, flat)
+    np.testing.assert_allclose(lo[0], flat[0].min(0), atol=1e-12)
+    np.testing.assert_allclose(hi[0], flat[0].max(0), atol=1e-12)
+
+
 def test_global_ids_and_unused_points():
     pts = np.r_[CUBE_PTS, [[9.0, 9, 9]]]  # an interior / unused node
     s = ac.Surface(pts, CUBE_QUADS)

@@ -950,6 +950,45 @@ def test_curved_convex_faces(name):
     least = np.linalg.eigvalsh(h)[..., 0].min(1)
     assert (least[ok] > 0).all()
     assert (least[~ok] <= 0).any()  # the certificate is needed: some are not convex
+
+
+def test_warp_face_boxes_equal_numpys():
+    """The kernels' face boxes (`_prepare.face_bounds`: on curved faces the Bernstein control
+    points' box cut by the Lebesgue box and the ball's cube) equal arraycontact._surface's
+    face_boxes, which tests/test_surface.py checks hold the faces, on every element."""
+    import importlib
+
+    from arraycontact._elements import get_element
+    from arraycontact._surface import face_boxes
+
+    prep = importlib.import_module(acw._real.precision("float64").__package__ + "._prepare")
+
+    # fmt: off
+    @wp.kernel(module="unique")
+    def boxes(points: wp.array(dtype=wp.vec3d), faces: wp.array2d(dtype=int),
+              lebesgue: wp.float64, lo: wp.array(dtype=wp.vec3d), hi: wp.array(dtype=wp.vec3d)):
+        f = wp.tid()
+        c, r, a, b = prep.face_bounds(points, faces, f, lebesgue)
+        lo[f] = a
+        hi[f] = b
+    # fmt: on
+
+    rng = np.random.default_rng(2)
+    for name in ("tri3", "quad4", "tri6", "quad8", "quad9"):
+        e = get_element(name)
+        nn = e.nodes_per_face
+        xe = np.c_[e.nodes, np.zeros(nn)][None] + 0.3 * rng.normal(size=(300, nn, 3))
+        faces = np.arange(300 * nn).reshape(300, nn)
+        lo, hi = (wp.zeros(300, dtype=wp.vec3d, device=DEVICE) for _ in range(2))
+        pts = wp.array(xe.reshape(-1, 3), dtype=wp.vec3d, device=DEVICE)
+        f = wp.array(faces.astype(np.int32), dtype=int, device=DEVICE)
+        wp.launch(boxes, 300, inputs=[pts, f, wp.float64(e.lebesgue), lo, hi], device=DEVICE)
+        want = face_boxes(e, xe)
+        np.testing.assert_allclose(lo.numpy(), want[0], rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(hi.numpy(), want[1], rtol=0, atol=1e-12, err_msg=name)
+
+
+def test_beyond_an_edge_bilinear_faces():
     """`beyond_an_edge` (the Warp projection then takes the closest point on the edges
     alone) only where |x(xi) - r|^2 has no stationary point in the square: one of its
     gradient's components, (x - r) . x_xi or (x - r) . x_eta, keeps one sign over a 41 x 41

@@ -31,12 +31,45 @@ def localise64(x: wp.array(dtype=wp.vec3d), origin: wp.vec3d, out: wp.array(dtyp
 
 
 @wp.func
+def _control_box(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, nn: int):
+    """The box of a quadratic face's Bernstein control points, whose convex hull holds the
+    face (tri6, quad8, quad9; arraycontact._surface.control_points): the corners, 2 m - (a +
+    b) / 2 for each edge a - m - b, and on quads the centre's, 4 x_c - (sum of the mid nodes)
+    + (sum of the corners) / 4, where quad8's x_c is its value at the centre, (sum of the mid
+    nodes) / 2 - (sum of the corners) / 4."""
+    k = 4
+    if nn == 6:
+        k = 3
+    lo = points[faces[f, 0]]
+    hi = lo
+    mids = vec3(0.0)
+    ends = vec3(0.0)
+    for e in range(k):
+        a = points[faces[f, e]]
+        b = points[faces[f, (e + 1) % k]]
+        m = points[faces[f, k + e]]
+        p = real(2.0) * m - real(0.5) * (a + b)
+        lo = wp.min(lo, wp.min(a, p))
+        hi = wp.max(hi, wp.max(a, p))
+        mids += m
+        ends += a
+    if k == 4:
+        p = mids - real(0.75) * ends  # quad8
+        if nn == 9:
+            p = real(4.0) * points[faces[f, 8]] - mids + real(0.25) * ends
+        lo = wp.min(lo, p)
+        hi = wp.max(hi, p)
+    return lo, hi
+
+
+@wp.func
 def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, lebesgue: real):
     """Face f's ball (c, r), which places it in the face grid, and its box [lo, hi], which a
     scan tests. Per axis, with m and w the middle and half-width of the nodes' range,
     x(xi) - m = sum_i N_i (x_i - m), so |x(xi) - m| <= lebesgue w: the box m +- lebesgue w
-    holds the face (the nodes' box when the shape functions are non-negative), and so does the
-    ball's cube."""
+    holds the face (the nodes' box when the shape functions are non-negative), and so do the
+    ball's cube and, on quadratic faces, the box of the Bernstein control points (the
+    tightest of the three: a nearly flat quad8's box was 3x its face across, lebesgue 3.03)."""
     nn = faces.shape[1]
     if nn <= 4 and lebesgue == real(1.0):
         # Linear faces (tri3, quad4): the nodes' box itself, as arraycontact._surface's, each
@@ -69,7 +102,10 @@ def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: i
     r = lebesgue * r
     m = real(0.5) * (a + b)
     w = real(0.5) * lebesgue * (b - a)
-    return c, r, wp.max(m - w, c - vec3(r)), wp.min(m + w, c + vec3(r))
+    lo, hi = _control_box(points, faces, f, nn)
+    lo = wp.max(lo, wp.max(m - w, c - vec3(r)))
+    hi = wp.min(hi, wp.min(m + w, c + vec3(r)))
+    return c, r, lo, hi
 
 
 __all__ = ["localise", "localise64", "face_bounds"]
