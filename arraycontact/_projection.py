@@ -166,11 +166,20 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
                 rows = np.flatnonzero(~convex)
                 for v, w in zip(res, more(r[rows], xe[rows], first[rows], convex[rows])):
                     v[rows] = w
-        else:  # (both branches run under vmap)
-            import jax
+            # The edges where the starts' result is not proven the minimum (as Warp: one
+            # proven start's converged active set is, its edge steps exact already).
+            rows = np.flatnonzero(~(convex & res[3]))
+            for v, w in zip(res, _edges(xp, element, r[rows], xe[rows], *(v[rows] for v in res))):
+                v[rows] = w
+            return res
+        import jax  # (both branches run under vmap)
 
-            res = jax.lax.cond(xp.all(convex), one, lambda: more(r, xe, first, convex))
-        return _edges(xp, element, r, xe, *res)
+        res = jax.lax.cond(xp.all(convex), one, lambda: more(r, xe, first, convex))
+        proven = convex & res[3]
+        return tuple(
+            xp.where(proven[:, None] if v.ndim == 2 else proven, v, w)
+            for v, w in zip(res, _edges(xp, element, r, xe, *res))
+        )
     convex = surely_convex(element, r, xe, xp)
 
     def two():
