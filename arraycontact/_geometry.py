@@ -267,7 +267,54 @@ def curved_convex(element, r, xe, xp=np):
     least = 0.5 * (p + q - xp.sqrt((p - q) * (p - q) + 4.0 * s * s))
     sigma = xp.sqrt(xp.maximum(least, 0.0))
     spare = sigma - delta
-    return (delta < 0.9 * sigma) & (spare * spare > 1.02 * far * kappa)
+    ok = (delta < 0.9 * sigma) & (spare * spare > 1.02 * far * kappa)
+    if element.n_corners == 3:
+        ok = ok | _tri6_hessian_positive(A, r, xp)
+    return ok
+
+
+def _tri6_hessian_positive(A, r, xp):
+    """The Warp kernels' `_tri6_hessian_positive` (its docstring says why), the same
+    arithmetic: A the monomial coefficients {(p, q): [..., 3]}, r in their frame."""
+    two, half = 2.0, 0.5
+
+    def h(s, w):
+        xs = A[1, 0] + two * s * A[2, 0] + w * A[1, 1]
+        xw = A[0, 1] + s * A[1, 1] + two * w * A[0, 2]
+        d = A[0, 0] + s * (A[1, 0] + s * A[2, 0] + w * A[1, 1]) + w * (A[0, 1] + w * A[0, 2]) - r
+        return (
+            _dot(xs, xs, xp) + two * _dot(d, A[2, 0], xp),
+            _dot(xs, xw, xp) + _dot(d, A[1, 1], xp),
+            _dot(xw, xw, xp) + two * _dot(d, A[0, 2], xp),
+        )
+
+    def mid(m, a, b):
+        return tuple(two * u - half * (v + w) for u, v, w in zip(m, a, b))
+
+    def q(g):
+        return g[0] * g[2] - g[1] * g[1]
+
+    def p(g, k):
+        return g[0] * k[2] + k[0] * g[2] - two * g[1] * k[1]
+
+    g0, g1, g2 = h(0.0, 0.0), h(1.0, 0.0), h(0.0, 1.0)
+    g3 = mid(h(half, 0.0), g0, g1)
+    g4 = mid(h(half, half), g1, g2)
+    g5 = mid(h(0.0, half), g0, g2)
+    size = xp.maximum(xp.maximum(g0[0] + g0[2], g1[0] + g1[2]), g2[0] + g2[2])
+    tol = 1.0e-3 * size
+    least = g0[0]
+    for g in (g1, g2, g3, g4, g5):
+        least = xp.minimum(least, g[0])
+    c = [6.0 * q(g0), 6.0 * q(g1), 6.0 * q(g2)]
+    c += [p(g0, g1) + 4.0 * q(g3), p(g0, g2) + 4.0 * q(g5), p(g1, g2) + 4.0 * q(g4)]
+    c += [3.0 * p(g0, g3), 3.0 * p(g0, g5), 3.0 * p(g1, g3), 3.0 * p(g1, g4)]
+    c += [3.0 * p(g2, g5), 3.0 * p(g2, g4)]
+    c += [p(g0, g4) + two * p(g3, g5), p(g1, g5) + two * p(g3, g4), p(g2, g3) + two * p(g4, g5)]
+    low = c[0]
+    for v in c[1:]:
+        low = xp.minimum(low, v)
+    return (size > 0) & (least > tol) & (low > 6.0 * tol * size)
 
 
 def start_option_one(element, r, xe, xp=np):

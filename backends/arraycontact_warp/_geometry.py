@@ -907,7 +907,10 @@ def curved_convex(el: Any, r: vec3, pe: FaceNodes):
     affine part of x - r taken at the corners (its exact maximum); on tri6 (c = (1/3, 1/3))
     J - J_c and the affine part of x - r are affine, their maxima at the corners, and the
     quadratic part A20 u^2 + A11 u v + A02 v^2 is at most 4/9, 2/9, 4/9 of its
-    coefficients' lengths. 2 % spare (10 % on delta) covers the rounding."""
+    coefficients' lengths. 2 % spare (10 % on delta) covers the rounding. Where that fails on
+    a tri6, H's own entries, quadratics there, are tested over the triangle
+    (`_tri6_hessian_positive`: tight; the rough tri6 scene's candidate pairs, all convex, were
+    33 % proven by the bound above alone)."""
     two = real(2.0)
     if corners(el) == 3:
         c = real(1.0) / real(3.0)
@@ -952,12 +955,73 @@ def curved_convex(el: Any, r: vec3, pe: FaceNodes):
     a = wp.length_sq(b10)
     d = wp.length_sq(b01)
     b = wp.dot(b10, b01)
-    sigma = wp.sqrt(
-        wp.max(real(0.5) * (a + d - wp.sqrt((a - d) * (a - d) + real(4.0) * b * b)), real(0.0))
+    least = real(0.5) * (a + d - wp.sqrt((a - d) * (a - d) + real(4.0) * b * b))
+    sigma = wp.sqrt(wp.max(least, real(0.0)))  # sigma_min(J_c)
+    spare = sigma - delta
+    if delta < real(0.9) * sigma and spare * spare > real(1.02) * far * kappa:
+        return True
+    if corners(el) == 3:
+        return _tri6_hessian_positive(pe, r)
+    return False
+
+
+@wp.func
+def _tri6_h(pe: FaceNodes, r: vec3, s: real, w: real):
+    """The Hessian (h11, h12, h22) of |x - r|^2 / 2 on a tri6 at (s, w): J^T J + (x - r) . x_ab."""
+    two = real(2.0)
+    xs = pe.x3 + two * s * pe.x6 + w * pe.x4
+    xw = pe.x1 + s * pe.x4 + two * w * pe.x2
+    d = pe.x0 + s * (pe.x3 + s * pe.x6 + w * pe.x4) + w * (pe.x1 + w * pe.x2) - r
+    return vec3(
+        wp.dot(xs, xs) + two * wp.dot(d, pe.x6),
+        wp.dot(xs, xw) + wp.dot(d, pe.x4),
+        wp.dot(xw, xw) + two * wp.dot(d, pe.x2),
     )
-    return (
-        delta < real(0.9) * sigma and (sigma - delta) * (sigma - delta) > real(1.02) * far * kappa
-    )
+
+
+@wp.func
+def _q(g: vec3):
+    return g[0] * g[2] - g[1] * g[1]
+
+
+@wp.func
+def _p(g: vec3, k: vec3):
+    return g[0] * k[2] + k[0] * g[2] - real(2.0) * g[1] * k[1]
+
+
+@wp.func
+def _tri6_hessian_positive(pe: FaceNodes, r: vec3):
+    """Whether the Hessian of |x - r|^2 is positive definite all over a tri6 (`curved_convex`'s
+    second test; NumPy's twin arraycontact._geometry._tri6_hessian_positive). Its entries are
+    quadratics in (s, w) (x_ab is constant), so h11 and det H = h11 h22 - h12^2 (a quartic)
+    are positive over the triangle where their Bernstein coefficients are: h's from its values
+    at the corners and mid-edges (b_ij = 2 f(m_ij) - (f_i + f_j) / 2), det's (times 6) from the
+    products of the quadratic bases (B_a B_b = C(2; a) C(2; b) / C(4; a + b) B_(a + b)). 0.1 %
+    of the largest trace (squared) spare covers the rounding."""
+    half = real(0.5)
+    two = real(2.0)
+    g0 = _tri6_h(pe, r, real(0.0), real(0.0))
+    g1 = _tri6_h(pe, r, real(1.0), real(0.0))
+    g2 = _tri6_h(pe, r, real(0.0), real(1.0))
+    g3 = two * _tri6_h(pe, r, half, real(0.0)) - half * (g0 + g1)
+    g4 = two * _tri6_h(pe, r, half, half) - half * (g1 + g2)
+    g5 = two * _tri6_h(pe, r, real(0.0), half) - half * (g0 + g2)
+    size = wp.max(wp.max(g0[0] + g0[2], g1[0] + g1[2]), g2[0] + g2[2])
+    tol = real(1.0e-3) * size
+    least = wp.min(wp.min(wp.min(g0[0], g1[0]), wp.min(g2[0], g3[0])), wp.min(g4[0], g5[0]))
+    if not (size > real(0.0) and least > tol):
+        return False
+    six = real(6.0)
+    three = real(3.0)
+    four = real(4.0)
+    c = wp.min(wp.min(six * _q(g0), six * _q(g1)), six * _q(g2))
+    c = wp.min(c, wp.min(_p(g0, g1) + four * _q(g3), _p(g0, g2) + four * _q(g5)))
+    c = wp.min(c, _p(g1, g2) + four * _q(g4))
+    c = wp.min(c, three * wp.min(wp.min(_p(g0, g3), _p(g0, g5)), wp.min(_p(g1, g3), _p(g1, g4))))
+    c = wp.min(c, three * wp.min(_p(g2, g5), _p(g2, g4)))
+    c = wp.min(c, wp.min(_p(g0, g4) + two * _p(g3, g5), _p(g1, g5) + two * _p(g3, g4)))
+    c = wp.min(c, _p(g2, g3) + two * _p(g4, g5))
+    return c > six * tol * size
 
 
 @wp.func
