@@ -176,10 +176,14 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
 
         res = jax.lax.cond(xp.all(convex), one, lambda: more(r, xe, first, convex))
         proven = convex & res[3]
-        return tuple(
-            xp.where(proven[:, None] if v.ndim == 2 else proven, v, w)
-            for v, w in zip(res, _edges(xp, element, r, xe, *res))
-        )
+
+        def edges():
+            return tuple(
+                xp.where(proven[:, None] if v.ndim == 2 else proven, v, w)
+                for v, w in zip(res, _edges(xp, element, r, xe, *res))
+            )
+
+        return jax.lax.cond(xp.all(proven), lambda: res, edges)
     convex = surely_convex(element, r, xe, xp)
 
     def two():
