@@ -31,35 +31,37 @@ def localise64(x: wp.array(dtype=wp.vec3d), origin: wp.vec3d, out: wp.array(dtyp
 
 
 @wp.func
-def _control_box(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, nn: int):
-    """The box of a quadratic face's Bernstein control points, whose convex hull holds the
-    face (tri6, quad8, quad9; arraycontact._surface.control_points): the corners, 2 m - (a +
-    b) / 2 for each edge a - m - b, and on quads the centre's, 4 x_c - (sum of the mid nodes)
-    + (sum of the corners) / 4, where quad8's x_c is its value at the centre, (sum of the mid
-    nodes) / 2 - (sum of the corners) / 4."""
+def control_point(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: int, i: int):
+    """Control point i of a quadratic face's Bernstein form, whose convex hull holds the face
+    (tri6: 6 of them, quad8 and quad9: 9; arraycontact._surface.control_points): the corners,
+    2 m - (a + b) / 2 for each edge a - m - b, and on quads the centre's, 4 x_c - (sum of the
+    mid nodes) + (sum of the corners) / 4, where quad8's x_c is its value at the centre,
+    (sum of the mid nodes) / 2 - (sum of the corners) / 4."""
+    nn = faces.shape[1]
     k = 4
     if nn == 6:
         k = 3
-    lo = points[faces[f, 0]]
-    hi = lo
+    if i < k:
+        return points[faces[f, i]]
+    if i < 2 * k:
+        e = i - k
+        a = points[faces[f, e]]
+        b = points[faces[f, (e + 1) % k]]
+        return real(2.0) * points[faces[f, i]] - real(0.5) * (a + b)
     mids = vec3(0.0)
     ends = vec3(0.0)
     for e in range(k):
-        a = points[faces[f, e]]
-        b = points[faces[f, (e + 1) % k]]
-        m = points[faces[f, k + e]]
-        p = real(2.0) * m - real(0.5) * (a + b)
-        lo = wp.min(lo, wp.min(a, p))
-        hi = wp.max(hi, wp.max(a, p))
-        mids += m
-        ends += a
-    if k == 4:
-        p = mids - real(0.75) * ends  # quad8
-        if nn == 9:
-            p = real(4.0) * points[faces[f, 8]] - mids + real(0.25) * ends
-        lo = wp.min(lo, p)
-        hi = wp.max(hi, p)
-    return lo, hi
+        mids += points[faces[f, k + e]]
+        ends += points[faces[f, e]]
+    if nn == 9:
+        return real(4.0) * points[faces[f, 8]] - mids + real(0.25) * ends
+    return mids - real(0.75) * ends
+
+
+@wp.func
+def n_control(faces: wp.array2d(dtype=int)):
+    """A quadratic face's number of control points (`control_point`)."""
+    return wp.where(faces.shape[1] == 6, 6, 9)
 
 
 @wp.func
@@ -102,10 +104,15 @@ def face_bounds(points: wp.array(dtype=vec3), faces: wp.array2d(dtype=int), f: i
     r = lebesgue * r
     m = real(0.5) * (a + b)
     w = real(0.5) * lebesgue * (b - a)
-    lo, hi = _control_box(points, faces, f, nn)
-    lo = wp.max(lo, wp.max(m - w, c - vec3(r)))
-    hi = wp.min(hi, wp.min(m + w, c + vec3(r)))
-    return c, r, lo, hi
+    lo = wp.max(m - w, c - vec3(r))
+    hi = wp.min(m + w, c + vec3(r))
+    p_lo = points[faces[f, 0]]
+    p_hi = p_lo
+    for i in range(1, n_control(faces)):
+        p = control_point(points, faces, f, i)
+        p_lo = wp.min(p_lo, p)
+        p_hi = wp.max(p_hi, p)
+    return c, r, wp.max(lo, p_lo), wp.min(hi, p_hi)
 
 
-__all__ = ["localise", "localise64", "face_bounds"]
+__all__ = ["control_point", "face_bounds", "localise", "localise64", "n_control"]

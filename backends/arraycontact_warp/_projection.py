@@ -330,9 +330,10 @@ def holds_own(o: Own, m: Master, f: int):  # noqa: F811 (a Warp overload)
     return holds(m, f, o.node)
 
 
-#: A straight-edged linear face's slab (tri3, quad4): its unit normal n and the range lo..hi
-#: of n . x over its corners, which holds the face (its points are convex combinations of its
-#: corners). Others: n = 0, the whole range.
+#: A face's slab: its unit normal n (of the corners: the diagonals' on quads) and the range
+#: lo..hi of n . x over its corners, which holds a straight-edged face (its points are convex
+#: combinations of its corners), and on curved faces over its Bernstein control points too
+#: (their hull holds the face). A degenerate face: n = 0, the whole range.
 Slab = wp.types.vector(length=5, dtype=real)
 
 

@@ -9,6 +9,7 @@ from typing import Any
 import warp as wp
 
 from ._geometry import EDGE, FACE, Triangles, face_nodes, face_tangents
+from ._prepare import control_point, n_control
 from ._projection import Master, Slab
 from ._real import real, vec2, vec3
 
@@ -232,23 +233,27 @@ def self_face_geometry(
         h += wp.length(m.points[m.faces[f, (c + 1) % k]] - m.points[m.faces[f, c]])
     h_face[f] = h / real(k)
     sb = Slab(real(0.0), real(0.0), real(0.0), real(-1.0e30), real(1.0e30))
-    if nn == 3 or nn == 4:
-        c0 = m.points[m.faces[f, 0]]
-        c1 = m.points[m.faces[f, 1]]
-        c2 = m.points[m.faces[f, 2]]
-        c3 = c2
-        n = wp.cross(c1 - c0, c2 - c0)
-        if nn == 4:
-            c3 = m.points[m.faces[f, 3]]
-            n = wp.cross(c2 - c0, c3 - c1)  # (the diagonals': a warped quad's mean normal)
-        ln = wp.length(n)
-        if ln > real(0.0):
-            n = n / ln
-            d0 = wp.dot(n, c0)
-            d1 = wp.dot(n, c1)
-            d2 = wp.dot(n, c2)
-            d3 = wp.dot(n, c3)
-            s_lo = wp.min(wp.min(d0, d1), wp.min(d2, d3))
-            s_hi = wp.max(wp.max(d0, d1), wp.max(d2, d3))
-            sb = Slab(n[0], n[1], n[2], s_lo, s_hi)
+    c0 = m.points[m.faces[f, 0]]
+    c1 = m.points[m.faces[f, 1]]
+    c2 = m.points[m.faces[f, 2]]
+    c3 = c2
+    n = wp.cross(c1 - c0, c2 - c0)
+    if k == 4:
+        c3 = m.points[m.faces[f, 3]]
+        n = wp.cross(c2 - c0, c3 - c1)  # (the diagonals': a warped quad's mean normal)
+    ln = wp.length(n)
+    if ln > real(0.0):
+        n = n / ln
+        d0 = wp.dot(n, c0)
+        d1 = wp.dot(n, c1)
+        d2 = wp.dot(n, c2)
+        d3 = wp.dot(n, c3)
+        s_lo = wp.min(wp.min(d0, d1), wp.min(d2, d3))
+        s_hi = wp.max(wp.max(d0, d1), wp.max(d2, d3))
+        if nn > 4:  # a curved face: over its Bernstein control points, whose hull holds it
+            for i in range(k, n_control(m.faces)):
+                d = wp.dot(n, control_point(m.points, m.faces, f, i))
+                s_lo = wp.min(s_lo, d)
+                s_hi = wp.max(s_hi, d)
+        sb = Slab(n[0], n[1], n[2], s_lo, s_hi)
     slab[f] = sb
