@@ -150,7 +150,7 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
         # The other starts only where one is not proven enough (as Warp).
         convex = curved_convex(element, r, xe, xp)
 
-        def more(r, xe, first, convex):
+        def more(r, xe, first, proven):  # every start, where not proven
             k = element.n_corners
             starts = [first, start_option_two(element, r, xe, xp)]
             starts += [
@@ -158,32 +158,32 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
                 for i in range(k, 2 * k)
             ]
             starts.append(_lattice_start(xp, element, r, xe))
-            return _closest_start(xp, element, r, xe, starts, ~convex, **kw)
+            return _closest_start(xp, element, r, xe, starts, ~proven, **kw)
 
+        # Where start I's active set did not converge (it can stall on an edge even where the
+        # distance is convex) every start runs, and the edges' exact pass, as unproven (Warp).
         if is_numpy(xp):  # (the other starts' Newton runs on the rows that need them)
             res = one()
-            if not convex.all():
-                rows = np.flatnonzero(~convex)
-                for v, w in zip(res, more(r[rows], xe[rows], first[rows], convex[rows])):
+            proven = convex & res[3]
+            rows = np.flatnonzero(~proven)
+            if len(rows):
+                sub = more(r[rows], xe[rows], first[rows], proven[rows])
+                for v, w in zip(res, _edges(xp, element, r[rows], xe[rows], *sub)):
                     v[rows] = w
-            # The edges where the starts' result is not proven the minimum (as Warp: one
-            # proven start's converged active set is, its edge steps exact already).
-            rows = np.flatnonzero(~(convex & res[3]))
-            for v, w in zip(res, _edges(xp, element, r[rows], xe[rows], *(v[rows] for v in res))):
-                v[rows] = w
             return res
         import jax  # (both branches run under vmap)
 
-        res = jax.lax.cond(xp.all(convex), one, lambda: more(r, xe, first, convex))
+        res = one()
         proven = convex & res[3]
 
-        def edges():
+        def rest():
+            res = more(r, xe, first, proven)
             return tuple(
                 xp.where(proven[:, None] if v.ndim == 2 else proven, v, w)
                 for v, w in zip(res, _edges(xp, element, r, xe, *res))
             )
 
-        return jax.lax.cond(xp.all(proven), lambda: res, edges)
+        return jax.lax.cond(xp.all(proven), lambda: res, rest)
     convex = surely_convex(element, r, xe, xp)
 
     def two():

@@ -414,3 +414,28 @@ def test_bilinear_solver_takes_the_generic_steps():
     np.testing.assert_allclose(
         _quad_distance(e, xe, r, got[0]), _quad_distance(e, xe, r, want[0]), rtol=1e-10, atol=1e-12
     )
+
+
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
+def test_a_stalled_start_on_a_convex_curved_face(backend):
+    """The crumpled tri6 sheet's node 3479 (2^13 nodes) against its face 668: `curved_convex`
+    proves the distance strictly convex there, yet start I's active set stalls on the edge
+    s = 0, 1.15 away, unconverged; the face comes to 0.3605 (the reference). A proven face
+    takes start I alone only where its active set converges: every back end finds 0.3605."""
+    from arraycontact import scenes
+    from arraycontact._geometry import curved_convex
+    from arraycontact.reference import closest_points
+
+    m = scenes.crumpled_sheet(2**13, element="tri6").master
+    xe = m.points[m.faces[668]]
+    r = m.points[m.nodes[3479]][None]
+    e = m.element
+    assert curved_convex(e, r, xe[None])[0]
+    start = start_option_one(e, r, xe[None])
+    stalled = closest_point_face(e, r, xe[None], start, iterations=20, tol=1e-12)
+    assert not stalled[3][0]
+    face = ac.Surface(xe, [np.arange(6)], "tri6")
+    want = closest_points(r, face).distance[0]
+    assert abs(want - 0.3605) < 1e-4
+    c = ac.detect(r, face, backend=backend, d_max=1.0, dtype="float64")
+    assert c.active[0] and abs(c.distance[0] - want) < 1e-9
