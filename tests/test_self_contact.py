@@ -214,7 +214,7 @@ def test_warp_face_slab_holds_its_face(element):
     """Self-contact's `Slab` (Warp: skips a face whose slab is beyond the scan's reach): the
     unit normal n and the range of n . x over a straight-edged face's corners (a curved face's
     Bernstein control points) holds every point of the face (sampled densely, the crumpled
-    sheet's warped quads and curved quad8 among them)."""
+    sheet's warped quads and its curved faces among them)."""
     import arraycontact_warp as acw
 
     sc = scenes.crumpled_sheet(300, element=element)

@@ -898,11 +898,12 @@ def test_surely_convex_bilinear_faces():
 
 @pytest.mark.parametrize("name", ["tri6", "quad8", "quad9"])
 def test_curved_convex_faces(name):
-    """`curved_convex` (one Newton start suffices on a curved face) only where the Hessian of
-    |x(xi) - r|^2, J^T J + (x - r) . x_ab from the shape functions' derivatives, is positive
-    definite all over the face (a grid of 41 x 41 points, the triangle's half): it holds for
-    gently curved faces and points near them (on tri6 nearly wherever the Hessian is clearly
-    positive definite), fails for strongly curved ones, and NumPy's twin decides alike."""
+    """`curved_convex` (one Newton start, where it converges, suffices on a curved face) only
+    where the Hessian of |x(xi) - r|^2, J^T J + (x - r) . x_ab from the shape functions'
+    derivatives, is positive definite all over the face (a grid of 41 x 41 points, the
+    triangle's half): it holds for gently curved faces and points near them (on tri6 nearly
+    wherever the Hessian is clearly positive definite), fails for strongly curved ones, and
+    NumPy's twin decides alike."""
     from arraycontact._elements import get_element, interpolate, shape_second_derivatives
     from arraycontact._geometry import curved_convex
 

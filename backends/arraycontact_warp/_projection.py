@@ -202,8 +202,9 @@ def _project_nodes(el: Any, r: vec3, xe: FaceNodes, iterations: int, tol: real):
     local = int(-1)
     conv = int(1)
     # Start I, then on curved faces the centre, each mid-edge node and the lattice start, on
-    # a bilinear face the lattice start unless one start surely suffices; the closest result
-    # wins, the first on a tie. One call site keeps the generated code small.
+    # a bilinear face the lattice start, unless one start surely suffices (on a curved face:
+    # if it converges); the closest result wins, the first on a tie. One call site keeps the
+    # generated code small.
     n_starts = 1
     pe = coefficients(el, xe)
     proven = False  # a curved face proven convex: start I alone, if its active set converges
