@@ -103,7 +103,10 @@ def normal_boxes(element, xe, xp=np):
     tri3: the one normal. quad4: x_xi x x_eta is affine in (xi, eta) (the xi eta term is
     x_xi's b x b = 0), so the hull of its four corner values holds it. tri6: x_xi and x_eta
     are affine, each in the hull of its corner values A_j, B_k, so the normal is in the hull of
-    the nine A_j x B_k. quad8, quad9: no bound (the box of all unit vectors)."""
+    the nine A_j x B_k. quad8, quad9: on the control net P_ij (`control_points`; i along xi, j
+    along eta), x_xi = sum B1_i B2_j 2 (P_(i+1)j - P_ij) and x_eta = sum B2_k B1_l 2
+    (P_k(l+1) - P_kl) over Bernstein bases, so x_xi x x_eta is a combination with non-negative
+    weights of the 36 cross products of those differences."""
     if element.name == "tri3":
         n = _unit(xp.cross(xe[:, 1] - xe[:, 0], xe[:, 2] - xe[:, 0]), xp)
         return n, n
@@ -120,8 +123,11 @@ def normal_boxes(element, xe, xp=np):
             _unit(xp.cross(dx[:, j, :, 0], dx[:, k, :, 1]), xp) for j in range(3) for k in range(3)
         ]
     else:
-        one = xp.ones((xe.shape[0], 3), xe.dtype)
-        return -one, one
+        cp = control_points(element, xe)
+        net = [[cp[0], cp[7], cp[3]], [cp[4], cp[8], cp[6]], [cp[1], cp[5], cp[2]]]  # [i][j]
+        a = [net[i + 1][j] - net[i][j] for i in range(2) for j in range(3)]
+        b = [net[k][j + 1] - net[k][j] for k in range(3) for j in range(2)]
+        gens = [_unit(xp.cross(u, v), xp) for u in a for v in b]
     lo, hi = gens[0], gens[0]
     for g in gens[1:]:
         lo, hi = xp.minimum(lo, g), xp.maximum(hi, g)

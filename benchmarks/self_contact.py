@@ -4,10 +4,12 @@ face counts, same run, same device.
     python benchmarks/self_contact.py --log2 17 20 --device cuda --out DIR   # a GPU machine
     python benchmarks/self_contact.py --log2 16 --device cpu --out DIR      # Warp on the CPU
 
-For each self-contact scene of arraycontact.scenes (quad4, about 2^k nodes) and size:
+For each self-contact scene of arraycontact.scenes (quad4, or `--element`; about 2^k nodes)
+and size:
   - self: arraycontact_warp.plan_self / detect_self, steady state (device arrays in place,
     detect's CUDA graph on a GPU), first call, plan time;
-  - two-body, same counts: two rough surfaces (quad4) with as many master faces and slaves,
+  - two-body, same counts: two rough surfaces (the same element) with as many master faces
+    and slaves,
     plan / detect as a simulator calls it;
   - two-body, same geometry: the surface's nodes as slaves of the surface itself by the
     two-body rule (every node on its own faces at distance 0: the cheapest possible answer);
@@ -137,13 +139,13 @@ def check(out, surface, d_max, n_check, seed=0):
     return rec
 
 
-def run(name, n, device, repeats, n_check, with_jax):
-    sc = getattr(ac.scenes, name)(n, element="quad4")
+def run(name, n, device, repeats, n_check, with_jax, element="quad4"):
+    sc = getattr(ac.scenes, name)(n, element=element)
     s, d = sc.master, sc.params["d_max"]
     out, rec, self_call = warp_self(s, d, device)
     counts = dict(nodes=len(s.nodes), faces=s.n_faces)
-    # Two rough quad4 surfaces with as many master faces and slaves.
-    rough = ac.scenes.rough_surfaces(len(s.nodes), element="quad4")
+    # Two rough surfaces of the element with as many master faces and slaves.
+    rough = ac.scenes.rough_surfaces(len(s.nodes), element=element)
     two_body = warp_two_body(rough.master, rough.slave, None, device)
     rec["two_body_counts"] = dict(nodes=len(rough.slave), faces=rough.master.n_faces)
     same = warp_two_body(s, s.points[s.nodes], d, device)
@@ -157,21 +159,23 @@ def run(name, n, device, repeats, n_check, with_jax):
         rec.update(check(out, s, d, min(n_check, len(s.nodes))))
     if with_jax:
         rec.update(jax_self(s, d, repeats))
-    return dict(scene=name, **counts, d_max=d, dtype="float32", **rec)
+    return dict(scene=name, element=element, **counts, d_max=d, dtype="float32", **rec)
 
 
 def table(machines):
     """The newest record of each scene and size on each machine, as a markdown table."""
     recs = [r for m in machines for r in _records.load("self_contact", m)]
     print(
-        "| run | commit | device | scene | nodes | self ms | two-body ms | self / two-body |"
-        " same geometry ms | self / same geometry | checked | miss | wrong face | tied face |"
-        " max gap err / edge |"
+        "| run | commit | device | scene | element | nodes | self ms | two-body ms |"
+        " self / two-body | same geometry ms | self / same geometry | checked | miss |"
+        " wrong face | tied face | max gap err / edge |"
     )
-    print("|" + "---|" * 15)
-    for r in _records.newest(recs, "device", "scene", "nodes"):
+    print("|" + "---|" * 16)
+    for r in recs:
+        r.setdefault("element", "quad4")  # (the records before --element)
+    for r in _records.newest(recs, "device", "scene", "element", "nodes"):
         print(
-            f"| {r['run']} | {_records.commit(r)} | {r['device']} | {r['scene']} |"
+            f"| {r['run']} | {_records.commit(r)} | {r['device']} | {r['scene']} | {r['element']} |"
             f" {r['nodes']} | {r['steady_s'] * 1e3:.2f} | {r['two_body_steady_s'] * 1e3:.2f} |"
             f" {r['self_over_two_body']:.2f} | {r['same_geometry_steady_s'] * 1e3:.2f} |"
             f" {r['self_over_same_geometry']:.2f} | {r.get('checked', 0)} |"
@@ -187,6 +191,7 @@ def main():
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--check", type=int, default=256)
+    ap.add_argument("--element", default="quad4", help="the scenes' faces (and the two-body's)")
     ap.add_argument("--jax", action="store_true")
     ap.add_argument("--snail", action="store_true")
     ap.add_argument("--out", default=None)
@@ -206,7 +211,7 @@ def main():
         jobs.append(("spiral_strip", 130_000))
     meta = _records.meta(args.run)
     for name, n in jobs:
-        r = run(name, n, device, args.repeats, args.check, args.jax)
+        r = run(name, n, device, args.repeats, args.check, args.jax, args.element)
         r.update(device=device.name, host_cores=os.cpu_count())
         print(json.dumps(r), flush=True)
         _records.append("self_contact", r, meta, out=args.out)

@@ -211,7 +211,8 @@ def test_warped_quad4_faces(backend):
 
 @pytest.mark.parametrize("element", ["tri3", "quad4", "tri6", "quad8", "quad9"])
 def test_warp_face_slab_holds_its_face(element):
-    """Self-contact's `Slab` (Warp: skips a face whose slab is beyond the scan's reach): the
+    """Self-contact's `Slab` (Warp: skips a face whose slab is beyond the scan's reach) and
+    normal boxes (equal to NumPy's) on every element. The slab: the
     unit normal n and the range of n . x over a straight-edged face's corners (a curved face's
     Bernstein control points) holds every point of the face (sampled densely, the crumpled
     sheet's warped quads and its curved faces among them)."""
@@ -235,6 +236,12 @@ def test_warp_face_slab_holds_its_face(element):
     assert element == "tri3" or np.ptp(hi - lo) > 0  # (warped quads: slabs of some thickness)
     # and thin beside the faces (a slab bounds only as far as it is tight)
     assert np.median(hi - lo) < 0.5 * np.median(m.face_bounds[1])
+    # The same plan's normal boxes are NumPy's (tests/test_surface.py checks those).
+    from arraycontact._surface import normal_boxes
+
+    want = normal_boxes(m.element, m.points[m.faces] - p.origin)
+    np.testing.assert_allclose(p.face_nlo.numpy(), want[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(p.face_nhi.numpy(), want[1], rtol=0, atol=1e-12)
 
 
 def _warp_cpu_compiles() -> bool:

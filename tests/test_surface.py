@@ -5,7 +5,7 @@ import pytest
 
 import arraycontact as ac
 from arraycontact import scenes
-from arraycontact._elements import get_element, shape_functions
+from arraycontact._elements import get_element, interpolate, shape_functions
 
 CUBE_PTS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
 # Outward-oriented quads of the unit cube (node i = x + 2 y + 4 z).
@@ -149,3 +149,33 @@ def test_stable_order_is_a_stable_argsort(end):
         keys = rng.integers(0, end, n, dtype=np.int64)
         keys[: n // 2] = keys[n // 2 : 2 * (n // 2)]  # many equal keys
         assert np.array_equal(_stable_order(keys, end), np.argsort(keys, kind="stable"))
+
+
+@pytest.mark.parametrize("element", ["tri3", "quad4", "tri6", "quad8", "quad9"])
+def test_normal_boxes_hold_the_normals_and_fit_a_flat_face(element):
+    """normal_boxes (self-contact's pruning: a face is nowhere facing n where the box's least
+    n . v is not negative): for random faces and directions, wherever the box says so every
+    sampled normal x_xi x x_eta agrees; a flat face's box is its normal alone (quad8 and quad9
+    had the box of all unit vectors)."""
+    from arraycontact._surface import min_dot, normal_boxes
+
+    rng = np.random.default_rng(2)
+    e = get_element(element)
+    nn = e.nodes_per_face
+    g = np.linspace(0, 1, 41) if e.kind == "tri" else np.linspace(-1, 1, 41)
+    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    if e.kind == "tri":
+        xi = xi[xi.sum(1) <= 1]
+    xe = np.c_[e.nodes, np.zeros(nn)][None] + 0.15 * rng.normal(size=(100, nn, 3))
+    lo, hi = normal_boxes(e, xe)
+    _, dx = interpolate(e, xe[:, None], xi[None])
+    n = np.cross(dx[..., 0], dx[..., 1])  # [F, samples, 3]
+    v = rng.normal(size=(500, 3))
+    says = min_dot(v[None], lo[:, None], hi[:, None]) >= 0  # [F, directions]
+    assert says.any() and (~says).any()
+    worst = np.einsum("fsk,dk->fds", n, v).min(-1)
+    assert (worst[says] >= -1e-9).all()
+    flat = np.c_[2 * e.nodes, np.zeros(nn)][None]
+    lo, hi = normal_boxes(e, flat)
+    np.testing.assert_allclose(lo[0], [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(hi[0], [0, 0, 1], atol=1e-12)

@@ -191,6 +191,18 @@ def self_node_geometry(
     h_node[i] = h / real(wp.max(m.nf_offsets[i + 1] - m.nf_offsets[i], 1))
 
 
+@wp.func
+def _net(m: Master, f: int, i: int, j: int):
+    """A quad8 or quad9 face's control net point P_ij (i along xi, j along eta, 0..2): its
+    `control_point`s 0-3 at the corners, 4-7 mid-edge, 8 at the centre."""
+    c = wp.where(j == 0, 0, wp.where(j == 1, 7, 3))
+    if i == 1:
+        c = wp.where(j == 0, 4, wp.where(j == 1, 8, 6))
+    elif i == 2:
+        c = wp.where(j == 0, 1, wp.where(j == 1, 5, 2))
+    return control_point(m.points, m.faces, f, c)
+
+
 @wp.kernel
 def self_face_geometry(
     first: int,
@@ -202,9 +214,9 @@ def self_face_geometry(
     slab: wp.array(dtype=Slab),
 ):
     """Each face's normal box (arraycontact._surface.normal_boxes: tri3 its normal, quad4 its
-    corner normals, tri6 the nine cross products of x_xi and x_eta at its corners, else all
-    unit vectors), its size (the mean length of its edges) and its `Slab`. Threads first +
-    t."""
+    corner normals, tri6 the nine cross products of x_xi and x_eta at its corners, quad8 and
+    quad9 the 36 of their control net's differences), its size (the mean length of its edges)
+    and its `Slab`. Threads first + t."""
     f = first + wp.tid()
     nn = m.faces.shape[1]
     k = el.n_corners
@@ -226,6 +238,18 @@ def self_face_geometry(
                 g = _unit(wp.cross(ta, ua))
                 b_lo = wp.min(b_lo, g)
                 b_hi = wp.max(b_hi, g)
+    else:  # quad8, quad9: the 36 cross products of the control net's xi and eta differences
+        b_lo = vec3(real(1.0))
+        b_hi = vec3(real(-1.0))
+        for ni in range(2):
+            for nj in range(3):
+                along = _net(m, f, ni + 1, nj) - _net(m, f, ni, nj)
+                for nk in range(3):
+                    for nl in range(2):
+                        across = _net(m, f, nk, nl + 1) - _net(m, f, nk, nl)
+                        g = _unit(wp.cross(along, across))
+                        b_lo = wp.min(b_lo, g)
+                        b_hi = wp.max(b_hi, g)
     lo[f] = b_lo
     hi[f] = b_hi
     h = real(0.0)
