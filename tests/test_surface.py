@@ -47,6 +47,19 @@ def test_open_grid_boundary():
     assert np.allclose(s.node_normals[s.nodes], [0, 0, 1])
 
 
+def _domain_grid(e, n):
+    """An n x n grid of the element's natural domain (the triangle's half on triangles)."""
+    g = np.linspace(0, 1, n) if e.kind == "tri" else np.linspace(-1, 1, n)
+    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    return xi[xi.sum(1) <= 1] if e.kind == "tri" else xi
+
+
+def _random_faces(e, rng, count, scale):
+    """`count` faces [count, nn, 3]: the natural domain in z = 0, nodes moved by `scale`."""
+    nn = e.nodes_per_face
+    return np.c_[e.nodes, np.zeros(nn)][None] + scale * rng.normal(size=(count, nn, 3))
+
+
 @pytest.mark.parametrize("element", ["tri3", "quad4", "tri6", "quad8", "quad9"])
 def test_face_ball_holds_the_face(element):
     rng = np.random.default_rng(0)
@@ -54,10 +67,7 @@ def test_face_ball_holds_the_face(element):
     pts = np.c_[e.nodes, np.zeros(e.nodes_per_face)] + 0.4 * rng.normal(size=(e.nodes_per_face, 3))
     s = ac.Surface(pts, [np.arange(e.nodes_per_face)], element)
     c, r = s.face_bounds
-    g = np.linspace(0, 1, 101) if e.kind == "tri" else np.linspace(-1, 1, 101)
-    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    if e.kind == "tri":
-        xi = xi[xi.sum(1) <= 1]
+    xi = _domain_grid(e, 101)
     x = shape_functions(e, xi) @ pts
     assert np.linalg.norm(x - c[0], axis=1).max() <= r[0]
 
@@ -72,11 +82,8 @@ def test_face_box_holds_the_face_and_fits_a_flat_one(element):
     rng = np.random.default_rng(1)
     e = get_element(element)
     nn = e.nodes_per_face
-    g = np.linspace(0, 1, 101) if e.kind == "tri" else np.linspace(-1, 1, 101)
-    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    if e.kind == "tri":
-        xi = xi[xi.sum(1) <= 1]
-    xe = np.c_[e.nodes, np.zeros(nn)][None] + 0.4 * rng.normal(size=(200, nn, 3))
+    xi = _domain_grid(e, 101)
+    xe = _random_faces(e, rng, 200, 0.4)
     lo, hi = face_boxes(e, xe)
     x = np.einsum("gn,fnk->fgk", shape_functions(e, xi), xe)
     assert (x >= lo[:, None] - 1e-12).all() and (x <= hi[:, None] + 1e-12).all()
@@ -162,11 +169,8 @@ def test_normal_boxes_hold_the_normals_and_fit_a_flat_face(element):
     rng = np.random.default_rng(2)
     e = get_element(element)
     nn = e.nodes_per_face
-    g = np.linspace(0, 1, 41) if e.kind == "tri" else np.linspace(-1, 1, 41)
-    xi = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    if e.kind == "tri":
-        xi = xi[xi.sum(1) <= 1]
-    xe = np.c_[e.nodes, np.zeros(nn)][None] + 0.15 * rng.normal(size=(100, nn, 3))
+    xi = _domain_grid(e, 41)
+    xe = _random_faces(e, rng, 100, 0.15)
     lo, hi = normal_boxes(e, xe)
     _, dx = interpolate(e, xe[:, None], xi[None])
     n = np.cross(dx[..., 0], dx[..., 1])  # [F, samples, 3]
