@@ -354,7 +354,8 @@ def closest_point_face(
 
     - "active_set": a primal active-set method. Each iteration drops the working-set
       constraint with the most negative multiplier; with no working constraint it takes the
-      Newton step (with its second-order correction where that is closer), with one it goes
+      Newton step (with its second-order correction where both stay on the face and the
+      correction is closer), with one it goes
       to the closest point of that edge (exact: closest_point_edge); it halves the step while
       the distance grows, and a step that meets a constraint (ratio test) goes on to the
       exact closest point of that edge.
@@ -460,9 +461,14 @@ def closest_point_face(
         hq = xp.where(pd[..., None, None], h, gn)
         p0 = -_solve2(hq, g, xp)
         # Only for a Newton step that stays on the face: far outside, the correction of a poor
-        # model step is no better and can stall the ratio test.
+        # model step is no better and can stall the ratio test. The correction must stay on the
+        # face too: from an edge whose constraint is being dropped, a corrected step back out
+        # through it would keep the constraint, and the iterate, where they are for good (a
+        # convex tri6 pair stalled so, 1.15 from its closest point).
+        pc = chebyshev(xi, p0, hq)
         inside = (rows_dot(xp, xi + p0, A) - b >= 0).all(-1)
-        p0 = xp.where(inside[..., None], better(xi, p0, chebyshev(xi, p0, hq)), p0)
+        inside = inside & (rows_dot(xp, xi + pc, A) - b >= 0).all(-1)
+        p0 = xp.where(inside[..., None], better(xi, p0, pc), p0)
         p1 = xp.take_along_axis(p_edges, xp.asarray(ce)[j1][..., None, None], -2)[..., 0, :]
         return xp.where((nw == 0)[..., None], p0, xp.where((nw == 1)[..., None], p1, 0 * p0))
 
@@ -906,10 +912,13 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
         hq = tuple(xp.where(pd, h[i], gn[i]) for i in range(3))
         s = solve(hq, g)
         p0 = (-s[0], -s[1])
+        pc = chebyshev(u, v, p0, hq)
         inside = slack(0, u + p0[0], v + p0[1]) >= 0
-        for j in (1, 2, 3):
+        for j in (1, 2, 3):  # (both steps on the face: see closest_point_face's step)
             inside = inside & (slack(j, u + p0[0], v + p0[1]) >= 0)
-        b = better(u, v, p0, chebyshev(u, v, p0, hq))
+            inside = inside & (slack(j, u + pc[0], v + pc[1]) >= 0)
+        inside = inside & (slack(0, u + pc[0], v + pc[1]) >= 0)
+        b = better(u, v, p0, pc)
         p0 = (xp.where(inside, b[0], p0[0]), xp.where(inside, b[1], p0[1]))
         e1 = pick(j1, EDGE_OF)
         p1 = (pick(e1, [p[0] for p in p_edges]), pick(e1, [p[1] for p in p_edges]))

@@ -416,12 +416,62 @@ def test_bilinear_solver_takes_the_generic_steps():
     )
 
 
+def _start_one_on_the_face(backend, e, r, xe, iterations, tol):
+    """Start I's active set (closest_point_face) on the back end's own code: NumPy, JAX
+    (jitted, float64) or Warp's exported @wp.func (float64, on the test device). xi, converged."""
+    start = start_option_one(e, r, xe)
+    kw = dict(iterations=iterations, tol=tol)
+    if backend == "numpy":
+        out = closest_point_face(e, r, xe, start, **kw)
+        return out[0], out[3]
+    if backend == "jax":
+        import jax
+        import jax.numpy as jnp
+
+        with jax.enable_x64(True):
+            f = jax.jit(lambda a, b, c: closest_point_face(e, a, b, c, xp=jnp, **kw)[::3])
+            return tuple(np.asarray(v) for v in f(r, xe, start))
+    import arraycontact_warp as acw
+    import warp as wp
+
+    g = acw.geometry("float64")
+    device = "cuda:0" if wp.get_cuda_device_count() else "cpu"
+
+    # (A compact signature: see test_warp's test_exported_geometry_in_a_user_kernel.)
+    # fmt: off
+    @wp.kernel(module="unique")
+    def face(el: g.Element, pts: wp.array2d(dtype=wp.vec3d), q: wp.array(dtype=wp.vec3d),
+             xi0: wp.array(dtype=wp.vec2d), xi_out: wp.array(dtype=wp.vec2d),
+             ok: wp.array(dtype=int)):
+        i = wp.tid()
+        xn = g.FaceNodes()
+        for k in range(pts.shape[1]):
+            xn = g.set_node(xn, k, pts[i, k])
+        xi, feature, local, converged = g.closest_point_face(
+            el, q[i], xn, xi0[i], iterations, wp.float64(tol))
+        xi_out[i] = xi
+        ok[i] = converged
+    # fmt: on
+
+    n = len(r)
+    xi = wp.zeros(n, dtype=wp.vec2d, device=device)
+    ok = wp.zeros(n, dtype=int, device=device)
+    args = [wp.array(xe, dtype=wp.vec3d, device=device), wp.array(r, dtype=wp.vec3d, device=device)]
+    args += [wp.array(start, dtype=wp.vec2d, device=device)]
+    wp.launch(face, n, inputs=[g.element_data(e.name, device), *args], outputs=[xi, ok],
+              device=device)  # fmt: skip
+    return xi.numpy(), ok.numpy().astype(bool)
+
+
 @pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
-def test_a_stalled_start_on_a_convex_curved_face(backend):
+def test_start_one_leaves_an_edge_into_a_convex_curved_face(backend):
     """The crumpled tri6 sheet's node 3479 (2^13 nodes) against its face 668: `curved_convex`
-    proves the distance strictly convex there, yet start I's active set stalls on the edge
-    s = 0, 1.15 away, unconverged; the face comes to 0.3605 (the reference). A proven face
-    takes start I alone only where its active set converges: every back end finds 0.3605."""
+    proves the distance strictly convex there. Start I's active set reaches the edge s = 0 and
+    must leave it (a negative multiplier): the Newton step points into the face, but its
+    second-order correction pointed back out, so the constraint was kept and the iterate stayed
+    1.15 from the closest point, unconverged at any iteration count, on every back end (until
+    the correction had to stay on the face). Start I now converges to the reference's 0.3605;
+    a detection (which also falls back to every start where start I does not converge) too."""
     from arraycontact import scenes
     from arraycontact._geometry import curved_convex
     from arraycontact.reference import closest_points
@@ -431,11 +481,12 @@ def test_a_stalled_start_on_a_convex_curved_face(backend):
     r = m.points[m.nodes[3479]][None]
     e = m.element
     assert curved_convex(e, r, xe[None])[0]
-    start = start_option_one(e, r, xe[None])
-    stalled = closest_point_face(e, r, xe[None], start, iterations=20, tol=1e-12)
-    assert not stalled[3][0]
     face = ac.Surface(xe, [np.arange(6)], "tri6")
     want = closest_points(r, face).distance[0]
     assert abs(want - 0.3605) < 1e-4
+    xi, converged = _start_one_on_the_face(backend, e, r, xe[None], iterations=20, tol=1e-12)
+    assert converged[0]
+    got = np.linalg.norm(shape_functions(e, xi)[0] @ xe - r[0])
+    assert abs(got - want) < 1e-9
     c = ac.detect(r, face, backend=backend, d_max=1.0, dtype="float64")
     assert c.active[0] and abs(c.distance[0] - want) < 1e-9

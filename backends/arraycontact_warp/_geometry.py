@@ -656,8 +656,9 @@ def _step(
     w2: int,
 ):
     """The step for the working set {w1, w2} (-1: empty slot). Empty: Newton (h positive
-    definite or Gauss-Newton's) with its second-order correction where that stays on the face
-    and is closer; one constraint: to the exact closest point of that edge; two: none."""
+    definite or Gauss-Newton's) with its second-order correction where both stay on the face
+    and the correction is closer; one constraint: to the exact closest point of that edge;
+    two: none."""
     if w1 < 0:
         p = -_solve2(h, g)
         for j in range(n_cons(el)):
@@ -672,6 +673,10 @@ def _step(
             real(2.0) * wp.dot(m1, jp) + wp.dot(t1, xpp),
         )
         pc = p - _solve2(h, real(0.5) * c)
+        # (the correction stays on the face too: see the NumPy step)
+        for j in range(n_cons(el)):
+            if wp.dot(cons_a(el, j), xi + pc) < cons_b(el, j):
+                return p
         if _objective(el, xe, pe, r, xi + pc) < _objective(el, xe, pe, r, xi + p):
             return pc
         return p
