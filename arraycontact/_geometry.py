@@ -98,6 +98,23 @@ def _triangle_regions(d1, d2, d3, d4, d5, d6, xp):
     return v, w, feature, local
 
 
+def _least(a, b, c, tiny, xp):
+    """The least eigenvalue of the symmetric [[a, b], [b, c]] (J^T J of a face: positive),
+    det / the largest (no cancellation where they differ by orders), at least tiny.
+
+    The active-set methods' KKT residual is the projected gradient g over sqrt(k tr J^T J),
+    k J^T J's least value over the free directions (this, off the edges): the Gauss-Newton
+    step's length in space, |J (J^T J)^-1 g| <= |g| / sqrt(k), relative to the face's size
+    sqrt(tr J^T J). Over the trace (as before) it understated that step on a stretched face
+    by sqrt(tr / k): the crumpled tri6 sheet's (tr / k 50-100) stopped at float32's tolerance
+    1e-4 3e-3 from the point in xi, the gap 5e-4 of it too large. Over k alone (the step in
+    natural coordinates) float32 could not reach it on slivers (tr / k up to 5e4), whose gap
+    it had to rounding.
+    """
+    largest = 0.5 * (a + c + xp.sqrt((a - c) ** 2 + 4 * b * b))
+    return xp.maximum(_safe_div(a * c - b * b, largest, xp), tiny)
+
+
 def _solve2(m, r, xp):
     """Solve the 2x2 systems m [..., 2, 2] x = r [..., 2] by Cramer's rule (0 where singular)."""
     det = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
@@ -355,10 +372,9 @@ def closest_point_face(
     - "active_set": a primal active-set method. Each iteration drops the working-set
       constraint with the most negative multiplier; with no working constraint it takes the
       Newton step (with its second-order correction where both stay on the face and the
-      correction is closer), with one it goes
-      to the closest point of that edge (exact: closest_point_edge); it halves the step while
-      the distance grows, and a step that meets a constraint (ratio test) goes on to the
-      exact closest point of that edge.
+      correction is closer), with one it goes to the closest point of that edge (exact:
+      closest_point_edge); it halves the step while the distance grows, and a step that
+      meets a constraint (ratio test) goes on to the exact closest point of that edge.
     - "sqp": sequential quadratic programming. Each iteration takes the best feasible one of:
       the free Newton step of the quadratic model, its second-order correction, and the exact
       closest point on each edge (which holds the model's minimiser on each constraint line
@@ -369,7 +385,8 @@ def closest_point_face(
 
     Returns xi, feature, local, converged (KKT residual <= tol), iterations used (the first
     iteration after which the KKT conditions held) and the final KKT residual (in natural
-    coordinates: the projected gradient scaled by 1/|J|^2)."""
+    coordinates: the projected gradient over sqrt(k tr J^T J), k J^T J's least value in the
+    free directions, see `_least`; a negative multiplier over the trace)."""
     if element.name == "quad4" and method == "active_set" and hessian == "exact":
         if not is_numpy(xp) and _resume is None:  # (the same steps, fused: see its docstring)
             return _closest_point_bilinear(r, xe, xi0, iterations=iterations, tol=tol, xp=xp)
@@ -407,6 +424,21 @@ def closest_point_face(
             h = gn
         scale = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], xp.finfo(xe.dtype).tiny)
         return g, h, gn, scale
+
+    def stiffness(gn, w):
+        # The residual's scale (see _least): sqrt(k tr J^T J), k J^T J's least value over the
+        # free directions (its least eigenvalue off the edges, its value along the one edge in
+        # W); the trace at a corner (no free direction: only the multipliers, as before).
+        tiny = xp.finfo(xe.dtype).tiny
+        a = A[xp.argmax(w, -1)]
+        t0, t1 = -a[..., 1], a[..., 0]
+        along = t0 * t0 * gn[..., 0, 0] + 2 * t0 * t1 * gn[..., 0, 1] + t1 * t1 * gn[..., 1, 1]
+        along = _safe_div(along, t0 * t0 + t1 * t1, xp)
+        nw = xp.sum(w, -1)
+        least = _least(gn[..., 0, 0], gn[..., 0, 1], gn[..., 1, 1], tiny, xp)
+        trace = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], tiny)
+        k = xp.where(nw == 0, least, xp.where(nw == 1, along, trace))
+        return xp.maximum(xp.sqrt(k * trace), tiny)
 
     def chebyshev(xi, p, h):
         # The second-order (Chebyshev) correction of a Newton step p on the gradient
@@ -476,19 +508,20 @@ def closest_point_face(
         # The step to the smaller distance (p on a tie).
         return xp.where((objective(xi + q) < objective(xi + p))[..., None], q, p)
 
-    def residual(g, w, scale):
+    def residual(g, w, gn):
         lam = multipliers(g, w)
         lam_w = xp.where(w, lam, 0)
         proj = g - einsum(xp, "...j,ja->...a", lam_w, A)
-        kkt = xp.sqrt(xp.sum(proj**2, -1)) / scale
+        kkt = xp.sqrt(xp.sum(proj**2, -1)) / stiffness(gn, w)
         neg = xp.min(xp.where(w, lam, np.inf), -1)
-        kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / scale, 0))
+        trace = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], xp.finfo(xe.dtype).tiny)
+        kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / trace, 0))
         return kkt, lam
 
     def iteration(it, state):
         xi, w, done, iters = state
         g, h, gn, scale = derivatives(xi)
-        kkt, lam = residual(g, w, scale)
+        kkt, lam = residual(g, w, gn)
         newly = (kkt <= tol) & ~done
         iters = xp.where(newly, it + 1, iters)
         done = done | newly
@@ -533,7 +566,7 @@ def closest_point_face(
         xi, w, done, iters = state
         g, h, gn, scale = derivatives(xi)
         w = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
-        kkt, _ = residual(g, w, scale)
+        kkt, _ = residual(g, w, gn)
         newly = (kkt <= tol) & ~done
         iters = xp.where(newly, it + 1, iters)
         done = done | newly
@@ -583,8 +616,8 @@ def closest_point_face(
         xi, w, done, iters = fori(xp, iterations, body, state, stop=lambda s: xp.all(s[2]))
     if method == "sqp":
         w = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
-    g, _, _, scale = derivatives(xi)
-    kkt, _ = residual(g, w, scale)
+    g, _, gn, _ = derivatives(xi)
+    kkt, _ = residual(g, w, gn)
     converged = kkt <= tol
     iters = xp.where(done, iters, iterations + 1)
     nw = xp.sum(w, -1)
@@ -877,15 +910,21 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
             lam.append(xp.where(w[j], lj, inf))
         return lam
 
-    def residual(g, w, scale):
+    def residual(g, w, gn):
         lam = multipliers(g, w)
         pu, pv = g[0], g[1]
         for j in range(4):
             lw = xp.where(w[j], lam[j], 0)
             pu, pv = pu - lw * A[j][0], pv - lw * A[j][1]
+        # (closest_point_face's stiffness: rows 0 and 1 hold u, so v is free along them)
+        nw = count(w)
+        trace = xp.maximum(gn[0] + gn[2], tiny)
+        along = xp.where(w[0] | w[1], gn[2], gn[0])
+        k = xp.where(nw == 0, _least(*gn, tiny, xp), xp.where(nw == 1, along, trace))
+        scale = xp.maximum(xp.sqrt(k * trace), tiny)
         kkt = xp.sqrt(pu * pu + pv * pv) / scale
         neg = xp.minimum(xp.minimum(lam[0], lam[1]), xp.minimum(lam[2], lam[3]))
-        kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / scale, 0))
+        kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / trace, 0))
         return kkt, lam
 
     def slack(j, u, v):  # A_j . xi - b_j
@@ -929,7 +968,7 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     def iteration(it, state):
         u, v, w, done, iters = state
         g, h, gn, scale = derivatives(u, v)
-        kkt, lam = residual(g, w, scale)
+        kkt, lam = residual(g, w, gn)
         newly = (kkt <= tol) & ~done
         iters = xp.where(newly, it + 1, iters)
         done = done | newly
@@ -971,8 +1010,8 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     w0 = tuple(xp.abs(slack(j, u0, v0)) <= feasible_tol for j in range(4))
     state = (u0, v0, w0, xp.zeros(u0.shape, bool), xp.zeros(u0.shape, np.int32))
     u, v, w, done, iters = fori(xp, iterations, iteration, state, stop=lambda s: xp.all(s[3]))
-    g, _, _, scale = derivatives(u, v)
-    kkt, _ = residual(g, w, scale)
+    g, _, gn, _ = derivatives(u, v)
+    kkt, _ = residual(g, w, gn)
     converged = kkt <= tol
     iters = xp.where(done, iters, iterations + 1)
     nw = count(w)

@@ -490,3 +490,22 @@ def test_start_one_leaves_an_edge_into_a_convex_curved_face(backend):
     assert abs(got - want) < 1e-9
     c = ac.detect(r, face, backend=backend, d_max=1.0, dtype="float64")
     assert c.active[0] and abs(c.distance[0] - want) < 1e-9
+
+
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
+def test_float32_on_stretched_curved_faces(backend):
+    """Three crumpled tri6 faces (2^14 nodes) stretched 50-100 to 1 (J^T J's eigenvalues at the
+    closest point) and a node 0.03-0.2 from each: in float32 the active set stopped at its
+    tolerance (1e-4) 3e-3 from the point in xi while its residual was scaled by the trace of
+    J^T J, the distance up to 3e-4 too large (Warp). Every back end's float32 detection now
+    gives the float64 reference's distance to float32 rounding (the faces are 18 across)."""
+    from arraycontact import scenes
+    from arraycontact.reference import closest_points
+
+    m = scenes.crumpled_sheet(2**14, element="tri6").master
+    for node, f in ((8090, 3043), (20145, 3669), (21266, 2110)):
+        face = ac.Surface(m.points[m.faces[f]], [np.arange(6)], "tri6")
+        r = m.points[node][None]
+        want = closest_points(r, face).distance[0]
+        c = ac.detect(r, face, backend=backend, d_max=1.0, dtype="float32")
+        assert c.active[0] and abs(c.distance[0] - want) < 1e-5, (node, c.distance[0], want)

@@ -220,7 +220,7 @@ def test_warp_face_slab_holds_its_face(element):
 
     sc = scenes.crumpled_sheet(300, element=element)
     m = sc.master
-    p = acw.plan_self(m, d_max=sc.params["d_max"], dtype="float64", device="cpu")
+    p = acw.plan_self(m, d_max=sc.params["d_max"], dtype="float64")  # (the GPU where there is one)
     acw.detect_self(p, m.points)
     slab = p.face_slab.numpy()
     n, lo, hi = slab[:, :3], slab[:, 3], slab[:, 4]

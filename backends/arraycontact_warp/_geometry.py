@@ -530,6 +530,17 @@ def _solve2(m: mat22, v: vec2):
 
 
 @wp.func
+def _least(m: mat22):
+    """The least eigenvalue of J^T J (symmetric, positive): det over the largest, at least
+    1e-30 (arraycontact._geometry._least)."""
+    a = m[0, 0]
+    b = m[0, 1]
+    c = m[1, 1]
+    largest = real(0.5) * (a + c + wp.sqrt((a - c) * (a - c) + real(4.0) * b * b))
+    return wp.max(_sdiv(a * c - b * b, largest), real(1.0e-30))
+
+
+@wp.func
 def _cross2(a: vec2, b: vec2):
     return a[0] * b[1] - a[1] * b[0]
 
@@ -718,6 +729,7 @@ def _active_set(
         gn = mat22(wp.dot(t0, t0), wp.dot(t0, t1), wp.dot(t0, t1), wp.dot(t1, t1))
         h = gn - mat22(wp.dot(s00, d), wp.dot(s01, d), wp.dot(s01, d), wp.dot(s11, d))
         scale = wp.max(gn[0, 0] + gn[1, 1], real(1.0e-30))
+        k = _least(gn)  # (the residual's scale, sqrt(k tr): arraycontact._geometry._least)
         # multipliers of the working set and the KKT residual
         lam1 = real(0.0)
         lam2 = real(0.0)
@@ -733,7 +745,15 @@ def _active_set(
             a1 = cons_a(el, w1)
             lam1 = _sdiv(wp.dot(a1, g), wp.dot(a1, a1))
             proj = g - lam1 * a1
-        kkt = wp.length(proj) / scale
+        # (k on one edge: J^T J along it; at a corner the trace; a negative multiplier over
+        # the trace)
+        if w1 >= 0 and w2 >= 0:
+            k = scale
+        elif w1 >= 0:
+            a1 = cons_a(el, w1)
+            t = vec2(-a1[1], a1[0])
+            k = _sdiv(wp.dot(t, gn * t), wp.dot(t, t))
+        kkt = wp.length(proj) / wp.max(wp.sqrt(k * scale), real(1.0e-30))
         neg = real(0.0)
         jmin = int(-1)
         if w1 >= 0 and lam1 < neg:
