@@ -509,3 +509,27 @@ def test_float32_on_stretched_curved_faces(backend):
         want = closest_points(r, face).distance[0]
         c = ac.detect(r, face, backend=backend, d_max=1.0, dtype="float32")
         assert c.active[0] and abs(c.distance[0] - want) < 1e-5, (node, c.distance[0], want)
+
+
+def test_least_eigenvalue_of_stretched_metrics():
+    """`_least` (the KKT residual's scale) against LAPACK's eigenvalues on random J^T J of
+    faces stretched up to 1e6 to 1 and turned every way (float64; float32 to its rounding of
+    the determinant, eps times the stretch), and never below tiny on a singular one."""
+    from arraycontact._geometry import _least
+
+    rng = np.random.default_rng(5)
+    n = 2000
+    stretch = 10.0 ** rng.uniform(0, 6, n)
+    angle = rng.uniform(0, np.pi, n)
+    size = 10.0 ** rng.uniform(-3, 3, n)
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    m = rot @ (np.eye(2) * np.stack([size, size / stretch], -1)[:, None, :]) @ rot.swapaxes(-1, -2)
+    want = np.linalg.eigvalsh(m)[:, 0]
+    got = _least(m[:, 0, 0], m[:, 0, 1], m[:, 1, 1], 1e-300, np)
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    m32 = m.astype(np.float32)
+    got32 = _least(m32[:, 0, 0], m32[:, 0, 1], m32[:, 1, 1], np.float32(1e-30), np)
+    ok = stretch < 1e3  # (the determinant's rounding: about eps32 x stretch of it)
+    np.testing.assert_allclose(got32[ok], want[ok], rtol=1e-3)
+    assert _least(np.float64(1.0), np.float64(2.0), np.float64(4.0), 1e-300, np) == 1e-300
