@@ -106,10 +106,10 @@ def _least(a, b, c, tiny, xp):
     k J^T J's least value over the free directions (this, off the edges): the Gauss-Newton
     step's length in space, |J (J^T J)^-1 g| <= |g| / sqrt(k), relative to the face's size
     sqrt(tr J^T J). Over the trace (as before) it understated that step on a stretched face
-    by sqrt(tr / k): the crumpled tri6 sheet's (tr / k 50-100) stopped at float32's tolerance
-    1e-4 3e-3 from the point in xi, the gap 5e-4 of it too large. Over k alone (the step in
-    natural coordinates) float32 could not reach it on slivers (tr / k up to 5e4), whose gap
-    it had to rounding.
+    by sqrt(tr / k): on the crumpled tri6 sheet's (tr / k 50-100) float32's tolerance, 1e-4,
+    stopped 3e-3 from the point in xi, the distance up to 3e-4 too large. Over k alone (the
+    step in natural coordinates) float32 could not reach it on slivers (tr / k up to 5e4),
+    whose distances it had to rounding.
     """
     largest = 0.5 * (a + c + xp.sqrt((a - c) ** 2 + 4 * b * b))
     return xp.maximum(_safe_div(a * c - b * b, largest, xp), tiny)
@@ -953,10 +953,10 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
         p0 = (-s[0], -s[1])
         pc = chebyshev(u, v, p0, hq)
         inside = slack(0, u + p0[0], v + p0[1]) >= 0
-        for j in (1, 2, 3):  # (both steps on the face: see closest_point_face's step)
+        for j in (1, 2, 3):
             inside = inside & (slack(j, u + p0[0], v + p0[1]) >= 0)
+        for j in range(4):  # (the correction on the face too: see closest_point_face's step)
             inside = inside & (slack(j, u + pc[0], v + pc[1]) >= 0)
-        inside = inside & (slack(0, u + pc[0], v + pc[1]) >= 0)
         b = better(u, v, p0, pc)
         p0 = (xp.where(inside, b[0], p0[0]), xp.where(inside, b[1], p0[1]))
         e1 = pick(j1, EDGE_OF)
