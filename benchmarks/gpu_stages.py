@@ -5,6 +5,7 @@ made a plan's first, whose refit check the host reads); "launches" counts them.
 
     python benchmarks/gpu_stages.py --log2 20 --only uniform graded_1000
     python benchmarks/gpu_stages.py --log2 17 --self spiral_strip crumpled_sheet
+    python benchmarks/gpu_stages.py --log2 17 --self folded_sheet --element tri6
     python benchmarks/gpu_stages.py --log2 20 --swept rough_tri3 graded_100
 
 With --swept, each step of `swept.py` twice: its swept detection and the static detection of
@@ -28,7 +29,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--log2", type=int, default=20)
     ap.add_argument("--only", nargs="*")
-    ap.add_argument("--self", nargs="*", help="self-contact scenes (arraycontact.scenes, quad4)")
+    ap.add_argument("--self", nargs="*", help="self-contact scenes (arraycontact.scenes)")
+    ap.add_argument("--element", default="quad4", help="the self-contact scenes' faces")
     ap.add_argument("--swept", nargs="*", help="swept steps (swept.py's names)")
     a = ap.parse_args()
     import arraycontact_warp as acw
@@ -66,7 +68,7 @@ def _cases(a, acw, wp):
         import arraycontact as ac
 
         for name in a.self:
-            sc = getattr(ac.scenes, name)(2**a.log2, element="quad4")
+            sc = getattr(ac.scenes, name)(2**a.log2, element=a.element)
             s = sc.master
             p = acw.plan_self(s, d_max=sc.params["d_max"], device="cuda", graphs=False)
             x = wp.array((s.points - p.origin).astype(np.float32), dtype=wp.vec3)
