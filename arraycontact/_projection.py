@@ -160,8 +160,9 @@ def _best_of_starts(xp, element, r, xe, iterations, tol):
             starts.append(_lattice_start(xp, element, r, xe))
             return _closest_start(xp, element, r, xe, starts, ~proven, **kw)
 
-        # Where start I's active set did not converge (it can stall on an edge even where the
-        # distance is convex) every start runs, and the edges' exact pass, as unproven (Warp).
+        # Where start I's active set did not converge (a stall on an edge did so on a convex
+        # pair until the Newton correction had to stay on the face; any iteration limit may)
+        # every start runs, and the edges' exact pass, as unproven (Warp).
         if is_numpy(xp):  # (the other starts' Newton runs on the rows that need them)
             res = one()
             proven = convex & res[3]
