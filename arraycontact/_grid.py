@@ -128,9 +128,11 @@ def grouping(keys) -> tuple:
     that holds at most W entries; a group of level k is an entry of level k + 1, and the
     splits between level k + 1's entries are those between the groups. A level whose groups
     would hold fewer than 2 entries on average takes W consecutive entries a group instead
-    (slots stay within 4x the entries). Why not W consecutive items a group everywhere: where
-    the Morton order jumps (between the halves of a cell) such a group straddles both and its
-    box spans the two, and so do its ancestors."""
+    (slots stay within 4x the entries), and a level of at most W^2 entries in more than W
+    groups merges neighbouring groups where that makes the next level the root's (`_top`;
+    the Warp back end's device grouping does not). Why not W consecutive items a group
+    everywhere: where the Morton order jumps (between the halves of a cell) such a group
+    straddles both and its box spans the two, and so do its ancestors."""
     keys = np.asarray(keys, np.int64)
     n = len(keys)
     if n <= 1:
@@ -148,6 +150,8 @@ def grouping(keys) -> tuple:
         if m / len(start) < 2:  # W consecutive entries a group
             end = (np.arange(m) % W == W - 1) | (np.arange(m) == m - 1)
             start = np.arange(0, m, W)
+        elif W < len(start) and m <= W * W:
+            start, end = _top(start, end, m)
         group = np.cumsum(end) - end
         slots = np.full(W * len(start), -1, np.int32)
         slots[W * group + np.arange(m) - start[group]] = np.arange(m)
@@ -155,6 +159,27 @@ def grouping(keys) -> tuple:
         if len(start) == 1:
             return tuple(out)
         split = split[np.flatnonzero(end[:-1])]
+
+
+def _top(start, end, m):
+    """The groups (start, end) of a level of at most W^2 entries in more than W groups,
+    neighbouring groups merged (next fit: each as full as whole groups allow) where that
+    leaves at most W, so the level above is the root's: a level fewer where the groups end
+    just past W (a sharded part's node tree at 2^21: 54 entries in 9 groups, so 2 entries
+    under the root, a scan step more a slave). Otherwise as they were."""
+    size = np.diff(np.r_[start, m])
+    keep, fill = [0], 0
+    for i, c in enumerate(size):
+        if fill + c > W:
+            keep.append(i)
+            fill = 0
+        fill += c
+    if len(keep) > W:
+        return start, end
+    start = start[keep]
+    end = np.zeros(m, bool)
+    end[np.r_[start[1:] - 1, m - 1]] = True
+    return start, end
 
 
 def _ends(split):

@@ -132,9 +132,11 @@ def test_far_apart_patches_cost_what_adjacent_ones_cost():
 
     p2 = prepare(s2, m2, m2.longest_edge)
     p3 = prepare(s3, m3, m3.longest_edge)
-    # The slots follow the items' Morton groups, whose count does not depend on the gap.
+    # The slots follow the items' Morton groups, whose count does not depend on the gap: the
+    # far-apart trees are no larger (they may be smaller: a top whose groups merge, so a
+    # level fewer, `_grid._top`).
     for a, b in ((p2.node_levels, p3.node_levels), (p2.face_levels, p3.face_levels)):
-        assert len(a) == len(b) and 0.8 < sum(a) / sum(b) < 1.25
+        assert len(a) <= len(b) and sum(a) / sum(b) < 1.25
     c2 = ac.detect(s2, m2, backend="numpy")
     c3 = ac.detect(s3, m3, backend="numpy")
     # The pairs each tree level keeps differ only by the rounding slack of the pruning test

@@ -47,6 +47,8 @@ def test_host_tree_groups_are_the_radix_trees_largest_nodes(kind, falls):
             want = radix if by_rule else [
                 (ranges[e][0], ranges[min(e + W, m) - 1][1]) for e in range(0, m, W)
             ]  # fmt: skip
+            if by_rule and W < len(radix) and m <= W * W:
+                want = _packed(radix, ranges) or radix
             assert got == want, k
             nodes = by_rule
         ranges = got
@@ -126,6 +128,44 @@ def test_parts_trees_padded_to_common_levels_keep_their_answers():
         d = np.linalg.norm(q[:, None] - x[p][None], axis=-1)
         np.testing.assert_allclose(np.asarray(dist), d.min(1), rtol=1e-12, atol=1e-12)
         assert np.array_equal(np.asarray(node), d.argmin(1))
+
+
+def _packed(groups, ranges):
+    """Neighbouring groups (item ranges) merged greedily while their entries (`ranges`, the
+    level's entries' item ranges) fit W, if that leaves at most W groups (else None)."""
+    starts = [r[0] for r in ranges]
+    out = []
+    for a, b in groups:
+        c = starts.index(b) - starts.index(a) if b in starts else len(starts) - starts.index(a)
+        if out and out[-1][2] + c <= W:
+            out[-1] = (out[-1][0], b, out[-1][2] + c)
+        else:
+            out.append((a, b, c))
+    return [(a, b) for a, b, _ in out] if len(out) <= W else None
+
+
+def test_host_tree_top_merges_groups_to_lose_a_level():
+    """A level of at most W^2 entries whose radix groups number just past W: neighbouring
+    groups merged so that the root comes next (`_top`), where whole radix groups allow it:
+    the tree a level shallower than the radix rule alone makes it."""
+    rng = np.random.default_rng(5)
+    merged = 0
+    for _ in range(40):
+        # 9-12 tight clusters of 1-7 points far apart: their radix groups, one level.
+        sizes = rng.integers(1, 8, rng.integers(9, 13))
+        centres = rng.uniform(0, 1, (len(sizes), 3))
+        x = np.concatenate([c + 1e-6 * rng.normal(size=(k, 3)) for c, k in zip(centres, sizes)])
+        keys = np.sort(_grid.morton_keys(x, x.min(0), float(np.ptp(x, 0).max())))
+        ranges = [(p, p + 1) for p in range(len(x))]
+        radix = radix_groups(keys, ranges)
+        want = _packed(radix, ranges) if len(radix) > W else radix
+        groups = _grid.grouping(keys)
+        got = [tuple(g[g >= 0]) for g in groups[0].reshape(-1, W)]
+        assert [(g[0], g[-1] + 1) for g in got] == (want or radix)
+        if len(radix) > W and want:
+            merged += 1
+            assert len(groups) == 2  # the root's level next
+    assert merged >= 5
 
 
 @pytest.mark.parametrize("kind", ["clusters", "repeated"])

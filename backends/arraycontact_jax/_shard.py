@@ -65,7 +65,11 @@ from ._detect import (
     warp_plan,
 )
 
-_FLOATS = (("xi", 2), ("point", 3), ("gap", 1), ("distance", 1), ("normal", 3))
+#: The answer's fields a part sends home (self-contact also `finer`).
+_FIELDS = (
+    "xi", "point", "gap", "distance", "normal", "active", "face", "feature", "master_node",
+    "status",
+)  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
@@ -634,11 +638,8 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         face = jnp.where(fields["face"] >= 0, ex["face_ids"][jnp.maximum(fields["face"], 0)], -1)
         node = fields["master_node"]
         node = jnp.where(node >= 0, ex["node_ids"][jnp.maximum(node, 0)], -1)
-        ints = [fields["active"], face, fields["feature"], node, fields["status"]]
-        if self_contact:
-            ints.append(fields["finer"])
-        ints = jnp.stack([jnp.asarray(a, jnp.int32) for a in ints], -1)
-        floats = jnp.concatenate([fields[k].reshape(s.shape[0], -1) for k, _ in _FLOATS], -1)
+        answer = {k: fields[k] for k in _FIELDS + (("finer",) if self_contact else ())}
+        answer.update(face=face, master_node=node)
         # Motion since the plan (halo check): the slaves this device holds, its master rows.
         dm = jnp.where(ex["m_used"], _norm(jax.lax.stop_gradient(m_blk) - ref_m), 0)
         motion = [jnp.max(dm)]
@@ -646,35 +647,22 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
             ds = _norm(jax.lax.stop_gradient(s_blk) - ex["s_ref"].astype(s_blk.dtype))
             motion.append(jnp.max(jnp.where(ex["s_used"], ds, 0)))
         counts["halo_motion"] = jnp.stack(motion)
-        f_blk, i_blk, counts = _home(floats, ints, ex, axis, counts)
+        blk, counts = _home(answer, ex, axis, counts)
         motion = counts.pop("halo_motion")
         counts["halo_motion"] = motion[-1] + p.lebesgue * motion[0]
-        return f_blk, i_blk, counts
+        return blk, counts
 
-    f_out, i_out, counts = jax.shard_map(
+    fields, counts = jax.shard_map(
         body,
         mesh=p.mesh,
         in_specs=(spec, spec, spec, spec),
-        out_specs=(spec, spec, P()),
+        out_specs=(spec, P()),
         # The one-device stages build their while_loop carries from constants; the counts
         # are every device's largest (sent to all), hence the same on every device.
         check_vma=False,
     )(p.local.topology, p.exchange, xs, xm)
     n = p.n_slaves
-    f_out, i_out = f_out[:n], i_out[:n]
-    fields, col = {}, 0
-    for k, w in _FLOATS:
-        v = f_out[:, col : col + w]
-        fields[k] = v[:, 0] if w == 1 else v
-        col += w
-    names = ["active", "face", "feature", "master_node", "status"]
-    if self_contact:
-        names.append("finer")
-    for c, k in enumerate(names):
-        fields[k] = i_out[:, c]
-    fields["active"] = fields["active"].astype(bool)
-    if self_contact:
-        fields["finer"] = fields["finer"].astype(bool)
+    fields = {k: v[:n] for k, v in fields.items()}
     slave_ids = (
         jnp.asarray(p.master.nodes.astype(np.int32))
         if self_contact
@@ -687,34 +675,45 @@ def _norm(v):
     return jnp.sqrt(jnp.sum(v * v, -1))
 
 
-def _home(floats, ints, ex, axis, counts):
-    """Rows of a part's slaves (floats [cap, w], ints [cap, k]) back to the devices holding
-    them: [b_s, w] and [b_s, k] blocks (`_gather` reversed), and the largest of every
-    device's `counts` (a dict of int or float arrays), which ride along as extra rows: one
-    all_to_all, no collective of their own (each collective waits for every device, so each
-    one costs the devices' skew). The int32 values ride as floats, split in two 16-bit
-    halves (exact in float32, whose integers end at 2^24)."""
-    dt = floats.dtype
+def _home(fields, ex, axis, counts):
+    """A part's answer (fields: a dict of [cap, ...] arrays) back to the devices holding its
+    slaves' rows: the same dict of [b_s, ...] blocks (`_gather` reversed), and the largest of
+    every device's `counts` (a dict of int or float arrays).
+
+    Only the rows another device holds travel: packed into one float array with the counts
+    as extra rows, one all_to_all (no collective of their own: each collective waits for
+    every device, so each one costs the devices' skew); int and bool values as floats, split
+    in two 16-bit halves (exact in float32, whose integers end at 2^24). Each field then
+    reads its rows from its own part's array or the received ones in one gather. (Packing
+    every row of the part, as this did first, cost a detection of 2^20 slaves a device
+    several passes over 80 bytes a row.)"""
+    dt = next(v.dtype for v in fields.values() if v.dtype.kind == "f")
 
     def halves(a):
+        a = a.astype(jnp.int32)
         return [(a // 65536).astype(dt), (a % 65536).astype(dt)]
 
-    vals = jnp.concatenate([floats, *halves(ints)], 1)
-    w = vals.shape[1]
-    names = sorted(counts)
-    parts = [jnp.asarray(counts[k]).reshape(-1) for k in names]
+    back = ex["s_back"]  # [D, C]: the part's rows each device gets
+    d, c = back.shape
+    names = sorted(fields)
+    cols = []
+    for k in names:
+        a = fields[k][back].reshape(d, c, -1)
+        cols += [a.astype(dt)] if a.dtype.kind == "f" else halves(a)
+    vals = jnp.concatenate(cols, -1)  # [D, C, w]
+    w = vals.shape[-1]
+    c_names = sorted(counts)
+    parts = [jnp.asarray(counts[k]).reshape(-1) for k in c_names]
     flat = jnp.concatenate(
         [h for a in parts for h in (halves(a) if a.dtype.kind in "iu" else [a.astype(dt)])]
     )
     extra = -(-flat.shape[0] // w)
     flat = jnp.pad(flat, (0, extra * w - flat.shape[0])).reshape(1, extra, w)
-    send = vals[ex["s_back"]]  # [D, C, w]
-    d, c = send.shape[0], send.shape[1]
-    send = jnp.concatenate([send, jnp.broadcast_to(flat, (d, extra, w))], 1)
+    send = jnp.concatenate([vals, jnp.broadcast_to(flat, (d, extra, w))], 1)
     recv = jax.lax.all_to_all(send, axis, 0, 0)
     got = recv[:, c:].reshape(d, -1)  # [D, ...]: each device's counts
     out_counts, col = {}, 0
-    for k, a in zip(names, parts):
+    for k, a in zip(c_names, parts):
         m = a.shape[0]
         if a.dtype.kind in "iu":
             v = got[:, col : col + m].astype(a.dtype) * 65536
@@ -724,7 +723,18 @@ def _home(floats, ints, ex, axis, counts):
             v = got[:, col : col + m].astype(a.dtype)
             col += m
         out_counts[k] = jnp.max(v, 0).reshape(jnp.shape(counts[k]))
-    out = jnp.concatenate([vals, recv[:, :c].reshape(-1, w)])[ex["s_home"]]
-    k = ints.shape[1]
-    ints_out = out[:, floats.shape[1] :].astype(jnp.int32)
-    return out[:, : floats.shape[1]], ints_out[:, :k] * 65536 + ints_out[:, k:], out_counts
+    rows = recv[:, :c].reshape(d * c, w)
+    out, col = {}, 0
+    for k in names:
+        a = fields[k]
+        m = int(np.prod(a.shape[1:], dtype=int))
+        if a.dtype.kind == "f":
+            v = rows[:, col : col + m]
+            col += m
+        else:
+            hi = rows[:, col : col + m].astype(jnp.int32)
+            v = hi * 65536 + rows[:, col + m : col + 2 * m].astype(jnp.int32)
+            col += 2 * m
+        v = v.reshape((d * c,) + a.shape[1:]).astype(a.dtype)
+        out[k] = jnp.concatenate([a, v])[ex["s_home"]]
+    return out, out_counts
