@@ -203,6 +203,69 @@ def _tumbling_triangles(n_slaves=400, seed=3, grazing=True):
     return scenes.Step("tumbling", master, x1.reshape(-1, 3), p0, p0 + v)
 
 
+def test_warp_far_slabs_hold_no_contact():
+    """`_sweep._far` (a time slab that the Warp CPU path's search skips): on random moving
+    triangles and nodes in float32, every slab it calls far keeps the node from the face
+    (the distance sampled densely in float64, less the worst motion between samples, above
+    the search's contact tolerance); a slab holding a contact (the node built to reach a point
+    of the face inside it) is never far; and most slabs of nodes passing by are."""
+    import warp as wp
+    from arraycontact_warp import _sweep as sw
+    from arraycontact_warp._geometry import triangle_data
+
+    from arraycontact._elements import get_element
+    from arraycontact.reference import _closest_on_faces
+
+    rng = np.random.default_rng(11)
+    n = 4000
+    c0 = rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(0, 0.5, (n, 3, 3))
+    c1 = c0 + rng.normal(0, 0.4, (n, 1, 3)) + rng.normal(0, 0.1, (n, 3, 3))
+    k = rng.integers(0, 64, n)
+    lo, hi = k / 64, (k + 1) / 64
+    v = rng.normal(0, 1.0, (n, 3))
+    hits = np.arange(n) < n // 2  # a node reaching the face inside the slab
+    t = lo + rng.uniform(0, 1, n) * (hi - lo)
+    ab = rng.dirichlet([1, 1, 1], n)
+    target = np.einsum("ni,nij->nj", ab, c0 + t[:, None, None] * (c1 - c0))
+    p0 = np.where(hits[:, None], target - t[:, None] * v, rng.uniform(-2, 2, (n, 3)))
+    p1 = p0 + v
+    f32 = [np.ascontiguousarray(a, np.float32) for a in (c0.reshape(-1, 3), c1.reshape(-1, 3),
+                                                         p0, p1)]  # fmt: skip
+
+    @wp.kernel(module="unique")
+    def far(el: sw.Triangles, x0: wp.array(dtype=wp.vec3), x1: wp.array(dtype=wp.vec3),
+            faces: wp.array2d(dtype=int), s0: wp.array(dtype=wp.vec3),
+            s1: wp.array(dtype=wp.vec3), lo: wp.array(dtype=float), hi: wp.array(dtype=float),
+            out: wp.array(dtype=int)):  # fmt: skip
+        i = wp.tid()
+        q = sw._pair(el, x0, x1, faces, i, s0[i], s1[i], wp.float32(1.0e-5))
+        out[i] = int(sw._far(q, sw.Box6(0.0, 1.0, 0.0, 1.0, lo[i], hi[i])))
+
+    arr = [wp.array(a, dtype=wp.vec3, device="cpu") for a in f32]
+    faces = wp.array(np.arange(3 * n, dtype=np.int32).reshape(n, 3), dtype=int, device="cpu")
+    got = wp.zeros(n, dtype=int, device="cpu")
+    bounds = [wp.array(a.astype(np.float32), dtype=float, device="cpu") for a in (lo, hi)]
+    wp.launch(far, n, inputs=[triangle_data("cpu"), arr[0], arr[1], faces, arr[2], arr[3],
+                              *bounds, got], device="cpu")  # fmt: skip
+    got = got.numpy().astype(bool)
+    assert not got[hits].any()
+    # float64 distances at 65 times of each slab of the float32 inputs, less the face's
+    # largest speed relative to the node times half the sampling step.
+    x0, x1, q0, q1 = (a.astype(float) for a in f32)
+    x0, x1 = x0.reshape(n, 3, 3), x1.reshape(n, 3, 3)
+    speed = np.linalg.norm((x1 - x0) - (q1 - q0)[:, None], axis=-1).max(1)
+    u = np.linspace(0, 1, 65)
+    tt = lo[:, None] + u[None] * (hi - lo)[:, None]  # [n, 65]
+    xe = x0[:, None] + tt[..., None, None] * (x1 - x0)[:, None]
+    r = q0[:, None] + tt[..., None] * (q1 - q0)[:, None]
+    d2 = _closest_on_faces(get_element("tri3"), r.reshape(-1, 3), xe.reshape(-1, 3, 3))[1]
+    least = np.sqrt(d2.reshape(n, 65).min(1)) - 0.5 * (hi - lo) / 64 * speed
+    scale = np.abs(np.concatenate([x0, x1], 1)).max((1, 2)) + np.abs(q0).max(1) + 1
+    assert (least[got] > 1e-5 * scale[got]).all()
+    passing = ~hits & (least > 0.2)
+    assert got[passing].mean() > 0.5, got[passing].mean()
+
+
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_warp_time_slabs_against_reference(dtype):
     """Warp's triangle search first narrows time by the coplanarity cubic (_sweep.earliest):
