@@ -1090,7 +1090,7 @@ def earliest(q: Any, bound: real, t_tol: real, budget: int, skim: int):
     registers). Same result and guarantee as search on the unit box. A search that would
     visit more than `budget` boxes stops with converged = -1 (pair_search defers it).
     skim = 1: a slab whose node stays far from the face all over it (`_far`) is not searched
-    (the same answers; Warp's CPU device, 2^14: rough tri3 6-8 % faster, graded 5-7 %).
+    (the same answers; Warp's CPU device, 2^14: rough tri3 6-10 % faster, graded 5-8 %).
     The GPU's pair_search passes 0: not yet measured there, where code size has cost more
     than it saved before."""
     kind, node = _narrow(q, bound, real(0.0))
