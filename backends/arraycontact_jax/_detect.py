@@ -786,11 +786,21 @@ class _WarpSearch:
         # one scene's buffers). Several GPUs: a graph per device and buffer addresses (XLA
         # reuses a program's buffers from call to call), so that no call runs the search's
         # Python, which the devices' threads would take turns at (the GIL).
+        # No limit on the graphs kept: jax_callable destroys the oldest past its limit (32)
+        # inside the call, on XLA's thread, while this device's stream may still hold work
+        # behind a collective; calls dispatched back to back, each on new XLA buffers, got
+        # there and hung (two H200s, sharding.py's pipelined calls: 20 of them in flight).
+        # XLA reuses its buffers, so the graphs number the buffer sets calls use; they go
+        # with the plan.
         mode = wp.JaxCallableGraphMode.NONE
         if self.plans[0].device.is_cuda:
             mode = wp.JaxCallableGraphMode.WARP if several_gpus else mode.WARP_STAGED_EX
         self.call = wp.jax_callable(
-            search, num_outputs=len(self.names), graph_mode=mode, vmap_method="sequential"
+            search,
+            num_outputs=len(self.names),
+            graph_mode=mode,
+            vmap_method="sequential",
+            graph_cache_max=None,
         )
 
     def __call__(self, s, xm, slave_nodes=None):
