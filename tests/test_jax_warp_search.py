@@ -78,3 +78,13 @@ def test_warp_search_on_a_master_grown_past_the_plan():
     c = acj.detect(p, x, jnp.asarray(grown))
     assert not bool(c.overflow)
     _compare(c, ac.detect(s.slave, s.master.with_points(grown), d_max=p.d_max, backend="numpy"))
+
+
+def test_warp_search_keeps_every_graph_it_captured():
+    """On several GPUs the search's jax_callable captures a graph per device and call buffers;
+    past a limit it destroyed the oldest inside the call, on the device's thread, which hung
+    calls dispatched back to back on two H200s (benchmarks/RESULTS.md, run s42x2b). The plan's
+    callable must keep them (no limit), on the CPU as anywhere."""
+    s = scenes.rough_surfaces(2**7, seed=3)
+    p = acj.plan(s.master, s.slave, search="warp")
+    assert p.search.call.graph_cache_max is None
