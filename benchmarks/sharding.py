@@ -23,6 +23,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -162,20 +163,23 @@ def _ties(s, c, r, dtype):
 _BASELINE = {}
 
 
-def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax"):
+def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax", drop=0):
     import arraycontact_jax as acj
     import jax
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
 
     s = _scene(scene_name, n)
+    if drop:  # rows that are no multiple of the devices: replicated in and out
+        s = replace(s, slave=s.slave[:-drop])
     slave = jax.device_put(s.slave.astype(dtype))
     pts = jax.device_put(s.master.points.astype(dtype))
     rec = dict(scene=scene_name, nodes_per_surface=n, devices=n_dev, dtype=np.dtype(dtype).name)
     rec["search"] = search
     rec["faces"], rec["slaves"] = s.master.n_faces, len(s.slave)
-    if baseline and (scene_name, n, search) in _BASELINE:  # measured in this run already
-        r, one_rec = _BASELINE[scene_name, n, search]
+    key = (scene_name, n, search, drop)
+    if baseline and key in _BASELINE:  # measured in this run already
+        r, one_rec = _BASELINE[key]
         rec.update(one_rec)
     elif baseline:
         t = time.perf_counter()
@@ -188,7 +192,7 @@ def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax"):
         r = jax.tree.map(np.asarray, r)
         one_rec["active"] = int(r.active.sum())
         rec.update(one_rec)
-        _BASELINE[scene_name, n, search] = r, one_rec
+        _BASELINE[key] = r, one_rec
         del one
     mesh = Mesh(np.array(jax.devices()[:n_dev]), ("space",))
     t = time.perf_counter()
@@ -223,6 +227,13 @@ def main():
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--search", nargs="+", default=["jax"], choices=["jax", "warp"])
     ap.add_argument("--only", choices=["weak", "strong"], default=None)
+    ap.add_argument(
+        "--drop",
+        type=int,
+        default=0,
+        help="slaves dropped from each scene: rows that are no multiple of the devices, which "
+        "come in and go out replicated",
+    )
     ap.add_argument("--out", default=None, help="folder of the records (default results/)")
     ap.add_argument("--run", default=None, help="run id recorded (--table: the run shown)")
     ap.add_argument("--table", action="store_true", help="print a run's records as a table")
@@ -248,8 +259,8 @@ def main():
         jobs += [("strong", args.scenes[0], 2**args.strong_log2, d) for d in counts if d > 1]
     for search in args.search:
         for kind, name, n, d in jobs:
-            rec = run(name, n, d, args.repeats, dtype, baseline=True, search=search)
-            rec.update(kind=kind, device=devices[0].device_kind, n_visible=n_max)
+            rec = run(name, n, d, args.repeats, dtype, True, search, args.drop)
+            rec.update(kind=kind, device=devices[0].device_kind, n_visible=n_max, dropped=args.drop)
             print(json.dumps(rec), flush=True)
             _records.append("sharding", rec, meta, out=args.out, n_devices=n_max)
 

@@ -257,6 +257,21 @@ def test_sharded_or_replicated_inputs_give_sharded_outputs():
     assert len(sharded.gap.sharding.device_set) == 4
 
 
+def test_uneven_rows_give_a_replicated_answer_by_one_all_gather():
+    """Rows not a multiple of the devices cannot be sharded in JAX's equal blocks: the answer
+    is replicated, every part's rows packed into one all_gather (XLA had replicated the
+    sharded result by an all_gather a field), and equals one device's."""
+    s = scenes.rough_surfaces(2**10, seed=9)
+    slave = s.slave[:1001]
+    r = acj.detect(acj.plan(s.master, slave, dtype=np.float64), slave, s.master.points)
+    p = acj.plan(s.master, slave, dtype=np.float64, mesh=_mesh(2))
+    c = acj.detect(p, slave, s.master.points)
+    _same(c, r)
+    assert c.gap.sharding.is_fully_replicated and len(c.gap.sharding.device_set) == 2
+    hlo = jax.jit(acj.detect).lower(p, slave, s.master.points).compile().as_text()
+    assert hlo.count(" all-gather(") == 1
+
+
 def test_bad_input_is_named():
     s = scenes.rough_surfaces(2**8, seed=1)
     with pytest.raises(ValueError, match="axis"):

@@ -263,10 +263,12 @@ def plan(
     mesh: a `jax.sharding.Mesh` with the one axis `axis`: the detection runs over its devices
     (a ShardedPlan, see _shard): the slaves and faces split by recursive coordinate bisection
     weighted by each slave's candidate faces, each device detecting its part's slaves against
-    its halo faces; `detect` takes and returns arrays sharded over the axis (or replicated) and
-    gives one device's answer row for row. margin: how far slaves and master nodes may move
-    from the plan's configuration, together, before `detect` reports the halos' overflow
-    (count `halo_motion`; default (growth - 1)(d_max + largest face radius))."""
+    its halo faces; `detect` takes arrays sharded over the axis (or replicated) and gives one
+    device's answer row for row, sharded by rows (replicated where the slaves are not a
+    multiple of the devices: JAX shards rows only in equal blocks). margin: how far slaves
+    and master nodes may move from the plan's configuration, together, before `detect`
+    reports the halos' overflow (count `halo_motion`; default (growth - 1)(d_max + largest
+    face radius))."""
     if dtype is None:
         dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
     dev_topo = None
@@ -556,7 +558,8 @@ def detect(p: Plan, slave_points, master_points) -> Contacts:
     Jitted, static shapes, no host synchronisation; differentiable with respect to both
     coordinate arrays. Check `contacts.overflow` (or call `update_plan`): where a count exceeds
     its capacity the result may be incomplete. With a sharded plan (`plan(..., mesh=)`), the
-    arrays may be sharded over its mesh axis by rows, or replicated; the result is sharded."""
+    arrays may be sharded over its mesh axis by rows, or replicated; the result is sharded
+    (replicated where the slaves are not a multiple of the devices)."""
     from ._shard import ShardedPlan
 
     if isinstance(p, ShardedPlan):

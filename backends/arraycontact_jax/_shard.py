@@ -20,6 +20,9 @@ device d holds rows [d B, (d + 1) B). Inside shard_map each device
    search in JAX, or with search="warp" the part's own Warp plan on the device);
 3. sends each answer back to the device holding the slave's row (one all_to_all, the integer
    fields and the counts riding with the float ones; each device takes the largest count).
+   Where the slaves are not a whole number of blocks a device (JAX shards rows only in equal
+   blocks), the answer is replicated instead: every part's answer to every device, one
+   all_gather.
 
 Gradients flow through the gathers and all_to_alls as through the one-device detection. The
 halos hold as long as slaves and master nodes move less than the partition's margin from the
@@ -284,6 +287,11 @@ def plan(
         node_ids=node_ids,
         nowhere=np.broadcast_to(nowhere, (n_dev, 3)),
     )
+    if n_dev * b_s != n_rows:  # the answer replicated (`_everywhere`): each row's part slot
+        row = np.zeros(n_rows, np.int32)
+        for e, q in enumerate(parts):
+            row[q.slaves] = e * s_cap + np.arange(len(q.slaves))
+        exchange["s_all"] = np.broadcast_to(row, (n_dev, n_rows))
     engine, cand, cap = None, [], {}
     if search == "warp":  # each part's Warp plan on its device, sized by its own counts
         # In the frame and the box one device's Warp plan takes (a part's padding, far off,
@@ -647,7 +655,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
             ds = _norm(jax.lax.stop_gradient(s_blk) - ex["s_ref"].astype(s_blk.dtype))
             motion.append(jnp.max(jnp.where(ex["s_used"], ds, 0)))
         counts["halo_motion"] = jnp.stack(motion)
-        blk, counts = _home(answer, ex, axis, counts)
+        blk, counts = (_everywhere if "s_all" in ex else _home)(answer, ex, axis, counts)
         motion = counts.pop("halo_motion")
         counts["halo_motion"] = motion[-1] + p.lebesgue * motion[0]
         return blk, counts
@@ -656,7 +664,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         body,
         mesh=p.mesh,
         in_specs=(spec, spec, spec, spec),
-        out_specs=(spec, P()),
+        out_specs=(P() if "s_all" in p.exchange else spec, P()),
         # The one-device stages build their while_loop carries from constants; the counts
         # are every device's largest (sent to all), hence the same on every device.
         check_vma=False,
@@ -675,46 +683,38 @@ def _norm(v):
     return jnp.sqrt(jnp.sum(v * v, -1))
 
 
-def _home(fields, ex, axis, counts):
-    """A part's answer (fields: a dict of [cap, ...] arrays) back to the devices holding its
-    slaves' rows: the same dict of [b_s, ...] blocks (`_gather` reversed), and the largest of
-    every device's `counts` (a dict of int or float arrays).
-
-    Only the rows another device holds travel: packed into one float array with the counts
-    as extra rows, one all_to_all (no collective of their own: each collective waits for
-    every device, so each one costs the devices' skew); int and bool values as floats, split
-    in two 16-bit halves (exact in float32, whose integers end at 2^24). Each field then
-    reads its rows from its own part's array or the received ones in one gather. (Packing
-    every row of the part, as this did first, cost a detection of 2^20 slaves a device
-    several passes over 80 bytes a row.)"""
-    dt = next(v.dtype for v in fields.values() if v.dtype.kind == "f")
+def _packed(fields, rows, counts, dt):
+    """[R, w] rows of every field (rows: an index into their [cap, ...] arrays, or None:
+    all), int and
+    bool values as floats split in two 16-bit halves (exact in float32, whose integers end
+    at 2^24), then the counts in extra rows of the same width: ([R + extra, w], R)."""
 
     def halves(a):
         a = a.astype(jnp.int32)
         return [(a // 65536).astype(dt), (a % 65536).astype(dt)]
 
-    back = ex["s_back"]  # [D, C]: the part's rows each device gets
-    d, c = back.shape
-    names = sorted(fields)
     cols = []
-    for k in names:
-        a = fields[k][back].reshape(d, c, -1)
+    for k in sorted(fields):
+        a = fields[k] if rows is None else fields[k][rows]
+        a = a.reshape(a.shape[0], -1)
         cols += [a.astype(dt)] if a.dtype.kind == "f" else halves(a)
-    vals = jnp.concatenate(cols, -1)  # [D, C, w]
-    w = vals.shape[-1]
-    c_names = sorted(counts)
-    parts = [jnp.asarray(counts[k]).reshape(-1) for k in c_names]
+    vals = jnp.concatenate(cols, -1)
+    r, w = vals.shape
+    parts = [jnp.asarray(counts[k]).reshape(-1) for k in sorted(counts)]
     flat = jnp.concatenate(
         [h for a in parts for h in (halves(a) if a.dtype.kind in "iu" else [a.astype(dt)])]
     )
     extra = -(-flat.shape[0] // w)
-    flat = jnp.pad(flat, (0, extra * w - flat.shape[0])).reshape(1, extra, w)
-    send = jnp.concatenate([vals, jnp.broadcast_to(flat, (d, extra, w))], 1)
-    recv = jax.lax.all_to_all(send, axis, 0, 0)
-    got = recv[:, c:].reshape(d, -1)  # [D, ...]: each device's counts
-    out_counts, col = {}, 0
-    for k, a in zip(c_names, parts):
-        m = a.shape[0]
+    flat = jnp.pad(flat, (0, extra * w - flat.shape[0])).reshape(extra, w)
+    return jnp.concatenate([vals, flat]), r
+
+
+def _counts_of(got, counts):
+    """The largest over devices of `counts` from their packed rows got [D, ...] (`_packed`)."""
+    out, col = {}, 0
+    for k in sorted(counts):
+        a = jnp.asarray(counts[k])
+        m = a.size
         if a.dtype.kind in "iu":
             v = got[:, col : col + m].astype(a.dtype) * 65536
             v = v + got[:, col + m : col + 2 * m].astype(a.dtype)
@@ -722,10 +722,14 @@ def _home(fields, ex, axis, counts):
         else:
             v = got[:, col : col + m].astype(a.dtype)
             col += m
-        out_counts[k] = jnp.max(v, 0).reshape(jnp.shape(counts[k]))
-    rows = recv[:, :c].reshape(d * c, w)
+        out[k] = jnp.max(v, 0).reshape(a.shape)
+    return out
+
+
+def _fields_of(rows, fields):
+    """The fields (dtypes and row shapes as `fields`) from packed rows [R, w] (`_packed`)."""
     out, col = {}, 0
-    for k in names:
+    for k in sorted(fields):
         a = fields[k]
         m = int(np.prod(a.shape[1:], dtype=int))
         if a.dtype.kind == "f":
@@ -735,6 +739,46 @@ def _home(fields, ex, axis, counts):
             hi = rows[:, col : col + m].astype(jnp.int32)
             v = hi * 65536 + rows[:, col + m : col + 2 * m].astype(jnp.int32)
             col += 2 * m
-        v = v.reshape((d * c,) + a.shape[1:]).astype(a.dtype)
-        out[k] = jnp.concatenate([a, v])[ex["s_home"]]
-    return out, out_counts
+        out[k] = v.reshape((rows.shape[0],) + a.shape[1:]).astype(a.dtype)
+    return out
+
+
+def _float_dtype(fields):
+    return next(v.dtype for v in fields.values() if v.dtype.kind == "f")
+
+
+def _home(fields, ex, axis, counts):
+    """A part's answer (fields: a dict of [cap, ...] arrays) back to the devices holding its
+    slaves' rows: the same dict of [b_s, ...] blocks (`_gather` reversed), and the largest of
+    every device's `counts` (a dict of int or float arrays).
+
+    Only the rows another device holds travel: packed into one float array with the counts
+    as extra rows (`_packed`), one all_to_all (no collective of their own: each collective
+    waits for every device, so each one costs the devices' skew). Each field then reads its
+    rows from its own part's array or the received ones in one gather. (Packing every row of
+    the part, as this did first, cost a detection of 2^20 slaves a device several passes
+    over 80 bytes a row.)"""
+    back = ex["s_back"]  # [D, C]: the part's rows each device gets
+    d, c = back.shape
+    send, _ = _packed(fields, back.reshape(-1), counts, _float_dtype(fields))
+    w = send.shape[-1]
+    extra = send[d * c :]
+    send = jnp.concatenate(
+        [send[: d * c].reshape(d, c, w), jnp.broadcast_to(extra, (d,) + extra.shape)], 1
+    )
+    recv = jax.lax.all_to_all(send, axis, 0, 0)
+    out_counts = _counts_of(recv[:, c:].reshape(d, -1), counts)
+    got = _fields_of(recv[:, :c].reshape(d * c, w), fields)
+    return {k: jnp.concatenate([fields[k], got[k]])[ex["s_home"]] for k in fields}, out_counts
+
+
+def _everywhere(fields, ex, axis, counts):
+    """As `_home`, for a plan whose rows are not a whole number of blocks a device (JAX
+    shards an array's rows only in equal blocks): every row on every device (replicated), by
+    one all_gather of each part's packed answer, where XLA made one all_gather a field of the
+    sharded blocks' result. `ex["s_all"]` [rows]: each row's slot in the gathered parts."""
+    send, r = _packed(fields, None, counts, _float_dtype(fields))
+    got = jax.lax.all_gather(send, axis)  # [D, r + extra, w]
+    out_counts = _counts_of(got[:, r:].reshape(got.shape[0], -1), counts)
+    rows = got[:, :r].reshape(-1, got.shape[-1])[ex["s_all"]]
+    return _fields_of(rows, fields), out_counts
