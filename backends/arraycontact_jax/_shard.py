@@ -20,9 +20,10 @@ device d holds rows [d B, (d + 1) B). Inside shard_map each device
    search in JAX, or with search="warp" the part's own Warp plan on the device);
 3. sends each answer back to the device holding the slave's row (one all_to_all, the integer
    fields and the counts riding with the float ones; each device takes the largest count).
-   Where the slaves are not a whole number of blocks a device (JAX shards rows only in equal
-   blocks), the answer is replicated instead: every part's answer to every device, one
-   all_gather.
+Rows that are no whole number of blocks a device (slaves or master points: JAX shards rows
+only in equal blocks) come replicated: each part takes its items from them (no exchange for
+that side), and where the slaves are such, the answer goes out replicated: every part's
+answer to every device, one all_gather (in place of step 3).
 
 Gradients flow through the gathers and all_to_alls as through the one-device detection. The
 halos hold as long as slaves and master nodes move less than the partition's margin from the
@@ -289,9 +290,13 @@ def plan(
     )
     if n_dev * b_s != n_rows:  # the answer replicated (`_everywhere`): each row's part slot
         row = np.zeros(n_rows, np.int32)
+        rows = np.zeros((n_dev, s_cap), np.int32)  # (and the slaves come replicated: their rows)
         for e, q in enumerate(parts):
             row[q.slaves] = e * s_cap + np.arange(len(q.slaves))
+            rows[e, : len(q.slaves)] = q.slaves
         exchange["s_all"] = np.broadcast_to(row, (n_dev, n_rows))
+        if not self_contact:
+            exchange["s_rows"] = rows
     engine, cand, cap = None, [], {}
     if search == "warp":  # each part's Warp plan on its device, sized by its own counts
         # In the frame and the box one device's Warp plan takes (a part's padding, far off,
@@ -625,21 +630,33 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         xs = jnp.pad(slave_points, ((0, n_dev * b_s - p.n_slaves), (0, 0)))
     self_contact = p.local.static.self_contact
     spec = P(axis)
+    # Rows that are no multiple of the devices come replicated (JAX shards rows only in equal
+    # blocks): each part takes its items from them, and only the other side is exchanged.
+    rep_m = n_dev * b_m != n_pts
+    rep_s = "s_rows" in p.exchange
 
-    def body(topo, ex, s_blk, m_blk):
+    def body(topo, ex, s_in, m_in):
         topo = jax.tree_util.tree_map(lambda a: a[0], topo)
         ex = jax.tree_util.tree_map(lambda a: a[0], ex)
+        me = jax.lax.axis_index(axis)
+        m_blk = jax.lax.dynamic_slice_in_dim(m_in, me * b_m, b_m) if rep_m else m_in
+        s_blk = jax.lax.dynamic_slice_in_dim(s_in, me * b_s, b_s) if rep_s else s_in
+        sides = [("m_", m_blk)] if not rep_m else []
+        sides += [("s_", s_blk)] if not (self_contact or rep_s) else []
+        recv = {}
+        if sides:
+            got = _exchange([b for _, b in sides], ex, [q for q, _ in sides], axis)
+            recv = {q: r for (q, _), r in zip(sides, got)}
         ref_m = ex["m_ref"].astype(m_blk.dtype)
-        if self_contact:
-            (r_m,) = _exchange([m_blk], ex, ["m_"], axis)
+        if rep_m:
+            x_m = m_in[jnp.maximum(ex["node_ids"], 0)]
         else:
-            r_m, r_s = _exchange([m_blk, s_blk], ex, ["m_", "s_"], axis)
-        x_m = _gather(m_blk, r_m, ex, "m_")
+            x_m = _gather(m_blk, recv["m_"], ex, "m_")
         x_m = jnp.where(ex["m_ok"][:, None], x_m, ex["m_pad"].astype(x_m.dtype))
         if self_contact:
             s = x_m[topo.slave_nodes]
         else:
-            s = _gather(s_blk, r_s, ex, "s_")
+            s = s_in[ex["s_rows"]] if rep_s else _gather(s_blk, recv["s_"], ex, "s_")
             s = jnp.where(ex["s_ok"][:, None], s, ex["nowhere"].astype(s.dtype))
         fields, counts = local_detect(p.local, topo, s, x_m)
         # Global ids of the answer.
@@ -663,7 +680,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
     fields, counts = jax.shard_map(
         body,
         mesh=p.mesh,
-        in_specs=(spec, spec, spec, spec),
+        in_specs=(spec, spec, P() if rep_s else spec, P() if rep_m else spec),
         out_specs=(P() if "s_all" in p.exchange else spec, P()),
         # The one-device stages build their while_loop carries from constants; the counts
         # are every device's largest (sent to all), hence the same on every device.
