@@ -87,16 +87,25 @@ def _exchange_only(p):
     axis, n_dev = p.axis, p.n_devices
     dtype = jnp.dtype(p.local.dtype)
 
+    b_s, b_m = p.blocks
+    # (as detect: a side whose rows are no multiple of the devices is not exchanged, and
+    # then the answers are gathered everywhere)
+    replicated = {"m_": n_dev * b_m != len(p.master.points), "s_": "s_rows" in p.exchange}
+    sides = [q for q, rep in replicated.items() if not rep]
+
     def body(ex, s_blk, m_blk):
         ex = jax.tree_util.tree_map(lambda a: a[0], ex)
-        r_m, r_s = _shard._exchange([m_blk, s_blk], ex, ["m_", "s_"], axis)
+        blks = {"m_": m_blk, "s_": s_blk}
+        got = _shard._exchange([blks[q] for q in sides], ex, sides, axis) if sides else []
+        seed = sum(r[0, 0, 0] for r in got) if got else jnp.zeros((), dtype)
         cap = ex["s_take"].shape[0]
         vals = {
-            "f": jnp.zeros((cap, 10), dtype) + r_s[0, :1, :1],
-            "i": jnp.zeros((cap, 5), jnp.int32) + r_m[0, :1, :1].astype(jnp.int32),
+            "f": jnp.zeros((cap, 10), dtype) + seed,
+            "i": jnp.zeros((cap, 5), jnp.int32) + seed.astype(jnp.int32),
         }
         counts = {"count": jnp.zeros(4, jnp.int32), "motion": jnp.zeros(2, dtype)}
-        r, _ = _shard._home(vals, ex, axis, counts)
+        home = _shard._everywhere if "s_all" in ex else _shard._home
+        r, _ = home(vals, ex, axis, counts)
         return (jnp.sum(r["f"]) + jnp.sum(r["i"]))[None]
 
     f = jax.jit(
@@ -104,7 +113,6 @@ def _exchange_only(p):
             body, mesh=p.mesh, in_specs=(P(axis),) * 3, out_specs=P(axis), check_vma=False
         )
     )
-    b_s, b_m = p.blocks
     rows = jax.sharding.NamedSharding(p.mesh, P(axis))  # (as detect gets them: no resharding)
     xs = jax.device_put(jnp.zeros((n_dev * b_s, 3), dtype), rows)
     xm = jax.device_put(jnp.zeros((n_dev * b_m, 3), dtype), rows)
