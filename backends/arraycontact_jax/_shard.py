@@ -702,9 +702,9 @@ def _norm(v):
 
 def _packed(fields, rows, counts, dt):
     """[R, w] rows of every field (rows: an index into their [cap, ...] arrays, or None:
-    all), int and
-    bool values as floats split in two 16-bit halves (exact in float32, whose integers end
-    at 2^24), then the counts in extra rows of the same width: ([R + extra, w], R)."""
+    all), int and bool values as floats split in two 16-bit halves (exact in float32, whose
+    integers end at 2^24), then the counts in extra rows of the same width: ([R + extra, w],
+    R)."""
 
     def halves(a):
         a = a.astype(jnp.int32)
