@@ -211,6 +211,10 @@ def run(scene_name, n, n_dev, repeats, dtype, baseline, search="jax", drop=0):
         rows = NamedSharding(mesh, P("space"))
         slave, pts = jax.device_put(slave, rows), jax.device_put(pts, rows)
         rec["inputs"] = "sharded by rows"
+    else:  # (rows JAX cannot split in equal blocks: on every device, not moved each call)
+        everywhere = NamedSharding(mesh, P())
+        slave, pts = jax.device_put(slave, everywhere), jax.device_put(pts, everywhere)
+        rec["inputs"] = "replicated"
     c, rec["first_s"], rec["detect_s"] = _timed(lambda: acj.detect(p, slave, pts), repeats)
     rec["detect_pipelined_s"] = _pipelined(lambda: acj.detect(p, slave, pts), repeats)
     rec["overflow"] = bool(c.overflow)
