@@ -272,6 +272,34 @@ def test_uneven_rows_give_a_replicated_answer_by_one_all_gather():
     assert hlo.count(" all-gather(") == 1
 
 
+def test_uneven_master_points_alone_give_one_devices_contacts_and_gradients():
+    """The master's points alone no multiple of the devices (an unused point added): each
+    part takes its nodes from the replicated points, the slaves are exchanged as ever, and
+    the answer stays sharded; contacts and gradients equal one device's."""
+    s = scenes.rough_surfaces(2**9, seed=4)
+    pts = np.vstack([s.master.points, [[50.0, 50.0, 50.0]]])
+    master = ac.Surface(pts, s.master.faces, s.master.element.name)
+
+    def value_and_grads(p):
+        def f(x, y):
+            c = acj.detect(p, x, y)
+            return _loss(c), c
+
+        return jax.jit(jax.value_and_grad(f, argnums=(0, 1), has_aux=True))(
+            jnp.asarray(s.slave), jnp.asarray(pts)
+        )
+
+    (_, r), g_r = value_and_grads(acj.plan(master, s.slave, dtype=np.float64))
+    p = acj.plan(master, s.slave, dtype=np.float64, mesh=_mesh(2))
+    assert len(s.slave) % 2 == 0 and len(pts) % 2 == 1
+    (_, c), g = value_and_grads(p)
+    _same(c, r)
+    assert not c.gap.sharding.is_fully_replicated
+    for a, b in zip(g, g_r):
+        scale = float(np.abs(np.asarray(b)).max())
+        assert scale > 0 and np.allclose(np.asarray(a), np.asarray(b), atol=1e-10 * scale)
+
+
 def test_bad_input_is_named():
     s = scenes.rough_surfaces(2**8, seed=1)
     with pytest.raises(ValueError, match="axis"):

@@ -14,7 +14,7 @@ from test_sharding import HALF, run_sharding_checks
 
 
 def test_jax_sharded_plan_on_four_cpu_devices_overflow_inputs_and_errors():
-    run_sharding_checks(f"not ({HALF})", 9)
+    run_sharding_checks(f"not ({HALF})", 10)
 
 
 def test_two_processes_of_two_devices_equal_one_device():
