@@ -90,8 +90,8 @@ def _exchange_only(p):
     b_s, b_m = p.blocks
     # (as detect: a side whose rows are no multiple of the devices is not exchanged, and
     # then the answers are gathered everywhere)
-    replicated = {"m_": n_dev * b_m != len(p.master.points), "s_": "s_rows" in p.exchange}
-    sides = [q for q, rep in replicated.items() if not rep]
+    everywhere, rep_m = p.replicated
+    sides = [q for q, rep in (("m_", rep_m), ("s_", everywhere)) if not rep]
 
     def body(ex, s_blk, m_blk):
         ex = jax.tree_util.tree_map(lambda a: a[0], ex)
@@ -104,7 +104,7 @@ def _exchange_only(p):
             "i": jnp.zeros((cap, 5), jnp.int32) + seed.astype(jnp.int32),
         }
         counts = {"count": jnp.zeros(4, jnp.int32), "motion": jnp.zeros(2, dtype)}
-        home = _shard._everywhere if "s_all" in ex else _shard._home
+        home = _shard._everywhere if everywhere else _shard._home
         r, _ = home(vals, ex, axis, counts)
         return (jnp.sum(r["f"]) + jnp.sum(r["i"]))[None]
 

@@ -112,6 +112,15 @@ class ShardedPlan:
         return self.mesh.shape[self.axis]
 
     @property
+    def replicated(self) -> tuple[bool, bool]:
+        """Whether the slaves' rows, and the master's points, are no whole number of blocks a
+        device (JAX shards rows only in equal blocks): such rows come replicated and each part
+        takes its own from them; replicated slaves' rows get a replicated answer."""
+        b_s, b_m = self.blocks
+        n = self.n_devices
+        return n * b_s != self.n_slaves, n * b_m != len(self.master.points)
+
+    @property
     def capacity(self) -> dict:
         return {**dict(self.local.capacity), "halo_motion": self.partition.margin}
 
@@ -632,8 +641,8 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
     spec = P(axis)
     # Rows that are no multiple of the devices come replicated (JAX shards rows only in equal
     # blocks): each part takes its items from them, and only the other side is exchanged.
-    rep_m = n_dev * b_m != n_pts
-    rep_s = "s_rows" in p.exchange
+    everywhere, rep_m = p.replicated
+    rep_s = everywhere and not self_contact  # (self-contact's slaves are master points)
 
     def body(topo, ex, s_in, m_in):
         topo = jax.tree_util.tree_map(lambda a: a[0], topo)
@@ -672,7 +681,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
             ds = _norm(jax.lax.stop_gradient(s_blk) - ex["s_ref"].astype(s_blk.dtype))
             motion.append(jnp.max(jnp.where(ex["s_used"], ds, 0)))
         counts["halo_motion"] = jnp.stack(motion)
-        blk, counts = (_everywhere if "s_all" in ex else _home)(answer, ex, axis, counts)
+        blk, counts = (_everywhere if everywhere else _home)(answer, ex, axis, counts)
         motion = counts.pop("halo_motion")
         counts["halo_motion"] = motion[-1] + p.lebesgue * motion[0]
         return blk, counts
@@ -681,7 +690,7 @@ def detect(p: ShardedPlan, slave_points, master_points, self_points=False) -> Co
         body,
         mesh=p.mesh,
         in_specs=(spec, spec, P() if rep_s else spec, P() if rep_m else spec),
-        out_specs=(P() if "s_all" in p.exchange else spec, P()),
+        out_specs=(P() if everywhere else spec, P()),
         # The one-device stages build their while_loop carries from constants; the counts
         # are every device's largest (sent to all), hence the same on every device.
         check_vma=False,
