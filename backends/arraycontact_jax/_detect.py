@@ -748,13 +748,15 @@ class _WarpSearch:
             finer=wp.int32,
         )
         plans = self.plans
-        # Parts on several GPUs: XLA calls each device's search from a thread of its own, at
-        # once. The plan is the one on the device of the call's arrays (no host read of the
-        # part's index, which a graph capture forbids), launched on the stream XLA gives
-        # (jax_callable's wp.ScopedStream) and replayed as the plan's own CUDA graph (Warp
-        # captures thread-locally). Not jax_callable's staged graph: it keeps one graph and
-        # its staging buffers per call site, not per device, so a second GPU replayed the
-        # first's (on two H200s: a deadlock in the next all_to_all).
+        # Parts on several GPUs: XLA calls each device's search from a thread of its own. The
+        # plan is the one on the device of the call's arrays, launched on the stream XLA
+        # gives (jax_callable's wp.ScopedStream). The inputs are staged into the plan's own
+        # buffers, so that the plan's CUDA graph (detect's, keyed by its input buffers) is
+        # one per device whatever buffers XLA hands the call. Not jax_callable's graphs:
+        # its staged graph is one per call site, not per device (a second GPU replayed the
+        # first's: on two H200s, a deadlock in the next all_to_all), and its mode WARP
+        # captures a graph per device and call buffers, which calls dispatched back to back
+        # renew on every call (two H200s: 5-6x the synchronised time, benchmarks/RESULTS.md).
         on_device = {str(q.device): q for q in plans}
         several_gpus = len(on_device) > 1
 
@@ -763,6 +765,11 @@ class _WarpSearch:
                 plan = plans[0]
             elif several_gpus:
                 plan = on_device[str(master_points.device)]
+                wp.copy(plan.master_in, master_points)
+                master_points = plan.master_in
+                if not self_contact:
+                    wp.copy(plan.slave_in, slaves)
+                    slaves = plan.slave_in
             else:  # the parts of CPU devices, one Warp device: the part's index
                 plan = plans[int(part.numpy()[0])]
             if self_contact:  # the slaves are the master's nodes: gathered by the kernels
@@ -782,28 +789,17 @@ class _WarpSearch:
         search.__signature__ = _signature(
             ["part", "slaves", "master_points", *[f"o_{k}" for k in self.names]]
         )
-        # On a GPU, Warp captures the search in a CUDA graph of its own, replayed on staging
+        # One GPU: Warp captures the search in a CUDA graph of its own, replayed on staging
         # buffers with the copies in and out outside it (JAX cannot take the radix sort's
         # temporary storage as a child graph); without the graph every call pays Python's
         # launch overhead. vmap over scenes calls the search once per scene (its plan holds
-        # one scene's buffers). Several GPUs: a graph per device and buffer addresses (XLA
-        # reuses a program's buffers from call to call), so that no call runs the search's
-        # Python, which the devices' threads would take turns at (the GIL).
-        # No limit on the graphs kept: jax_callable destroys the oldest past its limit (32)
-        # inside the call, on XLA's thread, while this device's stream may still hold work
-        # behind a collective; calls dispatched back to back, each on new XLA buffers, got
-        # there and hung (two H200s, sharding.py's pipelined calls: 20 of them in flight).
-        # XLA reuses its buffers, so the graphs number the buffer sets calls use; they go
-        # with the plan.
+        # one scene's buffers). Several GPUs: the search's Python runs every call (under
+        # jax_callable's lock, the devices in turn) and replays the plan's graph.
         mode = wp.JaxCallableGraphMode.NONE
-        if self.plans[0].device.is_cuda:
-            mode = wp.JaxCallableGraphMode.WARP if several_gpus else mode.WARP_STAGED_EX
+        if self.plans[0].device.is_cuda and not several_gpus:
+            mode = wp.JaxCallableGraphMode.WARP_STAGED_EX
         self.call = wp.jax_callable(
-            search,
-            num_outputs=len(self.names),
-            graph_mode=mode,
-            vmap_method="sequential",
-            graph_cache_max=None,
+            search, num_outputs=len(self.names), graph_mode=mode, vmap_method="sequential"
         )
 
     def __call__(self, s, xm, slave_nodes=None):
