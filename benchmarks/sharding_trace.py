@@ -7,6 +7,7 @@ devices (2^20 a device), rough surfaces, float32.
     python benchmarks/sharding_trace.py diff A B            # kernels of trace A against B
     python benchmarks/sharding_trace.py collectives         # the collectives alone, all devices
     python benchmarks/sharding_trace.py options [--search jax]  # XLA's command buffers, A/B
+    python benchmarks/sharding_trace.py floor --log2 14 [--search warp jax]  # the host's part
 
 `run` writes DIR/perfetto_<search>_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
 deep folders) and prints each case's median wall time of 10 calls.
@@ -229,20 +230,69 @@ def options(search="jax", log2=20, rounds=4, calls=15):
         print(json.dumps(rec), flush=True)
 
 
+def floor(searches=("warp", "jax"), log2=14, calls=30):
+    """The host's part of a call on a small scene (rough, 2^log2 nodes a surface a device,
+    float32): one device's plan and all devices', each waited for (median of `calls`), back to
+    back (mean), and the host's time to dispatch those (before the wait); the sharded plan
+    also closed over by jit (no pytree to flatten) and, with the Warp search, with the
+    search's Python replaced by a no-op (its answers garbage: timing only)."""
+    import arraycontact_jax as acj
+    import jax
+    from jax.sharding import Mesh
+
+    from arraycontact import scenes
+
+    n_dev = len(jax.devices())
+    s = scenes.rough_surfaces(n_dev * 2**log2, seed=0)
+    mesh = Mesh(np.array(jax.devices()), ("space",))
+    x, m = (jax.numpy.asarray(a, np.float32) for a in (s.slave, s.master.points))
+
+    def bench(case, search, q, f, devices=n_dev):
+        for _ in range(5):
+            jax.block_until_ready(f(q, x, m))
+        ts = []
+        for _ in range(calls):
+            t = time.perf_counter()
+            jax.block_until_ready(f(q, x, m))
+            ts.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        r = [f(q, x, m) for _ in range(calls)]
+        dispatch = (time.perf_counter() - t) / calls
+        jax.block_until_ready(r)
+        back_to_back = (time.perf_counter() - t) / calls
+        rec = dict(case=case, search=search, log2=log2, devices=devices)
+        rec.update(synced_ms=float(np.median(ts)) * 1e3, pipelined_ms=back_to_back * 1e3)
+        print(json.dumps(dict(rec, dispatch_ms=dispatch * 1e3)), flush=True)
+
+    for search in searches:
+        detect = jax.jit(acj.detect)
+        one = acj.plan(s.master, s.slave, dtype=np.float32, search=search)
+        bench("one device", search, one, detect, devices=1)
+        p = acj.plan(s.master, s.slave, dtype=np.float32, search=search, mesh=mesh)
+        bench("sharded", search, p, detect)
+        closed = jax.jit(lambda _, a, b: acj.detect(p, a, b))
+        bench("sharded, plan closed over", search, None, closed)
+        if search == "warp":
+            p.local.search.call.func = lambda *a: None
+            bench("sharded, search a no-op", search, p, detect)
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=["run", "summary", "diff", "collectives", "options"])
+    ap.add_argument("what", choices=["run", "summary", "diff", "collectives", "options", "floor"])
     ap.add_argument("folder", nargs="*", default=None)
     ap.add_argument("--out", default=None)
-    ap.add_argument("--search", choices=["warp", "jax"], default="warp")
+    ap.add_argument("--search", nargs="+", choices=["warp", "jax"], default=["warp"])
     ap.add_argument("--log2", type=int, default=20, help="options: nodes a surface a device")
     a = ap.parse_args()
     if a.what == "run":
-        run(a.out or os.environ["OUT"], a.search)
+        run(a.out or os.environ["OUT"], a.search[0])
     elif a.what == "collectives":
         collectives()
     elif a.what == "options":
-        options(a.search, a.log2)
+        options(a.search[0], a.log2)
+    elif a.what == "floor":
+        floor(a.search, a.log2)
     elif a.what == "diff":
         diff(*a.folder)
     else:
