@@ -232,31 +232,34 @@ def options(search="jax", log2=20, rounds=4, calls=15):
 
 def floor(searches=("warp", "jax"), log2=14, calls=30):
     """The host's part of a call on a small scene (rough, 2^log2 nodes a surface a device,
-    float32): one device's plan and all devices', each waited for (median of `calls`), back to
-    back (mean), and the host's time to dispatch those (before the wait); the sharded plan
-    also closed over by jit (no pytree to flatten) and, with the Warp search, with the
-    search's Python replaced by a no-op (its answers garbage: timing only)."""
+    float32): one device's plan and all devices' (inputs sharded by rows, as sharding.py puts
+    them), each waited for (median of `calls`), back to back (mean), and the host's time to
+    dispatch those (before the wait); the sharded plan also with inputs on one device (jit
+    moves them), closed over by jit (no pytree to flatten) and, with the Warp search, with
+    the search's Python replaced by a no-op (its answers garbage: timing only)."""
     import arraycontact_jax as acj
     import jax
-    from jax.sharding import Mesh
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
 
     from arraycontact import scenes
 
     n_dev = len(jax.devices())
     s = scenes.rough_surfaces(n_dev * 2**log2, seed=0)
     mesh = Mesh(np.array(jax.devices()), ("space",))
-    x, m = (jax.numpy.asarray(a, np.float32) for a in (s.slave, s.master.points))
+    one_device = tuple(jax.numpy.asarray(a, np.float32) for a in (s.slave, s.master.points))
+    by_rows = jax.device_put(one_device, NamedSharding(mesh, P("space")))
 
-    def bench(case, search, q, f, devices=n_dev):
+    def bench(case, search, q, f, inputs, devices=n_dev):
         for _ in range(5):
-            jax.block_until_ready(f(q, x, m))
+            jax.block_until_ready(f(q, *inputs))
         ts = []
         for _ in range(calls):
             t = time.perf_counter()
-            jax.block_until_ready(f(q, x, m))
+            jax.block_until_ready(f(q, *inputs))
             ts.append(time.perf_counter() - t)
         t = time.perf_counter()
-        r = [f(q, x, m) for _ in range(calls)]
+        r = [f(q, *inputs) for _ in range(calls)]
         dispatch = (time.perf_counter() - t) / calls
         jax.block_until_ready(r)
         back_to_back = (time.perf_counter() - t) / calls
@@ -267,14 +270,15 @@ def floor(searches=("warp", "jax"), log2=14, calls=30):
     for search in searches:
         detect = jax.jit(acj.detect)
         one = acj.plan(s.master, s.slave, dtype=np.float32, search=search)
-        bench("one device", search, one, detect, devices=1)
+        bench("one device", search, one, detect, one_device, devices=1)
         p = acj.plan(s.master, s.slave, dtype=np.float32, search=search, mesh=mesh)
-        bench("sharded", search, p, detect)
+        bench("sharded", search, p, detect, by_rows)
+        bench("sharded, inputs on one device", search, p, detect, one_device)
         closed = jax.jit(lambda _, a, b: acj.detect(p, a, b))
-        bench("sharded, plan closed over", search, None, closed)
+        bench("sharded, plan closed over", search, None, closed, by_rows)
         if search == "warp":
             p.local.search.call.func = lambda *a: None
-            bench("sharded, search a no-op", search, p, detect)
+            bench("sharded, search a no-op", search, p, detect, by_rows)
 
 
 def main():
