@@ -8,7 +8,6 @@ devices (2^20 a device), rough surfaces, float32.
     python benchmarks/sharding_trace.py collectives         # the collectives alone, all devices
     python benchmarks/sharding_trace.py options [--search jax]  # XLA's command buffers, A/B
     python benchmarks/sharding_trace.py floor --log2 14 [--search warp jax]  # the host's part
-    python benchmarks/sharding_trace.py replays --log2 19   # Warp search: whole-call graphs A/B
 
 `run` writes DIR/perfetto_<search>_<one|mesh1|meshN>.json.gz (flat: the device's copy-back takes no
 deep folders) and prints each case's median wall time of 10 calls.
@@ -282,52 +281,9 @@ def floor(searches=("warp", "jax"), log2=14, calls=30):
             bench("sharded, search a no-op", search, p, detect, by_rows)
 
 
-def replays(log2=19, rounds=3, calls=20):
-    """The Warp search on all devices (rough, 2^log2 nodes a surface a device, float32, inputs
-    sharded by rows) with calls on buffers seen before replayed as a graph of the whole call
-    (`_detect.REPLAYS` = 4) and without (0: the search's Python every call), taking turns on
-    one plan: median of `calls` waited-for calls, mean of `calls` back to back."""
-    import arraycontact_jax as acj
-    import jax
-    from arraycontact_jax import _detect
-    from jax.sharding import Mesh, NamedSharding
-    from jax.sharding import PartitionSpec as P
-
-    from arraycontact import scenes
-
-    n_dev = len(jax.devices())
-    s = scenes.rough_surfaces(n_dev * 2**log2, seed=0)
-    mesh = Mesh(np.array(jax.devices()), ("space",))
-    p = acj.plan(s.master, s.slave, dtype=np.float32, search="warp", mesh=mesh)
-    x = jax.device_put(
-        tuple(np.asarray(a, np.float32) for a in (s.slave, s.master.points)),
-        NamedSharding(mesh, P("space")),
-    )
-    f = jax.jit(acj.detect)
-    keep = _detect.REPLAYS
-    for _ in range(5):
-        jax.block_until_ready(f(p, *x))
-    for r in range(rounds):
-        for k in (keep, 0):
-            _detect.REPLAYS = k
-            ts = []
-            for _ in range(calls):
-                t = time.perf_counter()
-                jax.block_until_ready(f(p, *x))
-                ts.append(time.perf_counter() - t)
-            t = time.perf_counter()
-            jax.block_until_ready([f(p, *x) for _ in range(calls)])
-            rec = dict(round=r, replays=k, log2=log2, devices=n_dev)
-            rec.update(synced_ms=float(np.median(ts)) * 1e3)
-            rec.update(pipelined_ms=(time.perf_counter() - t) / calls * 1e3)
-            print(json.dumps(dict(rec, graphs=len(p.local.search.replays))), flush=True)
-    _detect.REPLAYS = keep
-
-
 def main():
     ap = argparse.ArgumentParser()
-    whats = ["run", "summary", "diff", "collectives", "options", "floor", "replays"]
-    ap.add_argument("what", choices=whats)
+    ap.add_argument("what", choices=["run", "summary", "diff", "collectives", "options", "floor"])
     ap.add_argument("folder", nargs="*", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--search", nargs="+", choices=["warp", "jax"], default=["warp"])
@@ -341,8 +297,6 @@ def main():
         options(a.search[0], a.log2)
     elif a.what == "floor":
         floor(a.search, a.log2)
-    elif a.what == "replays":
-        replays(a.log2)
     elif a.what == "diff":
         diff(*a.folder)
     else:

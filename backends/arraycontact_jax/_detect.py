@@ -714,10 +714,6 @@ def warp_plan(
     return p
 
 
-#: Several GPUs: the graphs of whole calls a device keeps, each for one set of XLA buffers.
-REPLAYS = 4
-
-
 class _WarpSearch:
     """The Warp back end's detection as a JAX primitive (wp.jax_callable): called in `detect`
     with the slave and master coordinates in the plan's frame, returns the search's answer
@@ -761,46 +757,27 @@ class _WarpSearch:
         # first's: on two H200s, a deadlock in the next all_to_all), and its mode WARP
         # captures a graph per device and call buffers, which calls dispatched back to back
         # renew on every call (two H200s: 5-6x the synchronised time, benchmarks/RESULTS.md).
-        # A call on buffers seen before is captured whole (copies included) and replayed
-        # without the search's Python (0.3 ms a device a call, the devices in turn under
-        # jax_callable's lock); at most REPLAYS such graphs, none ever dropped: destroying a
-        # graph inside the call, with the stream's work queued behind a collective, hung.
         on_device = {str(q.device): q for q in plans}
         several_gpus = len(on_device) > 1
-        self.replays, seen = {}, {}
 
-        def run(plan, slaves, master_points, outs):
-            if several_gpus:
+        def search(part, slaves, master_points, *outs):
+            if len(plans) == 1:
+                plan = plans[0]
+            elif several_gpus:
+                plan = on_device[str(master_points.device)]
                 wp.copy(plan.master_in, master_points)
                 master_points = plan.master_in
                 if not self_contact:
                     wp.copy(plan.slave_in, slaves)
                     slaves = plan.slave_in
+            else:  # the parts of CPU devices, one Warp device: the part's index
+                plan = plans[int(part.numpy()[0])]
             if self_contact:  # the slaves are the master's nodes: gathered by the kernels
                 o = acw.detect_self(plan, master_points)
             else:
                 o = acw.detect(plan, slaves, master_points)
             for name, a in zip(self.names, outs):
                 wp.copy(a, o[name], count=len(o[name]))
-
-        def search(part, slaves, master_points, *outs):
-            if len(plans) == 1:
-                return run(plans[0], slaves, master_points, outs)
-            if not several_gpus:  # the parts of CPU devices, one Warp device: the part's index
-                return run(plans[int(part.numpy()[0])], slaves, master_points, outs)
-            key = (slaves.ptr, master_points.ptr, *(a.ptr for a in outs))  # one address space
-            if key in self.replays:
-                return wp.capture_launch(self.replays[key])
-            plan = on_device[str(master_points.device)]
-            if key not in seen or len(self.replays) >= REPLAYS * len(plans):
-                seen[key] = seen.pop(key, None)  # the latest last
-                if len(seen) > 16 * REPLAYS:
-                    del seen[next(iter(seen))]
-                return run(plan, slaves, master_points, outs)
-            with wp.ScopedCapture(device=plan.device) as cap:
-                run(plan, slaves, master_points, outs)
-            self.replays[key] = cap.graph
-            wp.capture_launch(cap.graph)
 
         # jax_callable reads the Warp types from the annotations.
         search.__annotations__ = {
@@ -816,7 +793,8 @@ class _WarpSearch:
         # buffers with the copies in and out outside it (JAX cannot take the radix sort's
         # temporary storage as a child graph); without the graph every call pays Python's
         # launch overhead. vmap over scenes calls the search once per scene (its plan holds
-        # one scene's buffers). Several GPUs: the graphs above, in jax_callable's mode NONE.
+        # one scene's buffers). Several GPUs: the search's Python runs every call (under
+        # jax_callable's lock, the devices in turn) and replays the plan's graph.
         mode = wp.JaxCallableGraphMode.NONE
         if self.plans[0].device.is_cuda and not several_gpus:
             mode = wp.JaxCallableGraphMode.WARP_STAGED_EX
