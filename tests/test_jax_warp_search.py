@@ -101,3 +101,28 @@ def test_warp_search_on_two_gpus_keeps_one_graph_per_device():
     for (a, b), c in zip(moved, answers):
         _compare(c, jax.tree.map(np.asarray, acj.detect(one, a, b)))
     assert all(len(q.graph_of) == 1 for q in p.local.search.plans)
+
+
+@pytest.mark.skipif(
+    sum(d.platform == "gpu" for d in jax.devices()) < 2, reason="needs two GPUs (run on the device)"
+)
+def test_warp_self_contact_on_two_gpus_equals_one_device():
+    """Self-contact with the Warp search on two GPUs: each call stages the part's points into
+    its plan (the slaves are the part's own nodes, gathered by the kernels); calls back to
+    back, each equal to one device's, and the gradients too."""
+    from jax.sharding import Mesh
+
+    s = scenes.spiral_strip(700, element="tri3")
+    mesh = Mesh(np.array(jax.devices()[:2]), ("space",))
+    p = acj.plan_self(s.master, search="warp", mesh=mesh)
+    one = acj.plan_self(s.master, search="warp")
+    m = jnp.asarray(s.master.points)
+    moved = [m + 1e-4 * k for k in range(4)]
+    answers = [acj.detect_self(p, b) for b in moved]
+    for b, c in zip(moved, answers):
+        _compare(c, jax.tree.map(np.asarray, acj.detect_self(one, b)))
+
+    def grad(q):
+        return jax.grad(lambda b: jnp.sum(acj.detect_self(q, b).gap ** 2))(m)
+
+    assert np.allclose(grad(p), grad(one), rtol=1e-10, atol=1e-12)
