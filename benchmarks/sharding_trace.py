@@ -233,14 +233,15 @@ def options(search="jax", log2=20, rounds=4, calls=15):
 def floor(searches=("warp", "jax"), log2=14, calls=30):
     """The host's part of a call on a small scene (rough, 2^log2 nodes a surface a device,
     float32): one device's plan and all devices' (inputs sharded by rows, as sharding.py puts
-    them), each waited for (median of `calls`), back to back (mean), and the host's time to
-    dispatch those (before the wait); the sharded plan also with inputs on one device (jit
-    moves them), closed over by jit (no pytree to flatten) and, with the Warp search, with
-    the search's Python replaced by a no-op (its answers garbage: timing only)."""
+    them), each waited for (sharding.py's median of `calls`), back to back (mean), and the
+    host's time to dispatch those (before the wait); the sharded plan also with inputs on one
+    device (jit moves them), closed over by jit (no pytree to flatten) and, with the Warp
+    search, with the search's Python replaced by a no-op (its answers garbage: timing only)."""
     import arraycontact_jax as acj
     import jax
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
+    from sharding import _timed
 
     from arraycontact import scenes
 
@@ -251,20 +252,14 @@ def floor(searches=("warp", "jax"), log2=14, calls=30):
     by_rows = jax.device_put(one_device, NamedSharding(mesh, P("space")))
 
     def bench(case, search, q, f, inputs, devices=n_dev):
-        for _ in range(5):
-            jax.block_until_ready(f(q, *inputs))
-        ts = []
-        for _ in range(calls):
-            t = time.perf_counter()
-            jax.block_until_ready(f(q, *inputs))
-            ts.append(time.perf_counter() - t)
+        _, _, synced = _timed(lambda: f(q, *inputs), calls)
         t = time.perf_counter()
         r = [f(q, *inputs) for _ in range(calls)]
         dispatch = (time.perf_counter() - t) / calls
         jax.block_until_ready(r)
         back_to_back = (time.perf_counter() - t) / calls
         rec = dict(case=case, search=search, log2=log2, devices=devices)
-        rec.update(synced_ms=float(np.median(ts)) * 1e3, pipelined_ms=back_to_back * 1e3)
+        rec.update(synced_ms=synced * 1e3, pipelined_ms=back_to_back * 1e3)
         print(json.dumps(dict(rec, dispatch_ms=dispatch * 1e3)), flush=True)
 
     for search in searches:
