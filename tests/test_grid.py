@@ -168,11 +168,15 @@ def test_host_tree_top_merges_groups_to_lose_a_level():
     assert merged >= 5
 
 
+@pytest.mark.parametrize("normals", [False, True], ids=["plain", "normal_boxes"])
 @pytest.mark.parametrize("kind", ["clusters", "repeated"])
-def test_scan_kernel_against_brute_force(monkeypatch, kind):
+def test_scan_kernel_against_brute_force(monkeypatch, kind, normals):
     """The scans as the Pallas kernel (GPUs; interpreted here): the closest node with a wide
     tie band (the second pass too) as brute force's, and without shrinking the reach (the
-    sharded plan's halos) every item within the reach, each once."""
+    sharded plan's halos) every item within the reach, each once. normal_boxes: a tree whose
+    entries also hold normal boxes (self-contact's), scanned without the normal test as the
+    sharded self-contact plan scans it (the kernel once read such entries 9 rows apart: on
+    GPUs the plan's halos missed most faces)."""
     import arraycontact_jax._grid as jg
     import jax
     import jax.numpy as jnp
@@ -191,8 +195,14 @@ def test_scan_kernel_against_brute_force(monkeypatch, kind):
     within = d <= reach
     k = int(within.sum(1).max())
     with jax.enable_x64(True):
+        nb = None
+        if normals:  # any unit vectors: the scans here do not test them
+            nv = rng.normal(size=xs.shape)
+            nv = jnp.asarray(nv / np.linalg.norm(nv, axis=1, keepdims=True))
+            nb = (nv, nv)
         jtree = _grid.build(jnp, jnp.asarray(order, jnp.int32), *(jnp.asarray(xs),) * 3,
-                            groups=groups)  # fmt: skip
+                            normals=nb, groups=groups)  # fmt: skip
+        assert bool(jtree.nlo) == normals
         node, dist, _ = jg.closest_node(
             jnp, jtree, None, jnp.asarray(q), d_max=np.inf, tie=tie, slack=tie + 1e-9 * np.ptp(x)
         )

@@ -416,6 +416,9 @@ def _kernel_scan(
     lanes += [jnp.zeros(n, dt) if extra is None else extra.astype(dt)]
     lanes = [jnp.pad(v, (0, pad)) for v in lanes] + [jnp.pad(active, (0, pad)).astype(jnp.int32)]
     top, root, n_ids = flat.top, flat.root, ids.shape[0]
+    # An entry's rows: its box and point (9), and in a self-contact tree its normal box too
+    # (15), which the kernel steps over (the sharded plan's scans without the normal test).
+    stride = flat.groups.shape[1] * W
     inf = float("inf")
 
     def kernel(groups, down, ids_r, consts_r, *refs):
@@ -432,7 +435,7 @@ def _kernel_scan(
             kk_, row, stack, base, rch, done, carry, steps = s
             busy = done == 0
             leaf = kk_ == 1
-            at = row * (9 * W)
+            at = row * stride
             d2, dr, filled, rank = [], [], [], []
             for j in range(W):
                 c = [groups[at + (i * W + j)] for i in range(9)]
