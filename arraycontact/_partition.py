@@ -65,8 +65,12 @@ class Partition:
         used = np.zeros(len(m.points), bool)
         used[m.faces[self.halo[p]].ravel()] = True
         faces = np.flatnonzero(used[m.faces].any(1))
-        nodes = np.unique(m.faces[faces])
-        local = np.searchsorted(nodes, m.faces[faces])
+        # The faces' nodes and their local ids by a mask and a prefix sum (np.unique and
+        # searchsorted over the part's faces took 1.4 s a part at 2^20 on a GPU host).
+        on = np.zeros(len(m.points), bool)
+        on[m.faces[faces]] = True
+        nodes = np.flatnonzero(on)
+        local = (np.cumsum(on) - 1)[m.faces[faces]]
         return Part(
             slaves=np.flatnonzero(self.slave_part == p),
             faces=faces,

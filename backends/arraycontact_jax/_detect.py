@@ -527,16 +527,15 @@ def _topology(master, prep, self_contact=False):
     return jax.tree.map(jnp.asarray, _topology_arrays(master, prep, self_contact))
 
 
-def _topology_arrays(master, prep, self_contact=False, whole=None):
-    """The plan's topology on the host. whole: the master `master` is a part of (a sharded
-    plan): the node-face table is kept when the whole master's is."""
+def _topology_arrays(master, prep, self_contact=False, part=False, table=True):
+    """The plan's topology on the host. part: `master` is a part of a sharded plan (its
+    slaves are set by the plan), whose node-face table is kept where `table` (the whole
+    master's is)."""
     topo = master_topology(master, prep)
-    if self_contact and whole is None:
+    if self_contact and not part:
         topo = topo._replace(slave_nodes=master.nodes.astype(np.int32))
-    table = padded_node_faces(master)  # the smooth outputs' vertex normals
-    if whole is not None and padded_node_faces(whole) is None:
-        table = None
-    return topo._replace(node_faces=table)
+    # (the smooth outputs' vertex normals)
+    return topo._replace(node_faces=padded_node_faces(master) if table else None)
 
 
 def _check(p: Plan, slave_points, master_points):

@@ -33,6 +33,8 @@ the capacity `margin` (overflow), and `update_plan` partitions again.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -68,6 +70,7 @@ from ._detect import (
     once,
     warp_plan,
 )
+from ._gradients import MAX_VALENCE
 
 #: The answer's fields a part sends home (self-contact also `finer`).
 _FIELDS = (
@@ -215,7 +218,7 @@ def plan(
         reached=partial(reached, n_groups=n_dev),
     )
     del reached  # (its device buffers)
-    parts = [part.part(e) for e in range(n_dev)]
+    parts = _each(part.part, range(n_dev))
 
     # 2. Each part's master, padded to shared shapes.
     k = element.nodes_per_face
@@ -231,10 +234,13 @@ def plan(
     face_rank = np.argsort(prep.face_ids)
     # Each part's trees over its own items in the one-device Morton order, grouped by the
     # same rule (Morton prefixes), padded to the parts' common level sizes.
-    trees = [
-        (_part_tree(node_rank[q.nodes], node_keys), _part_tree(face_rank[q.faces], face_keys))
-        for q in parts
-    ]
+    trees = _each(
+        lambda q: (
+            _part_tree(node_rank[q.nodes], node_keys),
+            _part_tree(face_rank[q.faces], face_keys),
+        ),
+        parts,
+    )
     t_n = max(len(q.nodes) for q in parts)
     t_f = max(len(q.faces) for q in parts)
     node_groups = _common_levels([t[0][1] for t in trees])
@@ -254,7 +260,8 @@ def plan(
         # (the padding items are in no group; dead all the same)
         lives.append((np.arange(t_n) < len(n_ids), np.arange(t_f) < len(f_ids)))
 
-    topo = [_topology_arrays(surf, pq, self_contact, master) for surf, pq in locals_]
+    table = int(np.diff(master.node_faces[0]).max()) <= MAX_VALENCE  # (padded_node_faces)
+    topo = _each(lambda sp: _topology_arrays(*sp, self_contact, part=True, table=table), locals_)
     for e, q in enumerate(parts):
         slave_nodes = None
         if self_contact:
@@ -411,7 +418,7 @@ def _reach(sc, m, x, margin, st):
     d_max, slack = float(sc.d_max), float(sc.slack)
     if st.self_contact:
         return np.full(x.shape[0], d_max + margin + slack)
-    dn = np.asarray(_closest_distance(sc, m, x, st=st), np.float64)
+    dn = np.asarray(once(_closest_distance, sc, m, x, st=st), np.float64)
     return np.minimum(dn + margin, d_max) + margin + slack
 
 
@@ -440,10 +447,10 @@ class _Reached:
 
     def __init__(self, sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
         # (Node mode too: a face incident to a node within reach has its box within reach.)
-        grid = _face_tree(sc, m, st=replace(st, mode="exact"))
+        grid = once(_face_tree, sc, m, st=replace(st, mode="exact"))
         n, self.n_faces = x.shape[0], m.faces.shape[0]
         rho = jnp.asarray(reach, x.dtype)
-        count = np.asarray(_counts_within(grid, x, rho, sc.slack))
+        count = np.asarray(once(_counts_within, grid, x, rho, sc.slack))
         # Padded by a chunk of rows (of no group: dropped when marked), so that every chunk
         # has one of a few shapes: a few compilations serve every chunk.
         self.pad = chunk
@@ -454,7 +461,7 @@ class _Reached:
         while start < n:
             k = 1 << (max(int(count[start : start + chunk].max()), 1) - 1).bit_length()
             size = 1 << (min(chunk, max(slots // k, 1)).bit_length() - 1)
-            faces = _reached_faces(grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)
+            faces = once(_reached_faces, grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)
             self.chunks.append((start, k, faces))
             start += size
 
@@ -462,7 +469,7 @@ class _Reached:
         group = jnp.asarray(np.pad(group, (0, self.pad), constant_values=n_groups), jnp.int32)
         hit = jnp.zeros((n_groups, self.n_faces), bool)
         for start, k, faces in self.chunks:
-            hit = _mark(hit, group, jnp.int32(start), faces, k=k)
+            hit = once(_mark, hit, group, jnp.int32(start), faces, k=k)
         return np.asarray(hit)
 
 
@@ -492,6 +499,16 @@ def _face_tree(sc, m, *, st):
 @jax.jit
 def _counts_within(grid, x, rho, slack):
     return _grid.candidate_counts(grid, x, rho, slack=slack, shrink=False)
+
+
+def _each(fn, items):
+    """[fn(item) for item in items], the parts' host work in threads (NumPy's sorts and
+    gathers release the GIL): two parts' topologies at 2^20 took 3 s in turn on a GPU host."""
+    items = list(items)
+    if len(items) < 2:
+        return [fn(q) for q in items]
+    with ThreadPoolExecutor(min(len(items), os.cpu_count() or 1)) as pool:
+        return list(pool.map(fn, items))
 
 
 def _part_tree(rank, keys):
