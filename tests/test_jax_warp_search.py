@@ -8,6 +8,7 @@ import pytest
 import test_jax
 from test_jax import _compare
 
+import arraycontact as ac
 from arraycontact import scenes
 
 
@@ -46,7 +47,6 @@ def test_warp_search_on_curved_faces():
     """On quad8 faces: NumPy's contacts (the JAX search's equal them in test_jax), and a finite
     gradient (the smooth outputs are the JAX search's code, checked by finite differences in
     test_jax_gradients)."""
-    import arraycontact as ac
 
     s = scenes.curved_patch(3, element="quad8", n_slaves=200)
     p = acj.plan(s.master, s.slave, search="warp")
@@ -69,7 +69,6 @@ def _energy(p):
 def test_warp_search_on_a_master_grown_past_the_plan():
     """The Warp search plans no size that motion can outgrow: faces grown 1.5x give the
     contacts of a fresh detection, with no overflow to report."""
-    import arraycontact as ac
 
     s = scenes.rough_surfaces(2**8, seed=0)
     p = acj.plan(s.master, s.slave, search="warp")
@@ -106,16 +105,23 @@ def test_warp_search_on_two_gpus_keeps_one_graph_per_device():
 @pytest.mark.skipif(
     sum(d.platform == "gpu" for d in jax.devices()) < 2, reason="needs two GPUs (run on the device)"
 )
-def test_warp_self_contact_on_two_gpus_equals_one_device():
-    """Self-contact with the Warp search on two GPUs: each call stages the part's points into
-    its plan (the slaves are the part's own nodes, gathered by the kernels); calls back to
-    back, each equal to one device's, and the gradients too."""
+@pytest.mark.parametrize("search", ["warp", "jax"])
+def test_self_contact_on_two_gpus_equals_one_device(search):
+    """Self-contact on two GPUs. The Warp search: each call stages the part's points into its
+    plan (the slaves are the part's own nodes, gathered by the kernels). Either search: the
+    plan's halos come from the GPU's scan kernel over a tree with normal boxes (it once read
+    their entries 9 rows apart: most rows wrong, with either search). Calls back to back,
+    each equal to one device's and to NumPy's, and the gradients equal one device's."""
     from jax.sharding import Mesh
 
     s = scenes.spiral_strip(700, element="tri3")
     mesh = Mesh(np.array(jax.devices()[:2]), ("space",))
-    p = acj.plan_self(s.master, search="warp", mesh=mesh)
-    one = acj.plan_self(s.master, search="warp")
+    p = acj.plan_self(s.master, search=search, mesh=mesh)
+    one = acj.plan_self(s.master, search=search)
+    _compare(
+        acj.detect_self(p, jnp.asarray(s.master.points)),
+        ac.detect_self(s.master, d_max=p.d_max, backend="numpy"),
+    )
     m = jnp.asarray(s.master.points)
     moved = [m + 1e-4 * k for k in range(4)]
     answers = [acj.detect_self(p, b) for b in moved]
