@@ -660,8 +660,16 @@ def _backend(backend):
 
 def _longest_edge(master, backend, d_max):
     """The default d_max's longest edge from the Warp back end's device topology (which its
-    detection makes anyway), so that a Warp call makes none of the Surface's host tables."""
-    if backend != "warp" or d_max is not None or not isinstance(master, Surface):
+    detection makes anyway), so that a Warp call makes none of the Surface's host tables; or
+    None: the NumPy and JAX back ends read those tables, made here at once (Surface.prepare),
+    the longest edge with them."""
+    if not isinstance(master, Surface):
+        return None
+    if backend != "warp":
+        if master.n_faces:
+            master.prepare()
+        return None
+    if d_max is not None:
         return None
     if master.n_faces == 0:
         return 0.0

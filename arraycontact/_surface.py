@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -236,6 +237,8 @@ def node_normals(element, faces, points, xp=np):
 
 #: Faces a block of `Surface._linear`.
 BLOCK = 16384
+#: Faces from which `Surface.prepare` computes topology and geometry in two threads.
+PREPARE_IN_THREADS = 8192
 
 
 def _stable_order(keys, end):
@@ -370,6 +373,25 @@ class Surface:
     def n_faces(self) -> int:
         return len(self.faces)
 
+    def prepare(self) -> "Surface":
+        """Compute what the NumPy and JAX back ends read from the surface (its topology and
+        its face and node geometry), the two in threads of their own: NumPy releases the GIL
+        in its sorts and arithmetic, and the two share no intermediate. On two cores, 2^16
+        rough nodes: 69 -> 37 ms. Returns self (everything cached)."""
+        # (small surfaces in turn: a thread costs more than they take)
+        topology = ("nodes", "node_faces", "_edge_table", "boundary_nodes", "closed")
+        geometry = ("longest_edge", "face_normals", "face_bounds", "node_normals")
+        if self.n_faces < PREPARE_IN_THREADS:
+            for name in topology + geometry:
+                getattr(self, name)
+            return self
+        with ThreadPoolExecutor(1) as pool:
+            other = pool.submit(lambda: [getattr(self, name) for name in geometry])
+            for name in topology:
+                getattr(self, name)
+            other.result()
+        return self
+
     @cached_property
     def nodes(self) -> np.ndarray:
         """Sorted ids of the nodes used by faces."""
@@ -388,9 +410,10 @@ class Surface:
     @cached_property
     def _edge_table(self):
         k = self.element.n_corners
-        en = self.element.edge_nodes
-        # take(): 8x the speed of fancy indexing the columns.
-        a, b = (self.faces.take(en[:, i], axis=1).ravel() for i in range(2))
+        # Local edge i runs from corner i to corner i + 1 (mod k) in every element: the
+        # corners' block and its columns rolled (a quarter of the time of take() on them).
+        c = self.faces[:, :k]
+        a, b = c.ravel(), np.concatenate([c[:, 1:], c[:, :1]], 1).ravel()
         # One int64 key per edge (sorted corner pair): a 1-D unique is much faster than rows.
         lo, hi = np.minimum(a, b), np.maximum(a, b)
         n = max(len(self.points), 1)
@@ -399,7 +422,10 @@ class Surface:
         keys = lo * n + hi
         order = _stable_order(keys, n * n)
         sk = keys[order]
-        first = np.flatnonzero(np.diff(sk, prepend=-1))  # (keys >= 0; none if no faces)
+        new = np.empty(len(sk), bool)  # where a key starts (none if no faces)
+        new[:1] = True
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])
+        first = np.flatnonzero(new)
         counts = np.diff(np.r_[first, len(sk)])
         inverse = np.empty(len(sk), np.int64)
         inverse[order] = np.repeat(np.arange(len(first)), counts)

@@ -145,6 +145,27 @@ def test_empty_surface_is_valid(element):
     assert np.array_equal(s.node_normals, np.zeros((2, 3)))
 
 
+@pytest.mark.parametrize("element", ["tri3", "quad8"])
+def test_prepare_in_threads_gives_the_lazy_tables(monkeypatch, element):
+    """Surface.prepare (topology and geometry in two threads) leaves every table equal to the
+    one a fresh Surface computes on first use, and the edges' corner pairs equal the faces'
+    own (each local edge i from corner i to i + 1)."""
+    import arraycontact._surface as surface
+
+    monkeypatch.setattr(surface, "PREPARE_IN_THREADS", 1)  # threads at any size
+    m = scenes.rough_surfaces(2**12, seed=2, element=element).master
+    fresh = ac.Surface(m.points, m.faces, m.element)
+    done = ac.Surface(m.points, m.faces, m.element).prepare()
+    for name in ("nodes", "edges", "face_edges", "edge_faces", "boundary_nodes", "node_normals",
+                 "face_normals", "longest_edge"):  # fmt: skip
+        assert np.array_equal(getattr(done, name), getattr(fresh, name)), name
+    for a, b in zip(done.node_faces + done.face_bounds, fresh.node_faces + fresh.face_bounds):
+        assert np.array_equal(a, b)
+    k = m.element.n_corners
+    corners = np.sort(np.stack([m.faces[:, :k], np.roll(m.faces[:, :k], -1, 1)], -1), -1)
+    assert np.array_equal(done.edges[done.face_edges], corners)
+
+
 @pytest.mark.parametrize("end", [1, 2, 1 << 16, (1 << 16) + 1, 1 << 33, 1 << 40])
 def test_stable_order_is_a_stable_argsort(end):
     """The radix passes give NumPy's stable argsort, ties in input order, whatever the keys'

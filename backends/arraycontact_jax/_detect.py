@@ -274,6 +274,8 @@ def plan(
     dev_topo = None
     if mesh is None and isinstance(master, Surface) and master.n_faces:
         dev_topo = _device_topology(master)
+    if dev_topo is None and isinstance(master, Surface) and master.n_faces:
+        master.prepare()  # the host's tables, made at once
     longest = None if dev_topo is None else dev_topo[0].longest_edge
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype, longest)
     if dtype == np.float64 and not jax.config.jax_enable_x64:
