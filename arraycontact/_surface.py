@@ -239,6 +239,8 @@ def node_normals(element, faces, points, xp=np):
 BLOCK = 16384
 #: Faces from which `Surface.prepare` computes topology and geometry in two threads.
 PREPARE_IN_THREADS = 8192
+#: The Surface's cached tables that depend on its faces alone (`Surface.with_points`).
+_CONNECTIVITY = ("nodes", "node_faces", "_edge_table", "boundary_edges", "boundary_nodes", "closed")
 
 
 def _stable_order(keys, end):
@@ -366,8 +368,15 @@ class Surface:
         )
 
     def with_points(self, points) -> "Surface":
-        """The same connectivity on new coordinates (a deformed configuration)."""
-        return Surface(points, self.faces, self.element)
+        """The same connectivity on new coordinates (a deformed configuration). The tables
+        of the connectivity alone that this surface has made (edges, node-face table,
+        boundary) are shared, not made again: only the geometry is new."""
+        s = Surface(points, self.faces, self.element)
+        if len(s.points) == len(self.points):
+            for name in _CONNECTIVITY:
+                if name in self.__dict__:  # (where cached_property keeps its value)
+                    s.__dict__[name] = self.__dict__[name]
+        return s
 
     @property
     def n_faces(self) -> int:

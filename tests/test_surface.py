@@ -145,6 +145,22 @@ def test_empty_surface_is_valid(element):
     assert np.array_equal(s.node_normals, np.zeros((2, 3)))
 
 
+def test_with_points_shares_the_connectivity_and_remakes_the_geometry():
+    """A deformed configuration (with_points) keeps the connectivity's tables (the same
+    arrays) and computes its geometry from its own points: every table as a fresh Surface's
+    of those points."""
+    m = scenes.rough_surfaces(2**10, seed=3).master.prepare()
+    x = m.points + np.random.default_rng(0).normal(scale=0.2, size=m.points.shape)
+    moved, fresh = m.with_points(x), ac.Surface(x, m.faces, m.element)
+    assert moved._edge_table is m._edge_table and moved.node_faces is m.node_faces
+    for name in ("nodes", "edges", "edge_faces", "boundary_nodes", "node_normals",
+                 "face_normals", "longest_edge"):  # fmt: skip
+        assert np.array_equal(getattr(moved, name), getattr(fresh, name)), name
+    assert not np.allclose(moved.node_normals, m.node_normals)
+    more = m.with_points(np.vstack([x, [[0.0, 0.0, 0.0]]]))  # an unused point more
+    assert len(more.node_faces[0]) == len(x) + 2  # made again: its CSR spans every point
+
+
 @pytest.mark.parametrize("element", ["tri3", "quad8"])
 def test_prepare_in_threads_gives_the_lazy_tables(monkeypatch, element):
     """Surface.prepare (topology and geometry in two threads) leaves every table equal to the
