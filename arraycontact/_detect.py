@@ -604,6 +604,7 @@ def detect(
     (inputs are always read in float64 and moved to a local frame first)."""
     t0 = time.perf_counter()
     backend = _backend(backend)
+    _host_tables(master, backend)
     longest = _longest_edge(master, backend, d_max)
     d_max, dtype = check_options(master, mode, d_max, displacement, dtype, longest)
     slave_x, ids = _slaves(slave)
@@ -644,6 +645,7 @@ def detect_self(surface, *, backend="auto", mode="exact", d_max=None, dtype=None
     if not isinstance(surface, Surface):
         raise ValueError("surface must be an arraycontact.Surface")
     backend = _backend(backend)
+    _host_tables(surface, backend)
     longest = _longest_edge(surface, backend, d_max)
     d_max, dtype = check_options(surface, mode, d_max, None, dtype, longest)
     ids = surface.nodes
@@ -658,18 +660,17 @@ def _backend(backend):
     return resolve(backend)
 
 
+def _host_tables(master, backend):
+    """The Surface's host tables, which the NumPy and JAX back ends read, made at once
+    (Surface.prepare: topology and geometry in two threads)."""
+    if backend != "warp" and isinstance(master, Surface) and master.n_faces:
+        master.prepare()
+
+
 def _longest_edge(master, backend, d_max):
     """The default d_max's longest edge from the Warp back end's device topology (which its
-    detection makes anyway), so that a Warp call makes none of the Surface's host tables; or
-    None: the NumPy and JAX back ends read those tables, made here at once (Surface.prepare),
-    the longest edge with them."""
-    if not isinstance(master, Surface):
-        return None
-    if backend != "warp":
-        if master.n_faces:
-            master.prepare()
-        return None
-    if d_max is not None:
+    detection makes anyway), so that a Warp call makes none of the Surface's host tables."""
+    if backend != "warp" or d_max is not None or not isinstance(master, Surface):
         return None
     if master.n_faces == 0:
         return 0.0

@@ -425,7 +425,7 @@ def _reach(sc, m, x, margin, st):
     d_max, slack = float(sc.d_max), float(sc.slack)
     if st.self_contact:
         return np.full(x.shape[0], d_max + margin + slack)
-    dn = np.asarray(once(_closest_distance, sc, m, x, st=st), np.float64)
+    dn = np.asarray(_closest_distance(sc, m, x, st=st), np.float64)
     return np.minimum(dn + margin, d_max) + margin + slack
 
 
@@ -454,10 +454,10 @@ class _Reached:
 
     def __init__(self, sc, m, x, reach, st, chunk=1 << 16, slots=1 << 24):
         # (Node mode too: a face incident to a node within reach has its box within reach.)
-        grid = once(_face_tree, sc, m, st=replace(st, mode="exact"))
+        grid = _face_tree(sc, m, st=replace(st, mode="exact"))
         n, self.n_faces = x.shape[0], m.faces.shape[0]
         rho = jnp.asarray(reach, x.dtype)
-        count = np.asarray(once(_counts_within, grid, x, rho, sc.slack))
+        count = np.asarray(_counts_within(grid, x, rho, sc.slack))
         # Padded by a chunk of rows (of no group: dropped when marked), so that every chunk
         # has one of a few shapes: a few compilations serve every chunk.
         self.pad = chunk
@@ -468,7 +468,7 @@ class _Reached:
         while start < n:
             k = 1 << (max(int(count[start : start + chunk].max()), 1) - 1).bit_length()
             size = 1 << (min(chunk, max(slots // k, 1)).bit_length() - 1)
-            faces = once(_reached_faces, grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)
+            faces = _reached_faces(grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)
             self.chunks.append((start, k, faces))
             start += size
 
@@ -476,7 +476,7 @@ class _Reached:
         group = jnp.asarray(np.pad(group, (0, self.pad), constant_values=n_groups), jnp.int32)
         hit = jnp.zeros((n_groups, self.n_faces), bool)
         for start, k, faces in self.chunks:
-            hit = once(_mark, hit, group, jnp.int32(start), faces, k=k)
+            hit = _mark(hit, group, jnp.int32(start), faces, k=k)
         return np.asarray(hit)
 
 
