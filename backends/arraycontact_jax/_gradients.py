@@ -130,13 +130,18 @@ def vertex_normals(element, nodes_x, faces, node_faces, node):
 MAX_VALENCE = 32
 
 
+def valence_fits(master) -> bool:
+    """Whether the master's largest valence is at most MAX_VALENCE (a padded table kept)."""
+    return int(np.diff(master.node_faces[0]).max()) <= MAX_VALENCE
+
+
 def padded_node_faces(master):
     """[n_points, V] the faces of each node, -1 padded (V: the largest valence); None when V
     exceeds MAX_VALENCE."""
+    if not valence_fits(master):
+        return None
     offsets, ids = master.node_faces
     counts = np.diff(offsets)
-    if counts.max() > MAX_VALENCE:
-        return None
     rows = np.repeat(np.arange(len(counts)), counts)
     table = np.full((len(counts), max(int(counts.max()), 1)), -1, np.int32)
     table[rows, np.arange(len(ids)) - offsets[rows]] = ids

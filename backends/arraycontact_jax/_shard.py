@@ -33,8 +33,6 @@ the capacity `margin` (overflow), and `update_plan` partitions again.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -55,7 +53,7 @@ from arraycontact._detect import (
 from arraycontact._grid import W, grouping, morton_keys
 from arraycontact._partition import Partition, partition
 from arraycontact._prepare import Prepared
-from arraycontact._surface import Surface, bounds
+from arraycontact._surface import Surface, bounds, in_threads
 
 from . import _grid
 from ._detect import (
@@ -70,7 +68,7 @@ from ._detect import (
     once,
     warp_plan,
 )
-from ._gradients import MAX_VALENCE
+from ._gradients import valence_fits
 
 #: The answer's fields a part sends home (self-contact also `finer`).
 _FIELDS = (
@@ -222,7 +220,7 @@ def plan(
         reached=partial(reached, n_groups=n_dev),
     )
     del reached  # (its device buffers)
-    parts = _each(part.part, range(n_dev))
+    parts = in_threads(part.part, range(n_dev))
 
     # 2. Each part's master, padded to shared shapes.
     k = element.nodes_per_face
@@ -238,7 +236,7 @@ def plan(
     face_rank = np.argsort(prep.face_ids)
     # Each part's trees over its own items in the one-device Morton order, grouped by the
     # same rule (Morton prefixes), padded to the parts' common level sizes.
-    trees = _each(
+    trees = in_threads(
         lambda q: (
             _part_tree(node_rank[q.nodes], node_keys),
             _part_tree(face_rank[q.faces], face_keys),
@@ -250,7 +248,7 @@ def plan(
     node_groups = _common_levels([t[0][1] for t in trees])
     face_groups = _common_levels([t[1][1] for t in trees])
     locals_, tables, lives = [], [], []
-    padded = _each(
+    padded = in_threads(
         lambda q: _padded(q, element, f_cap, p_cap, far, spacing, master.longest_edge), parts
     )
     for e, ((n_ids, _), (f_ids, _)) in enumerate(trees):
@@ -267,8 +265,10 @@ def plan(
         # (the padding items are in no group; dead all the same)
         lives.append((np.arange(t_n) < len(n_ids), np.arange(t_f) < len(f_ids)))
 
-    table = int(np.diff(master.node_faces[0]).max()) <= MAX_VALENCE  # (padded_node_faces)
-    topo = _each(lambda sp: _topology_arrays(*sp, self_contact, part=True, table=table), locals_)
+    table = valence_fits(master)
+    topo = in_threads(
+        lambda sp: _topology_arrays(*sp, self_contact, part=True, table=table), locals_
+    )
     for e, q in enumerate(parts):
         slave_nodes = None
         if self_contact:
@@ -506,16 +506,6 @@ def _face_tree(sc, m, *, st):
 @jax.jit
 def _counts_within(grid, x, rho, slack):
     return _grid.candidate_counts(grid, x, rho, slack=slack, shrink=False)
-
-
-def _each(fn, items):
-    """[fn(item) for item in items], the parts' host work in threads (NumPy's sorts and
-    gathers release the GIL): two parts' topologies at 2^20 took 3 s in turn on a GPU host."""
-    items = list(items)
-    if len(items) < 2:
-        return [fn(q) for q in items]
-    with ThreadPoolExecutor(min(len(items), os.cpu_count() or 1)) as pool:
-        return list(pool.map(fn, items))
 
 
 def _part_tree(rank, keys):
