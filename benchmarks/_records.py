@@ -56,10 +56,15 @@ def append(benchmark: str, record: dict, run_meta: dict, out=None, n_devices: in
 
 
 def load(benchmark: str, machine: str | None = None) -> list[dict]:
-    """The records of a benchmark (on one machine, or on all), in file order (oldest first)."""
+    """The records of a benchmark (on one machine, or on all), in file order (oldest first).
+    All machines: not the A/B tries kept beside them (`<benchmark>_tries_*.jsonl`), which
+    would otherwise sort after the machines' files and pass for their newest records."""
     pattern = f"{benchmark}_{machine or '*'}.jsonl"
     out = []
     for path in sorted(RESULTS.glob(pattern)):
+        if machine is None or machine == "*":
+            if path.stem[len(benchmark) + 1 :].startswith("tries"):
+                continue
         out += [json.loads(line) for line in open(path) if line.strip()]
     return out
 
