@@ -128,3 +128,61 @@ HALF = "one_to_four or warp_self_contact"
 
 def test_jax_sharded_detection_on_four_cpu_devices():
     run_sharding_checks(HALF, 4)
+
+
+def test_sharded_plans_halo_search_marks_what_brute_force_finds(monkeypatch):
+    """The sharded plan's halo search (the faces each slave reaches, found in chunks of slaves
+    sorted by their counts: here forced into many chunks of several slot counts) marks, for a
+    random grouping of the slaves, exactly the faces whose box lies within the reach of a
+    slave of the group (brute force over every slave and face; a band of the search's slack
+    left undecided)."""
+    import arraycontact_jax as acj
+    import jax
+    from arraycontact_jax import _shard
+    from jax.sharding import Mesh
+
+    from arraycontact._surface import face_boxes
+
+    seen = []
+
+    reached = _shard._Reached
+
+    class Recording(reached):
+        def __init__(self, *args):
+            seen.append(args)
+            super().__init__(*args)
+
+    monkeypatch.setattr(_shard, "_Reached", Recording)
+    s = scenes.graded_surfaces(2**9, ratio=30.0, seed=4)
+    acj.plan(
+        s.master,
+        s.slave,
+        dtype=np.float32,
+        mesh=Mesh(np.array(jax.devices()[:1]), ("x",)),
+        axis="x",
+    )
+    sc, m, x, reach, st = seen[0]
+    # Reaches of 0.1-4 % of the plan's (a few faces to a few hundred), one chunk per 64
+    # slaves at most and at most 2048 slots a chunk.
+    rng = np.random.default_rng(0)
+    reach = np.asarray(reach) * rng.uniform(0.001, 0.04, len(s.slave))
+    small = reached(sc, m, x, reach, st, chunk=64, slots=2048)
+    ks = {k for _, k, _ in small.chunks}
+    assert len(small.chunks) >= 8 and len(ks) >= 3, (len(small.chunks), ks)
+    group = rng.integers(0, 3, len(s.slave))
+    hit = small(group, 3)
+    lo, hi = (
+        np.asarray(v, float)
+        for v in face_boxes(s.master.element, np.asarray(m.nodes_x)[np.asarray(m.faces)])
+    )
+    xs, rho = np.asarray(x, float), np.asarray(reach, float)
+    d = np.linalg.norm(
+        np.maximum(lo[None] - xs[:, None], 0) + np.maximum(xs[:, None] - hi[None], 0), axis=-1
+    )
+    tol = 1e-4 * s.master.longest_edge + 2 * float(sc.slack)
+    for g in range(3):
+        mine = group == g
+        surely = (d[mine] <= rho[mine, None] - tol).any(0)
+        maybe = (d[mine] <= rho[mine, None] + tol).any(0)
+        assert hit[g][surely].all() and not hit[g][~maybe].any(), g
+        assert 0 < surely.sum() < 0.5 * len(lo)
