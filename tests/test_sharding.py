@@ -132,10 +132,10 @@ def test_jax_sharded_detection_on_four_cpu_devices():
 
 def test_sharded_plans_halo_search_marks_what_brute_force_finds(monkeypatch):
     """The sharded plan's halo search (the faces each slave reaches, found in chunks of slaves
-    sorted by their counts: here forced into many chunks of several slot counts) marks, for a
-    random grouping of the slaves, exactly the faces whose box lies within the reach of a
-    slave of the group (brute force over every slave and face; a band of the search's slack
-    left undecided)."""
+    with as many slots as the chunk's largest count: here forced into many chunks of several
+    slot counts) marks, for a random grouping of the slaves, exactly the faces whose box lies
+    within the reach of a slave of the group (brute force over every slave and face; a band
+    of the search's slack left undecided)."""
     import arraycontact_jax as acj
     import jax
     from arraycontact_jax import _shard

@@ -458,34 +458,27 @@ class _Reached:
         n, self.n_faces = x.shape[0], m.faces.shape[0]
         rho = jnp.asarray(reach, x.dtype)
         count = np.asarray(_counts_within(grid, x, rho, sc.slack))
-        # The slaves by their counts, most first, in chunks whose slots a slave (k, a power of
-        # two) fit the chunk's largest count and whose rows (a power of two) are about those
-        # of that count's class (k/2, k]: a chunk's scan and marks run over all its slots,
-        # and one slave reaching many faces (a graded mesh's fine zone, where the margin
-        # spans many faces) had given every slave of its chunk as many (4096 slaves on two
-        # CPU devices: 2048 slots each, most of a 1.3 s plan).
-        self.order = np.argsort(-count, kind="stable")
-        desc = -count[self.order]  # ascending
-        x, rho = x[jnp.asarray(self.order)], rho[jnp.asarray(self.order)]
         # Padded by a chunk of rows (of no group: dropped when marked), so that every chunk
-        # has one of a few shapes: a few compilations serve every chunk.
+        # has one of a few shapes: a few compilations serve every chunk. No chunk longer
+        # than the slaves (to a power of two): a chunk's scan and marks run over all its
+        # rows, real or padding (4096 graded slaves on two CPU devices: a plan 1.30 -> 0.76
+        # s). (Chunks of slaves sorted by their counts, each chunk's slots fitting its count
+        # class, took that to 0.60 s but a plan at 2^21 on two H200s from 5.29 to 5.70 s,
+        # its first from 25.6 to 35.2 s: the sort and a compilation a class.)
         self.pad = chunk = min(chunk, 1 << max(n - 1, 1).bit_length())
         x = jnp.pad(x, ((0, chunk), (0, 0)))
         rho = jnp.pad(rho, (0, chunk))
         self.chunks = []  # (first slave, slots a slave, the slots' faces or -1)
         start = 0
         while start < n:
-            k = 1 << (max(int(-desc[start]), 1) - 1).bit_length()
-            in_class = int(np.searchsorted(desc, -(k // 2))) - start  # counts > k / 2
-            rows = min(chunk, max(slots // k, 1), 1 << (max(in_class, 1) - 1).bit_length())
-            size = 1 << (rows.bit_length() - 1)
+            k = 1 << (max(int(count[start : start + chunk].max()), 1) - 1).bit_length()
+            size = 1 << (min(chunk, max(slots // k, 1)).bit_length() - 1)
             faces = _reached_faces(grid, x, rho, jnp.int32(start), sc.slack, k=k, size=size)
             self.chunks.append((start, k, faces))
             start += size
 
     def __call__(self, group, n_groups):
-        group = np.pad(np.asarray(group)[self.order], (0, self.pad), constant_values=n_groups)
-        group = jnp.asarray(group, jnp.int32)
+        group = jnp.asarray(np.pad(group, (0, self.pad), constant_values=n_groups), jnp.int32)
         hit = jnp.zeros((n_groups, self.n_faces), bool)
         for start, k, faces in self.chunks:
             hit = _mark(hit, group, jnp.int32(start), faces, k=k)
