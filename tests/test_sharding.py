@@ -144,7 +144,6 @@ def test_sharded_plans_halo_search_marks_what_brute_force_finds(monkeypatch):
     from arraycontact._surface import face_boxes
 
     seen = []
-
     reached = _shard._Reached
 
     class Recording(reached):

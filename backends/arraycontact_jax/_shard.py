@@ -461,7 +461,7 @@ class _Reached:
         # Padded by a chunk of rows (of no group: dropped when marked), so that every chunk
         # has one of a few shapes: a few compilations serve every chunk. No chunk longer
         # than the slaves (to a power of two): a chunk's scan and marks run over all its
-        # rows, real or padding (4096 graded slaves on two CPU devices: a plan 1.30 -> 0.76
+        # rows, real or padding (4096 graded slaves on two CPU devices: a plan 1.30 -> 0.78
         # s). (Chunks of slaves sorted by their counts, each chunk's slots fitting its count
         # class, took that to 0.60 s but a plan at 2^21 on two H200s from 5.29 to 5.70 s,
         # its first from 25.6 to 35.2 s: the sort and a compilation a class.)
