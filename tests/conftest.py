@@ -203,9 +203,23 @@ def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
     return ref
 
 
-#: The longest test files (2-core machine: the two four-device sharding files about 2 minutes
-#: each, the next four 1-2 minutes), longest first.
-LONGEST = ("test_sharding", "test_jax.py", "test_jax_gradients", "test_detect", "test_self_contact")
+#: The test files of a minute or more on the 2-core machine, longest first (forty-fifth
+#: session: test_detect about 190 s down to test_node_mode 55 s). Handed out longest first,
+#: the two workers end within a short file of each other (test_swept, 160 s, had come last
+#: in name order).
+LONGEST = (
+    "test_detect",
+    "test_jax_gradients",
+    "test_jax.py",
+    "test_swept",
+    "test_self_contact",
+    "test_sharding_devices",
+    "test_projection",
+    "test_stress",
+    "test_sharding.py",
+    "test_node_mode",
+    "test_grid",
+)
 
 
 def pytest_collection_modifyitems(config, items):
