@@ -62,9 +62,8 @@ def load(benchmark: str, machine: str | None = None) -> list[dict]:
     pattern = f"{benchmark}_{machine or '*'}.jsonl"
     out = []
     for path in sorted(RESULTS.glob(pattern)):
-        if machine is None or machine == "*":
-            if path.stem[len(benchmark) + 1 :].startswith("tries"):
-                continue
+        if machine in (None, "*") and path.stem[len(benchmark) + 1 :].startswith("tries"):
+            continue
         out += [json.loads(line) for line in open(path) if line.strip()]
     return out
 

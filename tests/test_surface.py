@@ -163,7 +163,7 @@ def test_with_points_shares_the_connectivity_and_remakes_the_geometry():
 
 @pytest.mark.parametrize("element", ["tri3", "quad8"])
 def test_prepare_in_threads_gives_the_lazy_tables(monkeypatch, element):
-    """Surface.prepare (topology and geometry in two threads) leaves every table equal to the
+    """Surface.prepare (its tables in threads) leaves every table equal to the
     one a fresh Surface computes on first use, and the edges' corner pairs equal the faces'
     own (each local edge i from corner i to i + 1)."""
     import arraycontact._surface as surface
