@@ -546,6 +546,36 @@ def test_grid_refit_and_rebuild(way, node_search):
             c0, x0 = c, x
 
 
+def test_first_detect_on_a_master_far_from_the_plans_points():
+    """A GPU plan sorts the master's trees on the plan's points; a first detect refits them
+    and reads their staleness on the host after its scans. On a master turned, bent and
+    jittered far from those points (every tree stale) the first call's contacts and the next
+    one's (on trees sorted again) equal NumPy's."""
+    s = scenes.rough_surfaces(2**9, seed=10)
+    L = s.master.longest_edge
+    p = acw.plan(s.master, s.slave, device=DEVICE, dtype="float64")  # (no float32 near-ties)
+    c, sn = np.cos(0.7), np.sin(0.7)
+    turn = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+
+    def move(x):
+        y = x @ turn.T
+        return y + np.c_[0 * y[:, :2], 2 * L * np.sin(y[:, 0] / (8 * L))]
+
+    rng = np.random.default_rng(4)
+    moved = move(s.master.points) + rng.normal(0, 0.05 * L, s.master.points.shape)
+    master = ac.Surface(moved, s.master.faces, element=s.master.element.name)
+    slave = move(s.slave)
+    r = ac.detect(slave, master, d_max=p.constants.d_max, backend="numpy")
+    assert r.active.sum() > len(slave) // 4
+    xs = wp.array(slave, dtype=wp.vec3d, device=DEVICE)
+    xm = wp.array(moved, dtype=wp.vec3d, device=DEVICE)
+    for call in range(2):
+        got = {k: v.numpy() for k, v in acw.detect(p, xs, xm).items()}
+        _same_as_numpy(got, r, L)
+        if DEVICE == "cuda":  # stale in the first call, sorted again after its scans
+            assert int(p.rebuild.numpy()[0]) == int(call == 0)
+
+
 def test_double_buffered_inputs_replay_a_graph_each():
     """Inputs that alternate between two sets of buffers (a simulator's previous and next
     state): each call's contacts are NumPy's, and on CUDA each set of buffers replays a graph
