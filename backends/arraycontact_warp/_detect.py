@@ -43,7 +43,7 @@ from arraycontact_warp import _surface  # one set of its (precision-free) kernel
 from . import _grid, _parts, _prepare, _sweep
 from ._closest_node import closest_node, counts
 from ._geometry import Element, Quads, Triangles, element_data, quad_data, triangle_data
-from ._parts import _concrete
+from ._parts import _concrete, replayed
 from ._parts import launch as _slave_launch
 from ._projection import (
     Kept,
@@ -1092,13 +1092,8 @@ def _master_stages(p: Plan, xm, m_origin, beside=None, later=None):
     c = p.constants
     dev = p.device
     m = p.m
-    wp.launch(
-        _prepare.localise,
-        len(p.master.points),
-        inputs=[xm, m_origin],
-        outputs=[m.points],
-        device=dev,
-    )
+    n_pts = len(p.master.points)
+    replayed(p.cmds, "master", _prepare.localise, n_pts, [xm, m_origin, m.points], dev)
     if p.self_contact:
         _slave_launch(
             self_face_geometry,
@@ -1134,12 +1129,12 @@ def _master_stages(p: Plan, xm, m_origin, beside=None, later=None):
 
         def nodes(stale=p.rebuild):
             args = (m.points, m.node_world, dev, stale, node_n)
-            _grid.refit(p.node_grid, p.node_layout, *args)
+            _grid.refit(p.node_grid, p.node_layout, *args, cmds=p.cmds)
 
         def faces():
             tri3 = p.master.element.name == "tri3"
             args = (m.points, m.faces, c.lebesgue, m.face_world, dev, tri3, p.rebuild, face_n)
-            _grid.refit_faces(p.face_grid, p.face_layout, *args)
+            _grid.refit_faces(p.face_grid, p.face_layout, *args, cmds=p.cmds)
 
         if beside is not None and p.side is not None and dev.is_capturing and conditional:
             # In a graph, the node tree's refit and the closest-node scan (latency-bound) run

@@ -116,15 +116,17 @@ def _same(a, b) -> bool:
     return False  # a struct: the same object only
 
 
-def _replay(cmds, kernel, n, args, dev, record_only, block):
-    """kernel's launch through the command recorded in `cmds` (a plan's), its arguments
-    packed again only where they changed: Warp packs every argument of every launch, 50-100
-    us a launch of the detection's kernels on an H100's host, which a first call or a call
-    without a graph pays; a recorded command's launch takes about 5."""
-    hit = cmds.get(kernel)
+def _replay(cmds, kernel, n, args, dev, record_only, block, key=None):
+    """kernel's launch through the command recorded in `cmds` (a plan's) under `key` (default
+    the kernel), its arguments packed again only where they changed: Warp packs every
+    argument of every launch, 50-100 us a launch of the detection's kernels on an H100's
+    host, which a first call or a call without a graph pays; a recorded command's launch
+    takes about 5."""
+    key = kernel if key is None else key
+    hit = cmds.get(key)
     if hit is None:
         cmd = wp.launch(kernel, n, inputs=args, device=dev, record_cmd=True, block_dim=block)
-        cmds[kernel] = (cmd, list(args), [n])
+        cmds[key] = (cmd, list(args), [n])
     else:
         cmd, old, dim = hit
         for i, (a, b) in enumerate(zip(args, old)):
@@ -136,6 +138,16 @@ def _replay(cmds, kernel, n, args, dev, record_only, block):
             dim[0] = n
     if not record_only:
         cmd.launch()
+
+
+def replayed(cmds, key, kernel, n, inputs, dev):
+    """A launch of one thread grid on a GPU through the command recorded in `cmds` under
+    `key` (see _replay); elsewhere, or without cmds, a plain launch."""
+    dev = wp.get_device(dev)
+    if cmds is None or not dev.is_cuda:
+        wp.launch(kernel, n, inputs=inputs, device=dev)
+    else:
+        _replay(cmds, _concrete(kernel, inputs), n, list(inputs), dev, False, 256, key)
 
 
 def launch(
