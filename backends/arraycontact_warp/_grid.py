@@ -1150,10 +1150,13 @@ def _refit_up(grid: Grid):
 # 0.28, 0.48, 0.53 ms).
 
 
-def refit(grid: Grid, lay: Layout, x, world, device, rebuild, normals=None, cmds=None):
+def refit(
+    grid: Grid, lay: Layout, x, world, device, rebuild, normals=None, cmds=None, record_only=False
+):
     args = [0, x, world, 1, grid, rebuild]
-    launch(_gather, grid.n, args, [], device, first=0, cmds=_on_gpu(cmds, device))
-    _refit_boxes(grid, lay, normals, device, cmds, "nodes")
+    gpu = _on_gpu(cmds, device)
+    launch(_gather, grid.n, args, [], device, first=0, cmds=gpu, record_only=record_only)
+    _refit_boxes(grid, lay, normals, device, cmds, "nodes", record_only)
 
 
 def refit_faces(
@@ -1168,10 +1171,13 @@ def refit_faces(
     rebuild,
     normals=None,
     cmds=None,
+    record_only=False,
 ):
     args = [0, points, faces, real(lebesgue), world, int(corners), 1, grid, rebuild]
-    launch(_face_gather, faces.shape[0], args, [], device, first=0, cmds=_on_gpu(cmds, device))
-    _refit_boxes(grid, lay, normals, device, cmds, "faces")
+    gpu = _on_gpu(cmds, device)
+    n = faces.shape[0]
+    launch(_face_gather, n, args, [], device, first=0, cmds=gpu, record_only=record_only)
+    _refit_boxes(grid, lay, normals, device, cmds, "faces", record_only)
 
 
 def _on_gpu(cmds, device):
@@ -1179,16 +1185,18 @@ def _on_gpu(cmds, device):
     return cmds if wp.get_device(device).is_cuda else None
 
 
-def _refit_boxes(grid: Grid, lay: Layout, normals, device, cmds=None, tree=None):
+def _refit_boxes(grid: Grid, lay: Layout, normals, device, cmds=None, tree=None, record=False):
     if normals is not None:
-        replayed(cmds, (tree, _gather_normals), _gather_normals, grid.n, [grid, *normals], device)
-    refit_up(grid, lay, device, cmds, tree)
+        args = [grid, *normals]
+        replayed(cmds, (tree, _gather_normals), _gather_normals, grid.n, args, device, record)
+    refit_up(grid, lay, device, cmds, tree, record)
 
 
-def refit_up(grid: Grid, lay: Layout, device, cmds=None, tree=None):
+def refit_up(grid: Grid, lay: Layout, device, cmds=None, tree=None, record_only=False):
     """Every level's boxes from the item slots, in the order of the last build."""
     # (One thread on the CPU, whose Warp atomics are plain additions: not in parts.)
-    replayed(cmds, (tree, _refit_up), _refit_up, lay.entries[1], [grid], device)
+    args = [grid]
+    replayed(cmds, (tree, _refit_up), _refit_up, lay.entries[1], args, device, record_only)
 
 
 def new_grid(

@@ -140,14 +140,15 @@ def _replay(cmds, kernel, n, args, dev, record_only, block, key=None):
         cmd.launch()
 
 
-def replayed(cmds, key, kernel, n, inputs, dev):
+def replayed(cmds, key, kernel, n, inputs, dev, record_only=False):
     """A launch of one thread grid on a GPU through the command recorded in `cmds` under
-    `key` (see _replay); elsewhere, or without cmds, a plain launch."""
+    `key` (see _replay; record_only: record it, do not launch); elsewhere, or without cmds,
+    a plain launch (record_only: none)."""
     dev = wp.get_device(dev)
-    if cmds is None or not dev.is_cuda:
+    if cmds is not None and dev.is_cuda:
+        _replay(cmds, _concrete(kernel, inputs), n, list(inputs), dev, record_only, 256, key)
+    elif not record_only:
         wp.launch(kernel, n, inputs=inputs, device=dev)
-    else:
-        _replay(cmds, _concrete(kernel, inputs), n, list(inputs), dev, False, 256, key)
 
 
 def launch(
