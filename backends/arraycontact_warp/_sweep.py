@@ -1434,15 +1434,6 @@ def swept_scan(
                                 if cv == 0:
                                     conv = 0
                                 first = wp.min(first, t)
-                                # The walk goes on with the path up to first + 2 t_tol: a
-                                # face that its capture box puts beyond it has no contact
-                                # before then, so its search (t_tol early at most) would
-                                # return no time before the bound.
-                                u = first + real(2.0) * t_tol
-                                if u < real(1.0):
-                                    seg.d = (b - a) * u
-                                    s = a + real(0.5) * seg.d
-                                    reach = real(0.5) * wp.length(seg.d) + seg.pad
                                 # Keep the band: drop entries now later than first + t_tol.
                                 m = int(0)
                                 for q in range(nb):
