@@ -1158,7 +1158,7 @@ def _master_stages(p: Plan, xm, m_origin, beside=None, later=None):
             # their launches back; a stale tree is sorted for the next call. One H200, 2^20,
             # medians of 8 plans: first detect tyre 1.12 -> 1.01 ms, apart 1.00 -> 0.86,
             # ball_block_300 0.75 -> 0.69 (steady 0.54, 0.40, 0.28). (The plan capturing the
-            # graph of the rebuild for it instead: plans 5-10 ms longer, first calls longer.)
+            # graph of the rebuild for it instead: plans 5-10 ms longer, first calls no shorter.)
             later.append(lambda: wp.capture_if(p.rebuild, on_true=lambda: _build(p)))
         else:
             _rebuild_if(p, lambda: _build(p), outside)

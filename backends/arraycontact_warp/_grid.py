@@ -1185,11 +1185,12 @@ def _on_gpu(cmds, device):
     return cmds if wp.get_device(device).is_cuda else None
 
 
-def _refit_boxes(grid: Grid, lay: Layout, normals, device, cmds=None, tree=None, record=False):
+def _refit_boxes(grid: Grid, lay: Layout, normals, device, cmds=None, tree=None, record_only=False):
     if normals is not None:
         args = [grid, *normals]
-        replayed(cmds, (tree, _gather_normals), _gather_normals, grid.n, args, device, record)
-    refit_up(grid, lay, device, cmds, tree, record)
+        key = (tree, _gather_normals)
+        replayed(cmds, key, _gather_normals, grid.n, args, device, record_only)
+    refit_up(grid, lay, device, cmds, tree, record_only)
 
 
 def refit_up(grid: Grid, lay: Layout, device, cmds=None, tree=None, record_only=False):
