@@ -241,7 +241,20 @@ BLOCK = 16384
 #: Faces from which `Surface.prepare` makes its tables in threads.
 PREPARE_IN_THREADS = 8192
 #: The Surface's cached tables that depend on its faces alone (`Surface.with_points`).
-_CONNECTIVITY = ("nodes", "node_faces", "_edge_table", "boundary_edges", "boundary_nodes", "closed")
+_CONNECTIVITY = (
+    "nodes",
+    "node_faces",
+    "_edge_table",
+    "boundary_edges",
+    "boundary_nodes",
+    "closed",
+    "connectivity_key",
+)
+
+
+class ConnectivityKey:
+    """What a surface and the surfaces `with_points` makes from it share (a weak-referable
+    token): a back end keys its tables of the connectivity alone by it."""
 
 
 def in_threads(fn, items) -> list:
@@ -415,6 +428,12 @@ class Surface:
             return self
         in_threads(lambda c: [getattr(self, a) for a in c], chains)
         return self
+
+    @cached_property
+    def connectivity_key(self) -> ConnectivityKey:
+        """The same object for this surface and every surface `with_points` makes from it
+        once this one was asked (the same faces on as many points)."""
+        return ConnectivityKey()
 
     @cached_property
     def nodes(self) -> np.ndarray:

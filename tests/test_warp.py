@@ -1112,6 +1112,40 @@ def _topology_surfaces():
 
 
 @pytest.mark.parametrize("name", list(_topology_surfaces()))
+def test_a_deformed_surface_shares_the_device_tables_of_its_connectivity(name):
+    """Surface.with_points (a deformed configuration) shares the device tables of the
+    connectivity alone with the surface it comes from, down a chain of such surfaces; its
+    geometry (the scalars, the boxes, the balls) is its own: equal to its NumPy properties.
+    A Surface made anew from the same arrays shares nothing."""
+    from arraycontact_warp._surface import face_balls, topology
+
+    m = _topology_surfaces()[name]
+    t = topology(m, DEVICE)
+    rng = np.random.default_rng(5)
+    a = m
+    for step in range(2):
+        scale = np.array([1.3, 0.8, 1.1]) if step == 0 else np.array([0.9, 1.2, 1.0])
+        a = a.with_points(a.points * scale + rng.normal(0, 0.02, a.points.shape))
+        ta = topology(a, DEVICE)
+        for key in ("faces", "face_edges", "edge_faces", "nf_offsets", "nf_ids", "nodes"):
+            assert getattr(ta, key) is getattr(t, key), key
+        assert (ta.n_nodes, ta.n_edges, ta.closed) == (t.n_nodes, t.n_edges, t.closed)
+        np.testing.assert_array_equal(ta.points.numpy(), a.points)
+        assert ta.longest_edge == pytest.approx(a.longest_edge, rel=1e-15)
+        c, r = a.face_bounds
+        assert ta.r_max == pytest.approx(r.max(), rel=1e-15)
+        assert ta.r_small == pytest.approx(np.quantile(r, 0.1), rel=1e-6)
+        for got, want in zip(ta.node_box, a.node_box):
+            np.testing.assert_array_equal(got, want)
+        scale = 1e-15 * np.abs(a.points).max()
+        np.testing.assert_allclose(ta.ball_box[0], (c - r[:, None]).min(0), rtol=1e-15, atol=scale)
+        np.testing.assert_allclose(ta.ball_box[1], (c + r[:, None]).max(0), rtol=1e-15, atol=scale)
+        np.testing.assert_array_equal(face_balls(ta, DEVICE)[0].numpy(), c)
+    anew = topology(ac.Surface(a.points, a.faces, a.element.name), DEVICE)
+    assert anew.face_edges is not t.face_edges
+
+
+@pytest.mark.parametrize("name", list(_topology_surfaces()))
 def test_device_topology_equals_the_surfaces(name):
     """The plan's topology, made by Warp kernels, against the Surface's NumPy tables (a
     separate implementation): every table row for row, the scalars to rounding."""

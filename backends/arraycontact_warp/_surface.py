@@ -28,7 +28,7 @@ once and kept while the Surface lives.
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -456,20 +456,28 @@ class Topology:
     node_box: tuple  # (lo, hi) of the used nodes
     ball_box: tuple  # (lo, hi) of the faces' balls
     balls: tuple = None  # face_balls' (centres, radii), once made
+    uses: wp.array = None  # [n + 1] each point's faces (the used nodes' box)
 
 
 #: Surface -> {device: Topology}: a Surface is immutable, so its tables on a device are made
 #: once (as the Surface caches its own), for every plan of it there.
 _CACHE = weakref.WeakKeyDictionary()
+#: Surface.connectivity_key -> {device: Topology}: the last one made of that connectivity,
+#: whose tables of the connectivity alone a surface of the same faces on other points (a
+#: deformed configuration: Surface.with_points) shares; only its geometry is made again.
+_BY_CONNECTIVITY = weakref.WeakKeyDictionary()
 
 
 def topology(master: Surface, device) -> Topology:
     """The master's topology on `device`, made on first use (launches, then one read of the
-    scalars)."""
+    scalars); on a surface whose connectivity has one there already, its geometry alone."""
     device = wp.get_device(device)
     per_device = _CACHE.setdefault(master, {})
     if device.alias not in per_device:
-        per_device[device.alias] = _topology(master, device)
+        same = _BY_CONNECTIVITY.setdefault(master.connectivity_key, {})
+        known = same.get(device.alias)
+        t = _topology(master, device) if known is None else _geometry(master, device, known)
+        per_device[device.alias] = same[device.alias] = t
     return per_device[device.alias]
 
 
@@ -552,21 +560,13 @@ def _topology(master: Surface, device) -> Topology:
         t["nodes"] = empty(n)
         run(_compact, n, uses, flags, t["nodes"])
         run(_box, -(-n // CHUNK), points, uses, 1, out, bad)
+        t["uses"] = uses
 
     def scalar_chain():
-        # The longest edge, the largest radius, the box of the faces' balls and the tenth
-        # percentile of their radii (the balls themselves: face_balls, for those who read
-        # them; 4 MB at 2^16 nodes that a plan would touch for nothing).
-        cuda = device.is_cuda
-        radii = wp.empty(2 * nf if cuda else nf, dtype=wp.float32, device=device)
-        rows = empty(2 * nf if cuda else 0)  # (the CPU takes the percentile by a partition)
-        scalars = (points, faces, wp.float64(e.lebesgue), radii, rows)
-        run(_face_scalars, -(-nf // CHUNK), *scalars, out, int(not cuda))
-        t["r_small"] = _tenth(radii, rows, nf, device)
+        t["r_small"] = _face_scalars_of(points, faces, e, out, device)
 
     load(_count_edges, device)  # once, before threads launch its kernels
     concurrently(device, edge_chain, node_chain, scalar_chain)
-    s = out.numpy()
     n_nodes = int(t["flags"][n - 1 : n].numpy()[0]) if n else 0
     n_edges = int(t["ranks"][m - 1 : m].numpy()[0])
     return Topology(
@@ -580,12 +580,45 @@ def _topology(master: Surface, device) -> Topology:
         edges=t["edges"],
         n_edges=n_edges,
         closed=int(t["odd"].numpy()[0]) == 0,
+        **_read_scalars(out, t["r_small"]),
+        uses=t["uses"],
+    )
+
+
+def _face_scalars_of(points, faces, e, out, device) -> float:
+    """The longest edge, the largest radius, the box of the faces' balls into out, and the
+    tenth percentile of their radii (the balls themselves: face_balls, for those who read
+    them; 4 MB at 2^16 nodes that a plan would touch for nothing)."""
+    nf = faces.shape[0]
+    cuda = device.is_cuda
+    radii = wp.empty(2 * nf if cuda else nf, dtype=wp.float32, device=device)
+    rows = wp.empty(2 * nf if cuda else 0, dtype=int, device=device)  # (the CPU: a partition)
+    scalars = (points, faces, wp.float64(e.lebesgue), radii, rows, out, int(not cuda))
+    wp.launch(_face_scalars, -(-nf // CHUNK), inputs=scalars, device=device)
+    return _tenth(radii, rows, nf, device)
+
+
+def _read_scalars(out, r_small) -> dict:
+    s = out.numpy()
+    return dict(
         longest_edge=float(np.sqrt(s[0])),
         r_max=float(s[1]),
-        r_small=t["r_small"],
+        r_small=r_small,
         node_box=(s[2:5].copy(), s[5:8].copy()),
         ball_box=(s[8:11].copy(), s[11:14].copy()),
     )
+
+
+def _geometry(master: Surface, device, known: Topology) -> Topology:
+    """The topology of `master` where `known` is one of its connectivity on other points:
+    its tables shared, the geometry made (the face scalars and the used nodes' box: the
+    edge and node chains are most of a topology's time)."""
+    points = wp.array(master.points, dtype=wp.vec3d, device=device)
+    out, bad = _scalars(device)
+    box = (points, known.uses, 1, out, bad)
+    wp.launch(_box, -(-len(master.points) // CHUNK), inputs=box, device=device)
+    r_small = _face_scalars_of(points, known.faces, master.element, out, device)
+    return replace(known, points=points, balls=None, **_read_scalars(out, r_small))
 
 
 @wp.func
