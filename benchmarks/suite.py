@@ -263,6 +263,13 @@ def run_gpu(a):
         acw.plan(fresh, scene.slave, d_max=d_max, device=dev)
         wp.synchronize_device(dev)
         replan_s = time.perf_counter() - t0
+        # A deformed configuration (Surface.with_points): the device tables of the
+        # connectivity shared, its geometry made.
+        deformed = fresh.with_points(scene.master.points)
+        t0 = time.perf_counter()
+        acw.plan(deformed, scene.slave, d_max=d_max, device=dev)
+        wp.synchronize_device(dev)
+        deformed_s = time.perf_counter() - t0
         xs = wp.array((scene.slave - p.origin).astype(np.float32), dtype=wp.vec3, device=dev)
         xm = wp.array(
             (scene.master.points - p.origin).astype(np.float32), dtype=wp.vec3, device=dev
@@ -305,6 +312,7 @@ def run_gpu(a):
             surface_s=surface_s,
             plan_s=plan_s,
             replan_s=replan_s,
+            deformed_plan_s=deformed_s,
             first_s=first_s,
             steady_s=steady,
             new_buffers_s=new_buffers,
@@ -386,6 +394,16 @@ def run_cpu(a):
                 faults,
                 f"warp_cpu_{dtype}_plan",
             )
+            if dtype == "float32":
+                # The plan of a deformed configuration (Surface.with_points) of a Surface
+                # planned before: the device tables of the connectivity shared.
+                base = ac.Surface(m.points, m.faces, m.element.name)
+                acw.plan(base, scene.slave, d_max=d_max, device="cpu")
+                moved = iter([base.with_points(m.points) for _ in range(a.repeats + 1)])
+                ours["warp_cpu_float32_deformed_plan_s"], _ = _plan_time(
+                    lambda: acw.plan(next(moved), scene.slave, d_max=d_max, device="cpu"),
+                    a.repeats,
+                )
             acw.detect(p, scene.slave, m.points)
             ours[f"warp_cpu_{dtype}_detect_s"] = _median_time(
                 lambda p=p: acw.detect(p, scene.slave, m.points), a.repeats
@@ -428,7 +446,13 @@ def run_cpu(a):
         rec["plan_faults"] = faults  # median minor page faults of one plan (_plan_time)
         rec["setup_vs_fcpw"] = {
             k[:-2]: rec.get(k, ours.get(k)) / t_fcpw
-            for k in ("topology_s", "warp_cpu_float32_plan_s", "jax_jax_plan_s", "jax_warp_plan_s")
+            for k in (
+                "topology_s",
+                "warp_cpu_float32_plan_s",
+                "warp_cpu_float32_deformed_plan_s",
+                "jax_jax_plan_s",
+                "jax_warp_plan_s",
+            )
         }
         _write(a, rec)
 
@@ -590,35 +614,59 @@ def _setup_table(mode, recs):
                 "New buffers: a detect on input buffers new to the plan (launched one by one, "
                 "the trees' rebuild decided on the device).\n"
             )
+        deformed = any("deformed_plan_s" in r for r in recs)
+        if deformed:
+            print(
+                "Deformed: the plan of `Surface.with_points` of the planned Surface (the device "
+                "tables of its connectivity shared, its geometry made).\n"
+            )
         print(
-            "| scene | Warp plan | again | first detect | steady | first / steady | "
+            "| scene | Warp plan | again | "
+            + ("deformed | " if deformed else "")
+            + "first detect | steady | first / steady | "
             + ("new buffers | " if new else "")
             + "Surface | host topology |"
             + (" one call |" if one else "")
         )
         print(
-            "|---|---|---|---|---|---|---|---|" + ("---|" if one else "") + ("---|" if new else "")
+            "|---|---|---|---|---|---|---|---|"
+            + ("---|" if one else "")
+            + ("---|" if new else "")
+            + ("---|" if deformed else "")
         )
         for r in recs:
             tail = f" {1e3 * r['one_shot_s']:.0f} ms |" if "one_shot_s" in r else (" - |" * one)
             nb = ""
             if new:
                 nb = f" {1e3 * r['new_buffers_s']:.2f} ms |" if "new_buffers_s" in r else " - |"
+            df = ""
+            if deformed:
+                df = f" {1e3 * r['deformed_plan_s']:.1f} ms |" if "deformed_plan_s" in r else " - |"
             print(
-                f"| {r['scene']} | {1e3 * r['plan_s']:.1f} ms | {1e3 * r['replan_s']:.1f} ms | "
+                f"| {r['scene']} | {1e3 * r['plan_s']:.1f} ms | {1e3 * r['replan_s']:.1f} ms |{df} "
                 f"{1e3 * r['first_s']:.2f} ms | {1e3 * r['steady_s']:.2f} ms | "
                 f"{r['first_s'] / r['steady_s']:.1f} |{nb} {1e3 * r['surface_s']:.0f} ms | "
                 f"{r['topology_s']:.2f} s |" + tail
             )
         return
     print("\nSet-up against fcpw's whole build + query of the same scene, same run:\n")
-    print("| scene | Surface topology | Warp plan | JAX plan (jax) | JAX plan (warp) |")
-    print("|---|---|---|---|---|")
+    deformed = any("warp_cpu_float32_deformed_plan" in r.get("setup_vs_fcpw", {}) for r in recs)
+    print(
+        "| scene | Surface topology | Warp plan | "
+        + ("Warp plan, deformed | " if deformed else "")
+        + "JAX plan (jax) | JAX plan (warp) |"
+    )
+    print("|---|---|---|---|---|" + ("---|" if deformed else ""))
     for r in recs:
         if "setup_vs_fcpw" in r:
             v = r["setup_vs_fcpw"]
+            df = ""
+            if deformed:
+                x = v.get("warp_cpu_float32_deformed_plan")
+                df = " -" if x is None else f" {x:.2f}x"
+                df += " |"
             print(
-                f"| {r['scene']} | {v['topology']:.2f}x | {v['warp_cpu_float32_plan']:.2f}x | "
+                f"| {r['scene']} | {v['topology']:.2f}x | {v['warp_cpu_float32_plan']:.2f}x |{df} "
                 f"{v['jax_jax_plan']:.2f}x | {v['jax_warp_plan']:.2f}x |"
             )
 
