@@ -576,6 +576,31 @@ def test_first_detect_on_a_master_far_from_the_plans_points():
             assert int(p.rebuild.numpy()[0]) == int(call == 0)
 
 
+def test_a_first_detect_captured_in_the_callers_graph():
+    """On CUDA a caller may capture a plan's very first detect in a graph of its own (the
+    commands the plan recorded for the master's and the slaves' stages replayed inside the
+    capture); replayed on slaves moved since, its contacts are NumPy's. Elsewhere the same
+    call launches. (The scene and motion of the graph test above, whose later-call capture
+    passes on a GPU: the same float32 answers.)"""
+    s = scenes.rough_surfaces(2**10, seed=6)
+    p = acw.plan(s.master, s.slave, device=DEVICE)
+    xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+    moved = s.slave + [0.1, -0.05, -0.3]
+    if DEVICE == "cuda":
+        if not wp.is_conditional_graph_supported():
+            pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
+        with wp.ScopedCapture(device=DEVICE) as cap:
+            acw.detect(p, xs, xm)
+        xs.assign(moved.astype(np.float32))
+        wp.capture_launch(cap.graph)
+    else:
+        xs.assign(moved.astype(np.float32))
+        acw.detect(p, xs, xm)
+    r = ac.detect(moved, s.master, dtype=np.float32, backend="numpy")
+    _same_as_numpy({k: v.numpy() for k, v in p.out.items()}, r, s.master.longest_edge)
+
+
 def test_double_buffered_inputs_replay_a_graph_each():
     """Inputs that alternate between two sets of buffers (a simulator's previous and next
     state): each call's contacts are NumPy's, and on CUDA each set of buffers replays a graph
