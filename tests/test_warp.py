@@ -439,15 +439,22 @@ def test_a_master_deformed_far_from_the_plan_stays_exact():
     _same_as_numpy(o, r, s.master.longest_edge)
 
 
-def test_device_arrays_in_place_and_graph_capture():
+@pytest.mark.parametrize("first", [False, True], ids=["later call", "first call"])
+def test_device_arrays_in_place_and_graph_capture(first):
     """wp.array inputs are used in place (outputs are the plan's buffers); on CUDA the whole
-    detection is captured once and replayed on new coordinates written into the same arrays."""
+    detection is captured once and replayed on new coordinates written into the same arrays.
+    first: the plan's very first detect is the one captured, in the caller's graph (the
+    commands the plan recorded for the master's and the slaves' stages replayed inside the
+    capture); its contacts are NumPy's too. Elsewhere the same call launches."""
     s = scenes.rough_surfaces(2**10, seed=6)
     p = acw.plan(s.master, s.slave, device=DEVICE)
     xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE)
     xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device=DEVICE)
-    o = acw.detect(p, xs, xm)
-    assert o["gap"] is p.out["gap"]
+    if not first:
+        o = acw.detect(p, xs, xm)
+        assert o["gap"] is p.out["gap"]
+    elif DEVICE == "cuda" and not wp.is_conditional_graph_supported():
+        pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
     moved = s.slave + [0.1, -0.05, -0.3]
     if DEVICE == "cuda":
         with wp.ScopedCapture(device=DEVICE) as cap:
@@ -459,6 +466,9 @@ def test_device_arrays_in_place_and_graph_capture():
         acw.detect(p, xs, xm)
     r = ac.detect(moved, s.master, dtype=np.float32, backend="numpy")
     got = {k: v.numpy() for k, v in p.out.items()}
+    if first:
+        _same_as_numpy(got, r, s.master.longest_edge)
+        return
     assert np.array_equal(got["face"], r.face)
     a = r.active
     assert np.abs(got["gap"][a] - r.gap[a]).max() <= 1e-4 * s.master.longest_edge
@@ -574,31 +584,6 @@ def test_first_detect_on_a_master_far_from_the_plans_points():
         _same_as_numpy(got, r, L)
         if DEVICE == "cuda":  # stale in the first call, sorted again after its scans
             assert int(p.rebuild.numpy()[0]) == int(call == 0)
-
-
-def test_a_first_detect_captured_in_the_callers_graph():
-    """On CUDA a caller may capture a plan's very first detect in a graph of its own (the
-    commands the plan recorded for the master's and the slaves' stages replayed inside the
-    capture); replayed on slaves moved since, its contacts are NumPy's. Elsewhere the same
-    call launches. (The scene and motion of the graph test above, whose later-call capture
-    passes on a GPU: the same float32 answers.)"""
-    s = scenes.rough_surfaces(2**10, seed=6)
-    p = acw.plan(s.master, s.slave, device=DEVICE)
-    xs = wp.array(s.slave.astype(np.float32), dtype=wp.vec3, device=DEVICE)
-    xm = wp.array(s.master.points.astype(np.float32), dtype=wp.vec3, device=DEVICE)
-    moved = s.slave + [0.1, -0.05, -0.3]
-    if DEVICE == "cuda":
-        if not wp.is_conditional_graph_supported():
-            pytest.skip("this CUDA driver has no conditional graph nodes (12.4+)")
-        with wp.ScopedCapture(device=DEVICE) as cap:
-            acw.detect(p, xs, xm)
-        xs.assign(moved.astype(np.float32))
-        wp.capture_launch(cap.graph)
-    else:
-        xs.assign(moved.astype(np.float32))
-        acw.detect(p, xs, xm)
-    r = ac.detect(moved, s.master, dtype=np.float32, backend="numpy")
-    _same_as_numpy({k: v.numpy() for k, v in p.out.items()}, r, s.master.longest_edge)
 
 
 def test_double_buffered_inputs_replay_a_graph_each():
