@@ -1472,3 +1472,34 @@ print("ok")
 
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
+
+
+def test_a_float64_call_loads_no_float32_module():
+    """The package imports its float32 modules on the first use of their names, so that
+    arraycontact.detect's float64 default runs the float64 twins alone (in a fresh process:
+    Warp declaring the float32 functions took about half a second of a first call); the
+    names resolve to the float32 modules' as before."""
+    code = """
+import sys
+import arraycontact as ac
+from arraycontact import scenes
+s = scenes.rough_surfaces(2**6)
+c = ac.detect(s.slave, s.master, backend="warp")
+assert (c.backend, c.dtype) == ("warp", "float64"), (c.backend, c.dtype)
+assert int(c.active.sum()) > 0
+assert "arraycontact_warp._float64._detect" in sys.modules
+assert "arraycontact_warp._detect" not in sys.modules, "float32 imported"
+assert "arraycontact_warp._geometry" not in sys.modules, "float32 imported"
+import arraycontact_warp as acw
+assert acw.plan is sys.modules["arraycontact_warp._detect"].plan
+assert acw.closest_point_face is sys.modules["arraycontact_warp._geometry"].closest_point_face
+print("ok")
+"""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
+    assert {"plan", "detect", "closest_point_face", "geometry"} <= set(dir(acw))
+    with pytest.raises(AttributeError, match="no attribute 'no_such_name'"):
+        acw.no_such_name  # noqa: B018

@@ -22,30 +22,33 @@ AVAILABLE = True
 from arraycontact._partition import Partition as Partition  # noqa: E402
 from arraycontact._partition import partition as partition  # noqa: E402
 
-from ._detect import Plan as Plan  # noqa: E402
-from ._detect import SweptPlan as SweptPlan  # noqa: E402
-from ._detect import detect as detect  # noqa: E402
-from ._detect import detect_self as detect_self  # noqa: E402
-from ._detect import detect_swept as detect_swept  # noqa: E402
-from ._detect import master_scalars as master_scalars  # noqa: E402
-from ._detect import plan as plan  # noqa: E402
-from ._detect import plan_self as plan_self  # noqa: E402
-from ._detect import plan_swept as plan_swept  # noqa: E402
-from ._detect import run_one_shot as run_one_shot  # noqa: E402
-from ._detect import run_swept as run_swept  # noqa: E402
-from ._geometry import Element as Element  # noqa: E402
-from ._geometry import FaceNodes as FaceNodes  # noqa: E402
-from ._geometry import Quads as Quads  # noqa: E402
-from ._geometry import closest_point_edge as closest_point_edge  # noqa: E402
-from ._geometry import closest_point_face as closest_point_face  # noqa: E402
-from ._geometry import closest_point_triangle as closest_point_triangle  # noqa: E402
-from ._geometry import element_data as element_data  # noqa: E402
-from ._geometry import face_nodes as face_nodes  # noqa: E402
-from ._geometry import face_point as face_point  # noqa: E402
-from ._geometry import quad_data as quad_data  # noqa: E402
-from ._geometry import set_node as set_node  # noqa: E402
-from ._geometry import start_option_one as start_option_one  # noqa: E402
 from ._real import precision as _precision  # noqa: E402
+from ._surface import master_scalars as master_scalars  # noqa: E402
+
+#: The names of the float32 modules, imported on first use (`__getattr__`): about half a
+#: second of Warp declaring their functions on a 2-core host, which a float64 call through
+#: `arraycontact.detect` (its default) never needs: it goes to the float64 twins alone.
+_DETECT = {
+    "Plan", "SweptPlan", "detect", "detect_self", "detect_swept", "plan", "plan_self",
+    "plan_swept",
+}  # fmt: skip
+_GEOMETRY = {
+    "Element", "FaceNodes", "Quads", "closest_point_edge", "closest_point_face",
+    "closest_point_triangle", "element_data", "face_nodes", "face_point", "quad_data",
+    "set_node", "start_option_one",
+}  # fmt: skip
+
+
+def __getattr__(name):
+    if name in _DETECT:
+        return getattr(_precision("float32"), name)
+    if name in _GEOMETRY:
+        return getattr(geometry("float32"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | _DETECT | _GEOMETRY)
 
 
 def geometry(dtype="float32"):
@@ -54,6 +57,16 @@ def geometry(dtype="float32"):
     import importlib
 
     return importlib.import_module(_precision(dtype).__package__ + "._geometry")
+
+
+def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
+    """`arraycontact.detect(backend="warp")`, in dtype's modules alone (see _detect)."""
+    return _precision(dtype).run_one_shot(slave_x, master, d_max, dtype, mode, self_contact)
+
+
+def run_swept(x0, x1, master, m1, su, dtype):
+    """`arraycontact.detect_swept(backend="warp")`, in dtype's modules alone (see _detect)."""
+    return _precision(dtype).run_swept(x0, x1, master, m1, su, dtype)
 
 
 __all__ = [

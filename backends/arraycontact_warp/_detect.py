@@ -1502,15 +1502,6 @@ def detect_self(p: Plan, points):
     return detect(p, None, points)
 
 
-def master_scalars(master: Surface, device=None):
-    """(longest edge, box lo, box hi) of the master from its topology on `device` (made
-    there on first use): the box of its used nodes, or of its faces' balls where faces are
-    curved (they may bulge past their nodes)."""
-    topo = _surface.topology(master, device)
-    box = topo.node_box if master.element.linear else topo.ball_box
-    return topo.longest_edge, box[0], box[1]
-
-
 def run_one_shot(slave_x, master, d_max, dtype, mode, self_contact):
     """`arraycontact.detect(backend="warp")` and `detect_self` (slave_x: every used node, in
     master.nodes order): plan and detect on the default device; host arrays (global frame),
@@ -1863,7 +1854,6 @@ __all__ = [
     "detect",
     "detect_self",
     "detect_swept",
-    "master_scalars",
     "run_one_shot",
     "run_swept",
 ]

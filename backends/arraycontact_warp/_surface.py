@@ -468,6 +468,15 @@ _CACHE = weakref.WeakKeyDictionary()
 _BY_CONNECTIVITY = weakref.WeakKeyDictionary()
 
 
+def master_scalars(master: Surface, device=None):
+    """(longest edge, box lo, box hi) of the master from its topology on `device` (made
+    there on first use): the box of its used nodes, or of its faces' balls where faces are
+    curved (they may bulge past their nodes)."""
+    topo = topology(master, device)
+    box = topo.node_box if master.element.linear else topo.ball_box
+    return topo.longest_edge, box[0], box[1]
+
+
 def topology(master: Surface, device) -> Topology:
     """The master's topology on `device`, made on first use (launches, then one read of the
     scalars); on a surface whose connectivity has one there already, its geometry alone."""
