@@ -1474,10 +1474,11 @@ print("ok")
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
 
 
-def test_a_float64_call_loads_no_float32_module():
+def test_a_float64_call_loads_only_the_modules_it_runs():
     """The package imports its float32 modules on the first use of their names, so that
-    arraycontact.detect's float64 default runs the float64 twins alone (in a fresh process:
-    Warp declaring the float32 functions took about half a second of a first call); the
+    arraycontact.detect's float64 default runs the float64 twins alone, and a static
+    detection does not import the swept module (in a fresh process: Warp declaring those
+    functions took about 0.6 s of a first call); a swept call then imports it, and the
     names resolve to the float32 modules' as before."""
     code = """
 import sys
@@ -1490,6 +1491,11 @@ assert int(c.active.sum()) > 0
 assert "arraycontact_warp._float64._detect" in sys.modules
 assert "arraycontact_warp._detect" not in sys.modules, "float32 imported"
 assert "arraycontact_warp._geometry" not in sys.modules, "float32 imported"
+assert "arraycontact_warp._float64._sweep" not in sys.modules, "swept module imported"
+st = scenes.closing_rough_surfaces(2**6)
+sw = ac.detect_swept(st.slave_x0, st.slave_x1, st.master, st.master_x1, backend="warp")
+assert int(sw.hit.sum()) > 0
+assert "arraycontact_warp._float64._sweep" in sys.modules
 import arraycontact_warp as acw
 assert acw.plan is sys.modules["arraycontact_warp._detect"].plan
 assert acw.closest_point_face is sys.modules["arraycontact_warp._geometry"].closest_point_face

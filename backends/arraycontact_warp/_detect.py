@@ -40,7 +40,7 @@ from arraycontact._sweep import T_TOL as SWEPT_T_TOL
 from arraycontact._sweep import capture_pads
 from arraycontact_warp import _surface  # one set of its (precision-free) kernels
 
-from . import _grid, _parts, _prepare, _sweep
+from . import _grid, _parts, _prepare
 from ._closest_node import closest_node, counts
 from ._geometry import Element, Quads, Triangles, element_data, quad_data, triangle_data
 from ._parts import _concrete, replayed
@@ -995,7 +995,7 @@ def declare_all(cuda: bool | None = None):
             declare_all(c)
         return
     for el in (Triangles, Quads, Element):
-        wp.overload(_sweep.swept_scan, {"el": el})
+        wp.overload(_swept().swept_scan, {"el": el})
         for self_contact in (False, True):
             _declare_kernels(el, self_contact, False, cuda)  # node mode
             for nodes_too in (False, True):
@@ -1721,7 +1721,17 @@ def plan_swept(
     )
 
 
-def _pair_list(n: int, room: int, device) -> _sweep.Pairs:
+def _swept():
+    """The swept detection's module, imported on its first use: a static detection launches
+    none of its kernels, and Warp declaring them was a third of the float64 modules' import
+    (0.14 of 0.45 s on the 2-core machine) in a new process's first call."""
+    from . import _sweep
+
+    return _sweep
+
+
+def _pair_list(n: int, room: int, device):
+    _sweep = _swept()
     q = _sweep.Pairs()
     for name, size, t in (
         ("slave", room, int),
@@ -1743,6 +1753,7 @@ def _pair_list(n: int, room: int, device) -> _sweep.Pairs:
 
 
 def _swept_launch(p: SweptPlan, xs):
+    _sweep = _swept()
     c = p.constants
     dev = p.device
     nf = p.master.n_faces
