@@ -683,9 +683,10 @@ def warp_plan(
     plan takes the whole master's tie band (and the slack that goes with it), frame the
     whole scene's Warp frame, so that its ties and roundings resolve as on one device, and box
     the scene's box, so that its items have one device's Morton keys."""
-    import arraycontact_warp as acw
     import warp as wp
+    from arraycontact_warp._real import precision
 
+    acw = precision(dtype)  # (the dtype's modules alone: the float32 ones are not float64's)
     p = acw.plan(
         master,
         slave_x,
@@ -727,13 +728,13 @@ class _WarpSearch:
     the last unused ones), and the part's own slaves are taken from those rows."""
 
     def __init__(self, plans, dtype, self_contact=False, axis=None):
-        import arraycontact_warp as acw
         import warp as wp
+        from arraycontact_warp._real import precision
 
         self.plans, self.axis = list(plans), axis
         self.by_point = self_contact and axis is not None
-        g = acw.geometry(dtype)
-        real, vec2, vec3 = g.real, g.vec2, g.vec3
+        acw = precision(dtype)  # the dtype's `_detect`, bound once (called in every search)
+        real, vec2, vec3 = acw.real, acw.vec2, acw.vec3
         self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
         if self_contact:
             self.names += ("finer",)
