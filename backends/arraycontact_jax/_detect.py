@@ -686,8 +686,8 @@ def warp_plan(
     import warp as wp
     from arraycontact_warp._real import precision
 
-    acw = precision(dtype)  # (the dtype's modules alone: the float32 ones are not float64's)
-    p = acw.plan(
+    back = precision(dtype)  # (the dtype's Warp modules alone: float32's are not float64's)
+    p = back.plan(
         master,
         slave_x,
         d_max=d_max,
@@ -710,9 +710,9 @@ def warp_plan(
         # happen within another (on an H100 the JAX program then failed with an illegal
         # address whenever a Warp self-contact detection had run before in the process).
         if self_contact:
-            acw.detect_self(p, master.points - origin)
+            back.detect_self(p, master.points - origin)
         else:
-            acw.detect(p, slave_x - origin, master.points - origin)
+            back.detect(p, slave_x - origin, master.points - origin)
     return p
 
 
@@ -733,8 +733,8 @@ class _WarpSearch:
 
         self.plans, self.axis = list(plans), axis
         self.by_point = self_contact and axis is not None
-        acw = precision(dtype)  # the dtype's `_detect`, bound once (called in every search)
-        real, vec2, vec3 = acw.real, acw.vec2, acw.vec3
+        back = precision(dtype)  # the dtype's Warp `_detect`, bound once (every search calls it)
+        real, vec2, vec3 = back.real, back.vec2, back.vec3
         self.names = ("active", "face", "feature", "local", "xi", "gap", "master_node", "status")
         if self_contact:
             self.names += ("finer",)
@@ -775,9 +775,9 @@ class _WarpSearch:
             else:  # the parts of CPU devices, one Warp device: the part's index
                 plan = plans[int(part.numpy()[0])]
             if self_contact:  # the slaves are the master's nodes: gathered by the kernels
-                o = acw.detect_self(plan, master_points)
+                o = back.detect_self(plan, master_points)
             else:
-                o = acw.detect(plan, slaves, master_points)
+                o = back.detect(plan, slaves, master_points)
             for name, a in zip(self.names, outs):
                 wp.copy(a, o[name], count=len(o[name]))
 
