@@ -926,10 +926,20 @@ def _split(g: vec4, c: real):
     return vec4(g[0], p01, p012, mid), vec4(mid, p123, p23, g[3])
 
 
-#: The time slab of a coplanar crossing that the box search gets: 2^-SLAB of the step.
+#: The time slab of a coplanar crossing that the box search gets: at most 2^-SLAB of the
+#: step for a bilinear quad's band, 2^-SLAB_TRI for a triangle's cubic. A thinner slab leaves
+#: Krawczyk's test less motion to bound (boxes a hit, Warp's CPU device at 2^14, 2^-6 ->
+#: 2^-7 with SLABS 3 -> 5: rough tri3 4.48 -> 3.25, graded 14.0 -> 11.6, steep 7.06 -> 5.44);
+#: a quad's band, whose sign change is not the crossing itself, took more slabs at 2^-8
+#: (rough quad4 12.3 -> 21.2 boxes a hit), and triangles at 2^-8 gained no more on a GPU.
 SLAB = 6
-#: Slabs a pair may search before its search takes the whole step (the cubic has 3 roots).
-SLABS = 3
+SLAB_TRI = 7
+#: Slabs a pair may search before its search takes the whole step. The cubic has 3 roots,
+#: but one that stays within its margin of zero (a node resting on the face's plane, as
+#: graded's nodes do at the step's start) starts a slab again at each slab's end; with 3,
+#: those pairs went on to the whole step (one H200, 2^20, graded 7.79 -> 7.30 ms with 5
+#: slabs of 2^-7, rough tri3 3.54 -> 3.23, steep 2.85 -> 2.74; 8 and 12 slabs no faster).
+SLABS = 5
 
 
 @wp.func
@@ -952,16 +962,17 @@ def _cubic(g: vec4, u: real):
 
 
 @wp.func
-def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real):
+def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real, level: int):
     """Where a pair's box search goes next, after [0, start] was searched, when a contact
     needs g1 and g2, cubics in t, to be of opposite signs or zero (a triangle: g1 = g2, its
     coplanarity cubic; a bilinear quad: its band, _band): (0, -) no contact in [start,
     bound), (1, a slab of time) or (2, the unit box). Nothing is left when both are beyond m
     with one sign over [start, 1] (certified by their Bernstein coefficients there);
     otherwise the first time either changes sign or comes within m, found numerically,
-    picks a dyadic slab [lo, hi] around it and [start, lo] is certified free of it. On the
-    slab the face's motion is nearly affine and Krawczyk's test decides almost every pair in
-    one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the whole step, 1.4 on the slab).
+    picks a dyadic slab [lo, hi] (at most 2^-level of the step) around it and [start, lo] is
+    certified free of it. On the slab the face's motion is nearly affine and Krawczyk's test
+    decides almost every pair in one box (rough tri3 pairs at 2^12: 6.9 boxes a pair on the
+    whole step, 1.4 on a slab of 2^-6).
     A node that crosses again after a slab (a turning face) gets the next slab. A grazing,
     coplanar motion or a crossing left uncertified: the unit box."""
     unit = Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
@@ -970,8 +981,9 @@ def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real):
         _done2, g2 = _split(g2, start)
     if start >= wp.min(bound, real(1.0)) or _same_side(g1, g2, m):
         return 0, unit
-    # The first sign change of either among 17 samples of [start, 1], then 6 bisections: the
-    # crossing within 2^-10 of the rest of the step (u: its parameter).
+    # The first sign change of either among 17 samples of [start, 1], then `level`
+    # bisections: the crossing within 2^-(level + 4) of the rest of the step (u: its
+    # parameter).
     n1 = g1[0] < real(0.0)
     n2 = g2[0] < real(0.0)
     u0 = real(0.0)
@@ -984,7 +996,7 @@ def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real):
         f1 = _cubic(g1, u1)
         f2 = _cubic(g2, u1)
         if (f1 < real(0.0)) != n1 or (f2 < real(0.0)) != n2 or wp.min(wp.abs(f1), wp.abs(f2)) <= m:
-            for _b in range(6):
+            for _b in range(level):
                 um = real(0.5) * (u0 + u1)
                 if (_cubic(g1, um) < real(0.0)) != n1 or (_cubic(g2, um) < real(0.0)) != n2:
                     u1 = um
@@ -996,17 +1008,19 @@ def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real):
         j += 1
     if found == 0:
         return 2, unit
-    # The slab: the deepest dyadic interval of at most 2^-SLAB that holds the estimate
-    # [u0, u0 + 2^-10] with an eighth of its width to spare on each side (none at the step's
-    # ends, nor at start, searched already: a root at rest contact, t = 0, is common).
+    # The slab: the deepest dyadic interval of at most 2^-level that holds the estimate
+    # [u0, u0 + 2^-(level + 4)] with an eighth of its width to spare on each side (none at
+    # the step's ends, nor at start, searched already: a root at rest contact, t = 0, is
+    # common).
     rest = real(1.0) - start
-    r = start + rest * (u0 + real(0.5) * wp.min(real(1.0 / 1024.0), real(1.0) - u0))
+    est = real(1.0) / real(1 << (level + 4))
+    r = start + rest * (u0 + real(0.5) * wp.min(est, real(1.0) - u0))
     lo = real(0.0)
-    k = int(SLAB)
+    k = level
     while k > 0:
         w = real(1.0) / real(1 << k)
         lo = wp.floor(r / w) * w
-        spare = real(0.125) * w + rest * real(1.0 / 2048.0)
+        spare = real(0.125) * w + rest * real(0.5) * est
         if (lo <= start or r - lo >= spare) and (lo + w >= real(1.0) or lo + w - r >= spare):
             break
         k -= 1
@@ -1029,14 +1043,14 @@ def _narrowed(g1: vec4, g2: vec4, m: real, bound: real, start: real):
 def _narrow(q: TriPair, bound: real, start: real):
     """_narrowed by the triangle's coplanarity cubic (_coplanarity), which a contact needs
     to be zero."""
-    return _narrowed(q.g, q.g, q.g_margin, bound, start)
+    return _narrowed(q.g, q.g, q.g_margin, bound, start, SLAB_TRI)
 
 
 @wp.func
 def _narrow(q: Any, bound: real, start: real):  # noqa: F811 (a Warp overload)
     """_narrowed by a bilinear quad's band (_band); other faces: the unit box."""
     if q.band == 1:
-        return _narrowed(q.h1, q.h2, q.h_margin, bound, start)
+        return _narrowed(q.h1, q.h2, q.h_margin, bound, start, SLAB)
     return 2, Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
 
 
