@@ -1536,9 +1536,12 @@ PAIRS_PER_SLAVE = 24
 #: walk and the refit, triangles at 2 against 4: graded 17.1 -> 16.4 ms, rough 4.31 -> 4.03,
 #: fast 7.78 -> 7.46 (at 3: 17.1, 4.11, 7.40); since the corner shift, a third launch past 16
 #: (against two): graded 8.22 -> 8.05, fast 6.41 -> 5.85, rough tri3 3.68 either way (past 32:
-#: 8.01, 5.97, 3.93).
+#: 8.01, 5.97, 3.93). Since the slabs of 2^-7, triangles at 1 against 2 (one H200, 2^20):
+#: graded 7.29 -> 6.92 ms, rough tri3 3.24 -> 3.06, steep 2.73 -> 2.63 (the second launch's
+#: 8, 12, 24 or 32 instead of 16 gained on one scene what they lost on another; a third
+#: deferral, (2, 12, 48) or (2, 8, 32), lost 0.4-3 ms on graded).
 SWEPT_BUDGET = {
-    "cuda": {"tri3": (2, 16), "other": (16,)},
+    "cuda": {"tri3": (1, 16), "other": (16,)},
     "cpu": {"tri3": (), "other": ()},
 }
 #: pair_search's threads: the list's length over these (each takes every so many slots).
