@@ -931,7 +931,8 @@ def _split(g: vec4, c: real):
 #: Krawczyk's test less motion to bound (boxes a hit, Warp's CPU device at 2^14, 2^-6 ->
 #: 2^-7 with SLABS 3 -> 5: rough tri3 4.48 -> 3.25, graded 14.0 -> 11.6, steep 7.06 -> 5.44);
 #: a quad's band, whose sign change is not the crossing itself, took more slabs at 2^-8
-#: (rough quad4 12.3 -> 21.2 boxes a hit), and triangles at 2^-8 gained no more on a GPU.
+#: (rough quad4 12.3 -> 21.2 boxes a hit), and triangles at 2^-8 (one H200, 2^20, 5 or 8
+#: slabs) took rough tri3 3.24 -> 3.16 ms but graded 7.31 -> 7.97.
 SLAB = 6
 SLAB_TRI = 7
 #: Slabs a pair may search before its search takes the whole step. The cubic has 3 roots,
