@@ -926,14 +926,14 @@ def _split(g: vec4, c: real):
     return vec4(g[0], p01, p012, mid), vec4(mid, p123, p23, g[3])
 
 
-#: The time slab of a coplanar crossing that the box search gets: at most 2^-SLAB of the
-#: step for a bilinear quad's band, 2^-SLAB_TRI for a triangle's cubic. A thinner slab leaves
+#: The time slab of a coplanar crossing that the box search gets: at most 2^-SLAB_BAND of
+#: the step for a bilinear quad's band, 2^-SLAB_TRI for a triangle's cubic. A thinner slab leaves
 #: Krawczyk's test less motion to bound (boxes a hit, Warp's CPU device at 2^14, 2^-6 ->
 #: 2^-7 with SLABS 3 -> 5: rough tri3 4.48 -> 3.25, graded 14.0 -> 11.6, steep 7.06 -> 5.44);
 #: a quad's band, whose sign change is not the crossing itself, took more slabs at 2^-8
 #: (rough quad4 12.3 -> 21.2 boxes a hit), and triangles at 2^-8 (one H200, 2^20, 5 or 8
 #: slabs) took rough tri3 3.24 -> 3.16 ms but graded 7.31 -> 7.97.
-SLAB = 6
+SLAB_BAND = 6
 SLAB_TRI = 7
 #: Slabs a pair may search before its search takes the whole step. The cubic has 3 roots,
 #: but one that stays within its margin of zero (a node resting on the face's plane, as
@@ -1051,7 +1051,7 @@ def _narrow(q: TriPair, bound: real, start: real):
 def _narrow(q: Any, bound: real, start: real):  # noqa: F811 (a Warp overload)
     """_narrowed by a bilinear quad's band (_band); other faces: the unit box."""
     if q.band == 1:
-        return _narrowed(q.h1, q.h2, q.h_margin, bound, start, SLAB)
+        return _narrowed(q.h1, q.h2, q.h_margin, bound, start, SLAB_BAND)
     return 2, Box6(real(0.0), real(1.0), real(0.0), real(1.0), real(0.0), real(1.0))
 
 
