@@ -203,22 +203,26 @@ def assert_matches_reference(c, slave, master, ref=None, *, dtype=np.float64):
     return ref
 
 
-#: The test files of a minute or more on the 2-core machine, longest first (forty-fifth
-#: session: test_detect about 190 s down to test_node_mode 55 s). Handed out longest first,
-#: the two workers end within a short file of each other (test_swept, 160 s, had come last
-#: in name order).
+#: The test files of about a minute or more on the 2-core machine, longest first (forty-ninth
+#: session, test time a file in one run: test_detect 207 s, test_swept 181, test_sharding_devices
+#: 180 (one child process of 158 s), test_jax_gradients 174 ... test_grid and test_node_mode
+#: 53-54). Handed out longest first (pyproject's --no-loadscope-reorder: pytest-xdist would
+#: order the files by their number of tests, which put the two-test sharding files last), the
+#: two workers end within a short file of each other.
 LONGEST = (
     "test_detect",
+    "test_swept",
+    "test_sharding_devices",
     "test_jax_gradients",
     "test_jax.py",
-    "test_swept",
     "test_self_contact",
-    "test_sharding_devices",
+    "test_sharding.py",
     "test_projection",
     "test_stress",
-    "test_sharding.py",
-    "test_node_mode",
     "test_grid",
+    "test_node_mode",
+    "test_warp.py",
+    "test_invariance",
 )
 
 
