@@ -500,7 +500,10 @@ def closest_point_face(
         pc = chebyshev(xi, p0, hq)
         inside = (rows_dot(xp, xi + p0, A) - b >= 0).all(-1)
         inside = inside & (rows_dot(xp, xi + pc, A) - b >= 0).all(-1)
-        p0 = xp.where(inside[..., None], better(xi, p0, pc), p0)
+        # (compared on the lanes that use them: elsewhere the steps can be huge, and float32
+        # overflowed in their objective)
+        ins = inside[..., None]
+        p0 = xp.where(ins, better(xi, xp.where(ins, p0, 0), xp.where(ins, pc, 0)), p0)
         p1 = xp.take_along_axis(p_edges, xp.asarray(ce)[j1][..., None, None], -2)[..., 0, :]
         return xp.where((nw == 0)[..., None], p0, xp.where((nw == 1)[..., None], p1, 0 * p0))
 

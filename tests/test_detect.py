@@ -56,22 +56,35 @@ def test_exact_scenes(backend, name):
     assert_matches_reference(c, s.slave, s.master)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
-@pytest.mark.parametrize("element", ["quad4", "tri6", "quad9"])
-def test_slaves_on_and_just_off_the_surface(backend, element):
-    """Slaves at the master's nodes and 1e-9 and 1e-7 edges off them, in random directions:
-    there the distance is first order in the projection's error in xi, and float64's
-    distances must still be within 1e-12 of the reference's (at a KKT tolerance of 1e-10
-    they were off by up to 2.4e-10 of the longest edge, in every back end)."""
-    s = scenes.rough_surfaces(150, rms=0.8, element=element, seed=2)
-    m = s.master
+def _on_and_just_off(element):
+    """A rough master and slaves at its nodes and 1e-9 and 1e-7 edges off them."""
+    m = scenes.rough_surfaces(150, rms=0.8, element=element, seed=2).master
     x = m.points[m.nodes]
     u = np.random.default_rng(2).normal(size=x.shape)
     u *= m.longest_edge / np.linalg.norm(u, axis=1, keepdims=True)
-    slave = np.concatenate([x, x + 1e-9 * u, x + 1e-7 * u])
+    return m, np.concatenate([x, x + 1e-9 * u, x + 1e-7 * u])
+
+
+@pytest.mark.parametrize("backend", ["numpy", "jax", "warp"])
+@pytest.mark.parametrize("element", ["quad4", "tri6", "quad9"])
+def test_slaves_on_and_just_off_the_surface(backend, element):
+    """Slaves on the surface and just off it, in random directions: there the distance is
+    first order in the projection's error in xi, and float64's distances must still be
+    within 1e-12 of the reference's (at a KKT tolerance of 1e-10 they were off by up to
+    2.4e-10 of the longest edge, in every back end)."""
+    m, slave = _on_and_just_off(element)
     c = ac.detect(slave, m, backend=backend, dtype=np.float64)
     assert c.active.all()
     assert_matches_reference(c, slave, m)
+
+
+def test_float32_steps_not_taken_do_not_overflow():
+    """NumPy's float32 quad9 projection of slaves on the surface compared the objective at
+    Newton steps it then did not take (outside the face), some huge enough to overflow: a
+    RuntimeWarning, an error here (the suite's warnings filter)."""
+    m, slave = _on_and_just_off("quad9")
+    c = ac.detect(slave, m, backend="numpy", dtype=np.float32)
+    assert c.active.all()
 
 
 @pytest.mark.parametrize("element", ["tri3", "quad4"])
