@@ -43,10 +43,10 @@ TIE_RTOL = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 5e-6}
 #: 1e-10 left distance errors up to 2.4e-10 of the longest edge there (tri6; quad4 1.7e-11),
 #: above the 1e-12 promised (tests/test_detect.py, slaves on and just off the surface). At
 #: 1e-12 they are rounding (1e-16), and no projection ran out of iterations; each projection
-#: works in its face's frame, so rounding stays far below it. float32's 1e-4 likewise leaves
-#: up to 1.7e-4 of the longest edge there (tri6; quad4 1.7e-5) against the 1e-5 promised
-#: (README); 3e-6 would meet it, but on an H200 it cost tri6 75 % and quad9 22 % of their
-#: float32 detection time (quad4 nothing), so it is not changed yet.
+#: works in its face's frame, so rounding stays far below it. float32's 1e-4 likewise left up
+#: to 1.7e-4 of the longest edge there (tri6; quad4 5e-5) against the 1e-5 promised; a last
+#: Newton step near the face (closest_point_face) meets it for 1-5 % of the detection on an
+#: H200, where a tolerance of 3e-6 cost tri6 75 % and quad9 22 %.
 KKT_TOL = {np.dtype(np.float64): 1e-12, np.dtype(np.float32): 1e-4}
 ITERATIONS = {"quad4": 12, "tri6": 20, "quad8": 20, "quad9": 20}
 #: Self-contact: local mesh sizes within this relative difference are "as fine" (seed 000

@@ -619,10 +619,51 @@ def closest_point_face(
         xi, w, done, iters = fori(xp, iterations, body, state, stop=lambda s: xp.all(s[2]))
     if method == "sqp":
         w = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
-    g, _, gn, _ = derivatives(xi)
+    g, h, gn, _ = derivatives(xi)
     kkt, _ = residual(g, w, gn)
     converged = kkt <= tol
     iters = xp.where(done, iters, iterations + 1)
+    # One Newton step more where the projection met its tolerance within sqrt(tol) face sizes
+    # of the face, from the derivatives the residual was checked with, whatever its working
+    # set: the free step, cut at the face's border (which it then holds); one that an edge
+    # blocks at once goes along that edge instead, and then along the next. (Of a convex
+    # model, a feature whose KKT conditions hold blocks each at once: it stays.) Why: for a
+    # slave on the face or just off it the distance is first order in the error of xi, and
+    # float32's tolerance (1e-4 in natural coordinates, on the multipliers too) left distances
+    # off by up to 1.7e-4 of the longest edge (tri6) against the 1e-5 promised: iterates short
+    # of the answer inside, or held at an edge or a corner whose multiplier was just negative
+    # (or positive in a corner's decomposition, with the answer just inside). Near the answer
+    # Newton converges quadratically, so one step takes that to rounding for a 2x2 solve (a
+    # tolerance tight enough for the same took tri6's float32 detection 75 % longer on an
+    # H200: iterations at rounding). Farther off, the error is second order, under tol
+    # sqrt(tr J^T J) / 2 there, and the step is left out (on every candidate face it cost
+    # 5-10 % of float32's detection on an H200).
+    keep = xp.zeros_like(w)
+    trace = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], xp.finfo(xe.dtype).tiny)
+    active = done & (objective(xi) <= tol * trace)
+    pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
+    hq = xp.where(pd[..., None, None], h, gn)
+    p_free = -_solve2(hq, g, xp)
+    for _ in range(3):  # (blocked at once by an edge: along that edge instead, twice at most)
+        a = A[xp.argmax(keep, -1)]
+        t = xp.stack([-a[..., 1], a[..., 0]], -1)  # (along the edge held)
+        tht = _dot(t, xp.sum(hq * t[..., None, :], -1), xp)
+        p_edge = t * _safe_div(-_dot(t, g, xp), tht, xp)[..., None]
+        p = xp.where((xp.sum(keep, -1) == 0)[..., None], p_free, p_edge)
+        ap = rows_dot(xp, p, A)
+        alpha_j = xp.where((ap < 0) & ~keep, _safe_div(b - rows_dot(xp, xi, A), ap, xp), np.inf)
+        alpha_j = xp.maximum(alpha_j, 0)
+        amin = xp.min(alpha_j, -1)
+        hit = ar == xp.argmin(alpha_j, -1)[..., None]
+        go = active & (amin > 0)
+        xi = xi + xp.where(go, xp.minimum(amin, 1.0), 0)[..., None] * p
+        # (W as the iterations make it: the edge held, the one that cut the step, and every
+        # constraint active where it ends, so that a step within rounding, as of a slave lying
+        # on a vertex or an edge, keeps its feature)
+        on = xp.abs(rows_dot(xp, xi, A) - b) <= feasible_tol
+        w = xp.where(go[..., None], keep | (hit & (amin < 1)[..., None]) | on, w)
+        active = active & ~go
+        keep = xp.where(active[..., None], hit, keep)
     nw = xp.sum(w, -1)
     j1 = xp.argmax(w, -1)
     j2 = m - 1 - xp.argmax(w[..., ::-1], -1)
@@ -1013,10 +1054,42 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     w0 = tuple(xp.abs(slack(j, u0, v0)) <= feasible_tol for j in range(4))
     state = (u0, v0, w0, xp.zeros(u0.shape, bool), xp.zeros(u0.shape, np.int32))
     u, v, w, done, iters = fori(xp, iterations, iteration, state, stop=lambda s: xp.all(s[3]))
-    g, _, gn, _ = derivatives(u, v)
+    g, h, gn, scale = derivatives(u, v)
     kkt, _ = residual(g, w, gn)
     converged = kkt <= tol
     iters = xp.where(done, iters, iterations + 1)
+    # One Newton step more near the face: free, cut at the border, along an edge that blocks
+    # it at once (as closest_point_face's, and why). Rows 0 and 1 hold u (along v), 2 and 3 v.
+    keep = tuple(xp.zeros_like(w[j]) for j in range(4))
+    active = done & (objective(u, v) <= tol * scale)
+    pd = (h[0] > 0) & (h[0] * h[2] - h[1] * h[1] > 0)
+    hq = tuple(xp.where(pd, h[i], gn[i]) for i in range(3))
+    p_free = solve(hq, g)
+    for _ in range(3):  # (blocked at once by an edge: along that edge instead, twice at most)
+        on_u, on_v = keep[0] | keep[1], keep[2] | keep[3]  # (u held: along v)
+        p = (
+            xp.where(on_u, 0, xp.where(on_v, _safe_div(-g[0], hq[0], xp), -p_free[0])),
+            xp.where(on_v, 0, xp.where(on_u, _safe_div(-g[1], hq[2], xp), -p_free[1])),
+        )
+        alpha_j = []
+        for j in range(4):
+            ap = A[j][0] * p[0] + A[j][1] * p[1]
+            a = xp.where((ap < 0) & ~keep[j], _safe_div(-slack(j, u, v), ap, xp), inf)
+            alpha_j.append(xp.maximum(a, 0))
+        jb, amin = _first_smallest(alpha_j, xp)
+        go = active & (amin > 0)
+        alpha = xp.where(go, xp.minimum(amin, 1.0), 0)
+        u, v = u + alpha * p[0], v + alpha * p[1]
+        w = tuple(
+            xp.where(
+                go,
+                keep[j] | ((jb == j) & (amin < 1)) | (xp.abs(slack(j, u, v)) <= feasible_tol),
+                w[j],
+            )
+            for j in range(4)
+        )
+        active = active & ~go
+        keep = tuple(xp.where(active, jb == j, keep[j]) for j in range(4))
     nw = count(w)
     e1, e2 = pick(first_true(w), EDGE_OF), pick(last_true(w), EDGE_OF)
     corner = xp.where((e1 + 1) % 4 == e2, e2, e1)

@@ -763,14 +763,60 @@ def _active_set(
             neg = lam2
             jmin = w2
         kkt = wp.max(kkt, -neg / scale)
-        if kkt <= tol:
-            converged = 1
-            break
-        if it == iterations:
-            break
         pd = h[0, 0] > 0.0 and (h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]) > 0.0
         if not pd:
             h = gn
+        if kkt <= tol:
+            converged = 1
+            if wp.length_sq(d) <= tol * scale:
+                # One Newton step more near the face: free, cut at the border, along an edge
+                # that blocks it at once (why: arraycontact._geometry.closest_point_face:
+                # float32 near the surface).
+                k1 = int(-1)
+                for _ in range(3):
+                    p = -_solve2(h, g)
+                    if k1 >= 0:
+                        a1 = cons_a(el, k1)
+                        t = vec2(-a1[1], a1[0])
+                        p = t * _sdiv(-wp.dot(t, g), wp.dot(t, h * t))
+                    amin = real(1.0)
+                    jb = int(-1)
+                    for j in range(n_cons(el)):
+                        ap = wp.dot(cons_a(el, j), p)
+                        if j != k1 and ap < 0.0:
+                            step_j = wp.max(
+                                -(wp.dot(cons_a(el, j), xi) - cons_b(el, j)) / ap, real(0.0)
+                            )
+                            if step_j < amin:
+                                amin = step_j
+                                jb = j
+                    if amin > 0.0:
+                        # W as the iterations make it: the edge held, the one that cut the
+                        # step, every constraint active where it ends (a step within rounding,
+                        # as of a slave lying on a vertex, keeps its feature); active within
+                        # NumPy's 64 eps (feasible_tol): this step ends anywhere, the
+                        # iterations' exactly on edges
+                        xi = xi + amin * p
+                        w1 = k1
+                        w2 = -1
+                        if jb >= 0:
+                            if w1 < 0:
+                                w1 = jb
+                            else:
+                                w2 = jb
+                        for j in range(n_cons(el)):
+                            if j != w1 and j != w2:
+                                slack = wp.dot(cons_a(el, j), xi) - cons_b(el, j)
+                                if wp.abs(slack) <= real(64.0) * EPS:
+                                    if w1 < 0:
+                                        w1 = j
+                                    elif w2 < 0:
+                                        w2 = j
+                        break
+                    k1 = jb  # (blocked at once: along that edge)
+            break
+        if it == iterations:
+            break
         # drop the constraint with the most negative multiplier unless the step would go back
         # through it
         v1 = w1
