@@ -521,6 +521,12 @@ def closest_point_face(
         kkt = xp.maximum(kkt, xp.where(neg < 0, -neg / trace, 0))
         return kkt, lam
 
+    def ratios(xi, p, w):
+        # Ratio test: how far along p each constraint outside W lets xi go (inf: any way).
+        ap = rows_dot(xp, p, A)
+        alpha_j = xp.where((ap < 0) & ~w, _safe_div(b - rows_dot(xp, xi, A), ap, xp), np.inf)
+        return xp.maximum(alpha_j, 0)
+
     def iteration(it, state):
         xi, w, done, iters = state
         g, h, gn, scale = derivatives(xi)
@@ -538,11 +544,7 @@ def closest_point_face(
         drop = drop & (_dot(A[jmin], p_drop, xp) >= 0)
         w = xp.where(drop[..., None], w_drop, w)
         p = xp.where(drop[..., None], p_drop, step(xi, g, h, gn, w, p_edges))
-        # Ratio test against the constraints outside the working set.
-        ap = rows_dot(xp, p, A)
-        slack = rows_dot(xp, xi, A) - b
-        alpha_j = xp.where((ap < 0) & ~w, _safe_div(-slack, ap, xp), np.inf)
-        alpha_j = xp.maximum(alpha_j, 0)
+        alpha_j = ratios(xi, p, w)
         jb = xp.argmin(alpha_j, -1)
         alpha = xp.minimum(xp.min(alpha_j, -1), 1.0)
         # Halve the step while the distance grows (a fixed number of times).
@@ -650,9 +652,7 @@ def closest_point_face(
         tht = _dot(t, xp.sum(hq * t[..., None, :], -1), xp)
         p_edge = t * _safe_div(-_dot(t, g, xp), tht, xp)[..., None]
         p = xp.where((xp.sum(keep, -1) == 0)[..., None], p_free, p_edge)
-        ap = rows_dot(xp, p, A)
-        alpha_j = xp.where((ap < 0) & ~keep, _safe_div(b - rows_dot(xp, xi, A), ap, xp), np.inf)
-        alpha_j = xp.maximum(alpha_j, 0)
+        alpha_j = ratios(xi, p, keep)
         amin = xp.min(alpha_j, -1)
         hit = ar == xp.argmin(alpha_j, -1)[..., None]
         go = active & (amin > 0)
@@ -974,6 +974,15 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     def slack(j, u, v):  # A_j . xi - b_j
         return A[j][0] * u + A[j][1] * v + 1.0
 
+    def ratios(u, v, p, w):
+        # Ratio test against the constraints outside W: the first blocking one and how far.
+        alpha_j = []
+        for j in range(4):
+            ap = A[j][0] * p[0] + A[j][1] * p[1]
+            a = xp.where((ap < 0) & ~w[j], _safe_div(-slack(j, u, v), ap, xp), inf)
+            alpha_j.append(xp.maximum(a, 0))
+        return _first_smallest(alpha_j, xp)
+
     edge_t, _ = _bilinear_edges(R, X, xp)  # (independent of the iterate: once)
 
     def edge_points(u, v):
@@ -1026,13 +1035,7 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
         w = tuple(xp.where(drop, w_drop[j], w[j]) for j in range(4))
         p_keep = step(u, v, g, h, gn, w, p_edges)
         p = tuple(xp.where(drop, p_drop[i], p_keep[i]) for i in range(2))
-        # Ratio test against the constraints outside the working set.
-        alpha_j = []
-        for j in range(4):
-            ap = A[j][0] * p[0] + A[j][1] * p[1]
-            a = xp.where((ap < 0) & ~w[j], _safe_div(-slack(j, u, v), ap, xp), inf)
-            alpha_j.append(xp.maximum(a, 0))
-        jb, amin = _first_smallest(alpha_j, xp)
+        jb, amin = ratios(u, v, p, w)
         alpha = xp.minimum(amin, 1.0)
         f0 = objective(u, v)
         f_tol = 16 * eps * (f0 + scale)
@@ -1071,12 +1074,7 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
             xp.where(on_u, 0, xp.where(on_v, _safe_div(-g[0], hq[0], xp), -p_free[0])),
             xp.where(on_v, 0, xp.where(on_u, _safe_div(-g[1], hq[2], xp), -p_free[1])),
         )
-        alpha_j = []
-        for j in range(4):
-            ap = A[j][0] * p[0] + A[j][1] * p[1]
-            a = xp.where((ap < 0) & ~keep[j], _safe_div(-slack(j, u, v), ap, xp), inf)
-            alpha_j.append(xp.maximum(a, 0))
-        jb, amin = _first_smallest(alpha_j, xp)
+        jb, amin = ratios(u, v, p, keep)
         go = active & (amin > 0)
         alpha = xp.where(go, xp.minimum(amin, 1.0), 0)
         u, v = u + alpha * p[0], v + alpha * p[1]
