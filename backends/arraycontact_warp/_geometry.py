@@ -779,6 +779,8 @@ def _active_set(
                         a1 = cons_a(el, k1)
                         t = vec2(-a1[1], a1[0])
                         p = t * _sdiv(-wp.dot(t, g), wp.dot(t, h * t))
+                    # (the iterations' ratio test below, written again: as one wp.func
+                    # returning both, quad4 2^20 took 2.89 -> 2.96 ms on an H200)
                     amin = real(1.0)
                     jb = int(-1)
                     for j in range(n_cons(el)):
