@@ -287,7 +287,7 @@ def run_gpu(a):
         scene = make()
         d_max = f * scene.master.longest_edge
         # Set-up, three times (each a Surface new to the plan), their medians: one plan's time
-        # moves by 10-15 ms between runs (graded_10 at 2^20 on an H200: 34.7 ms in h200-s45,
+        # moved by up to 16 ms between runs (graded_10 at 2^20 on an H200: 34.7 ms in h200-s45,
         # 50.6 in h200-s51), one first detect's against the steady state as much (ball_block_300:
         # 1.9x in h200-s47, 3.5x in h200-s51).
         trials = []
@@ -694,7 +694,10 @@ def main():
     ap.add_argument("--only", nargs="*", help="scene labels (prefixes) to run")
     ap.add_argument("--no-numpy", action="store_true")
     ap.add_argument(
-        "--jax", action="store_true", help="gpu: also the JAX back end with search='jax' (no Warp)"
+        "--jax",
+        action="store_true",
+        help="gpu: also the JAX back end with search='jax' (no Warp); JAX in the process slows "
+        "the Warp set-up's figures (plan, first detect) up to 2x: take those from a run without",
     )
     ap.add_argument("--run", help="run id recorded with every record (table: the run shown)")
     ap.add_argument("--machine", default="h100", help="table: the records' machine (cpu, h100)")
