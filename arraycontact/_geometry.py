@@ -483,14 +483,18 @@ def closest_point_face(
         n = t.ndim + 1
         return lead(xp, start, n) + t[..., None] * lead(xp, end - start, n) - xi[..., None, :]
 
+    def model(h, gn):
+        # The model's Hessian: the exact one where it is positive definite, Gauss-Newton's
+        # (always positive on a non-degenerate face) where not.
+        pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
+        return xp.where(pd[..., None, None], h, gn)
+
     def step(xi, g, h, gn, w, p_edges):
-        # Free: Newton with the exact curvature where it is positive definite, Gauss-Newton's
-        # (always positive on a non-degenerate face) where not, plus its second-order
+        # Free: Newton with the model's Hessian (`model`), plus its second-order
         # correction. One working constraint: to that edge's closest point. Two: stay.
         nw = xp.sum(w, -1)
         j1 = xp.argmax(w, -1)
-        pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
-        hq = xp.where(pd[..., None, None], h, gn)
+        hq = model(h, gn)
         p0 = -_solve2(hq, g, xp)
         # Only for a Newton step that stays on the face: far outside, the correction of a poor
         # model step is no better and can stall the ratio test. The correction must stay on the
@@ -575,8 +579,7 @@ def closest_point_face(
         newly = (kkt <= tol) & ~done
         iters = xp.where(newly, it + 1, iters)
         done = done | newly
-        pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
-        hq = xp.where(pd[..., None, None], h, gn)
+        hq = model(h, gn)
         p_newton = -_solve2(hq, g, xp)
         cands = xp.stack([p_newton, chebyshev(xi, p_newton, hq)], -2)
         p_all = xp.concatenate([cands, edge_points(xi)], -2)  # [..., n_cand, 2]
@@ -643,8 +646,7 @@ def closest_point_face(
     keep = xp.zeros_like(w)
     trace = xp.maximum(gn[..., 0, 0] + gn[..., 1, 1], xp.finfo(xe.dtype).tiny)
     active = done & (objective(xi) <= tol * trace)
-    pd = (h[..., 0, 0] > 0) & (h[..., 0, 0] * h[..., 1, 1] - h[..., 0, 1] ** 2 > 0)
-    hq = xp.where(pd[..., None, None], h, gn)
+    hq = model(h, gn)
     p_free = -_solve2(hq, g, xp)
     for _ in range(3):  # (blocked at once by an edge: along that edge instead, twice at most)
         a = A[xp.argmax(keep, -1)]
@@ -997,11 +999,14 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
         use = objective(u + q[0], v + q[1]) < objective(u + p[0], v + p[1])
         return (xp.where(use, q[0], p[0]), xp.where(use, q[1], p[1]))
 
+    def model(h, gn):  # (as closest_point_face's; symmetric (00, 01, 11))
+        pd = (h[0] > 0) & (h[0] * h[2] - h[1] ** 2 > 0)
+        return tuple(xp.where(pd, h[i], gn[i]) for i in range(3))
+
     def step(u, v, g, h, gn, w, p_edges):
         nw = count(w)
         j1 = first_true(w)
-        pd = (h[0] > 0) & (h[0] * h[2] - h[1] ** 2 > 0)
-        hq = tuple(xp.where(pd, h[i], gn[i]) for i in range(3))
+        hq = model(h, gn)
         s = solve(hq, g)
         p0 = (-s[0], -s[1])
         pc = chebyshev(u, v, p0, hq)
@@ -1065,8 +1070,7 @@ def _closest_point_bilinear(r, xe, xi0, *, iterations, tol, xp):
     # it at once (as closest_point_face's, and why). Rows 0 and 1 hold u (along v), 2 and 3 v.
     keep = tuple(xp.zeros_like(w[j]) for j in range(4))
     active = done & (objective(u, v) <= tol * scale)
-    pd = (h[0] > 0) & (h[0] * h[2] - h[1] * h[1] > 0)
-    hq = tuple(xp.where(pd, h[i], gn[i]) for i in range(3))
+    hq = model(h, gn)
     p_free = solve(hq, g)
     for _ in range(3):  # (blocked at once by an edge: along that edge instead, twice at most)
         on_u, on_v = keep[0] | keep[1], keep[2] | keep[3]  # (u held: along v)
