@@ -232,7 +232,11 @@ def _from_corner(a: vec3, b: vec3, c: vec3, r: int):
 
 @wp.func
 def _node(f: int, i: int, r: int, faces: wp.array2d(dtype=int)):
-    """Node i of face f's order from corner r (arraycontact._sweep.SHIFTS)."""
+    """Node i of face f's order from corner r (arraycontact._sweep.SHIFTS; r = 0: the face's
+    own order, the only one of quads, whose nodes past the sixth the shift's arithmetic
+    would wrap)."""
+    if r == 0:
+        return faces[f, i]
     if i < 3:
         return faces[f, (i + r) % 3]
     return faces[f, 3 + (i - 3 + r) % 3]
