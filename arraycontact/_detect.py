@@ -893,8 +893,9 @@ def detect_swept(
 
     Conservative and certified (_sweep): no crossing is missed; toi is never after the exact
     first contact and at most T_TOL before it (1e-6 of the step in float64, 1e-4 in float32),
-    unless the node grazes a face, coming within about SPACE_RTOL of the pair's size (1e-9 in
-    float64, 1e-5 in float32) before touching it: then toi is that earlier time. Ties: among
+    unless the node grazes a face, coming within the contact tolerance of it before touching
+    it (delta + margin of _sweep.pair_frame: about 1e-9 of the pair's size in float64, 3.8e-5
+    in float32, where the rounding margin sets it): then toi is that earlier time. Ties: among
     faces whose toi is within T_TOL of the earliest, the smallest face id (toi stays the
     earliest). static=True: also the end-of-step closest points (`detect` at t = 1, with d_max)
     in `.static`."""
