@@ -576,8 +576,11 @@ def swept(slave_x0, slave_x1, master: Surface, master_x1):
     the in-face test at each root in time order; every other element, and tri3 pairs moving in
     a common plane (the cubic vanishes), by interval subdivision (_subdivision_swept) and a
     Newton polish of its root. The returned toi is the exact root to rounding (the cubic's
-    bracket's earlier end; Newton's root), or where Newton does not settle, the subdivision's
-    box, within a few SWEPT_TOL before it. Ties: the smallest
+    bracket's earlier end; Newton's root), or where Newton does not settle within 1e-7 of the
+    subdivision's contact box, that box's earliest time: never after the root, and before it
+    by the interval bounds' slack over the node's speed across the face (a few SWEPT_TOL; a
+    crossing at a shallow angle more: up to 2e-6 of the step was seen, bilinear quads, where
+    an answer within tolerance of the root is then after the reference's). Ties: the smallest
     face id among the faces whose toi is within `tie` (the caller's) of the earliest."""
     if not isinstance(master, Surface):
         raise ValueError("master must be an arraycontact.Surface")
