@@ -34,10 +34,10 @@ toi <= t*; toi >= t' - T_TOL, where t' is the first time the node comes within t
 tolerance delta + margin of the face (pair_frame: max(SPACE_RTOL, 4 ROUND eps) + ROUND eps
 times scale, the largest coordinate of the pair, face node 0 at the start as origin; 1e-9 in
 float64, 3.8e-5 in float32, where the rounding margin exceeds SPACE_RTOL), which is t* unless
-the node grazes the face before touching it. The bounds
-are rigorous in exact arithmetic and widened by the rounding of the computed control points
-(ROUND * eps * scale). A pair whose search exceeds VISITS boxes reports the earliest box left
-(still never late) with status NOT_CONVERGED.
+the node grazes the face before touching it. The bounds are rigorous in exact arithmetic and
+widened by the rounding of the computed control points (ROUND * eps * scale). A pair whose
+search exceeds VISITS boxes reports the earliest box left (still never late) with status
+NOT_CONVERGED.
 """
 
 from __future__ import annotations
