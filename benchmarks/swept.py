@@ -53,15 +53,16 @@ def steps(n):
         "steep": lambda: scenes.closing_step(scenes.steep_rough_surfaces(n)),
         "graded_100": lambda: scenes.closing_step(scenes.graded_surfaces(n, ratio=100.0)),
         "tyre": lambda: scenes.rolling_tyre(n, drop=1.2),
-        # Curved faces (the certified search on Bernstein hulls).
-        "rough_tri6": lambda: scenes.closing_rough_surfaces(n, element="tri6"),
-        "rough_quad8": lambda: scenes.closing_rough_surfaces(n, element="quad8"),
-        "rough_quad9": lambda: scenes.closing_rough_surfaces(n, element="quad9"),
+        **{
+            name: lambda e=e: scenes.closing_rough_surfaces(n, element=e)
+            for name, e in CURVED.items()
+        },
     }
 
 
-#: Run only when named (--only): not in the suite's default scenes.
-CURVED = ("rough_tri6", "rough_quad8", "rough_quad9")
+#: Curved faces (the certified search on Bernstein hulls), run only when named (--only): not
+#: in the suite's default scenes.
+CURVED = {f"rough_{e}": e for e in ("tri6", "quad8", "quad9")}
 
 
 def warp_swept(st, device, repeats):
